@@ -1,0 +1,24 @@
+"""File input/output shared by the stages: atomic writes, EXR/PNG images, JSON artifacts.
+
+Physics modules (``optics``, ``skin``) never import from here.
+"""
+
+from polarface.io.atomic import atomic_directory, atomic_path, write_json_atomic
+from polarface.io.images import (
+    colormap_png,
+    read_exr,
+    read_png,
+    write_exr,
+    write_png,
+)
+
+__all__ = [
+    "atomic_directory",
+    "atomic_path",
+    "colormap_png",
+    "read_exr",
+    "read_png",
+    "write_exr",
+    "write_json_atomic",
+    "write_png",
+]

@@ -1,0 +1,212 @@
+"""Float images as OpenEXR, integer images as PNG, and colour-mapped PNG previews.
+
+All arrays are numpy, channels-last ``(H, W)`` or ``(H, W, C)``. EXR holds linear float32 data;
+PNG holds 8- or 16-bit integers (raw frames are 16-bit PNG with the ADC value in the low bits).
+Writes are atomic (temporary name, then rename).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from polarface.io.atomic import atomic_path
+
+__all__ = ["colormap_png", "read_exr", "read_png", "write_exr", "write_png"]
+
+
+def write_exr(
+    path: str | os.PathLike[str],
+    channels: Mapping[str, np.ndarray] | np.ndarray,
+    names: Sequence[str] | None = None,
+    *,
+    half: bool = False,
+) -> Path:
+    """Write a multi-channel float image as OpenEXR (ZIP compression), atomically.
+
+    Args:
+        path: output file (``.exr``).
+        channels: either a mapping channel name -> ``(H, W)`` array, or one ``(H, W)`` / ``(H, W, C)``
+            array together with ``names`` (default ``Y`` for one channel, ``R,G,B`` for three,
+            ``C0..`` otherwise).
+        names: channel names for an array input.
+        half: store 16-bit half floats instead of 32-bit floats.
+
+    Raises:
+        ValueError: on mismatched shapes, NaN-free is not required (EXR stores NaN/inf faithfully).
+    """
+    import OpenEXR
+
+    if isinstance(channels, np.ndarray):
+        array = channels if channels.ndim == 3 else channels[..., None]
+        if array.ndim != 3:
+            raise ValueError(f"write_exr: image must be (H, W) or (H, W, C); got {channels.shape}")
+        count = array.shape[-1]
+        if names is None:
+            names = ["Y"] if count == 1 else ["R", "G", "B"] if count == 3 else [f"C{i}" for i in range(count)]
+        if len(names) != count:
+            raise ValueError(f"write_exr: {count} channels but {len(names)} names {list(names)}")
+        mapping = {n: array[..., i] for i, n in enumerate(names)}
+    else:
+        mapping = dict(channels)
+    if not mapping:
+        raise ValueError("write_exr: no channels to write")
+    shapes = {name: np.shape(a) for name, a in mapping.items()}
+    if len(set(shapes.values())) != 1 or len(next(iter(shapes.values()))) != 2:
+        raise ValueError(f"write_exr: every channel must be one (H, W) array; got {shapes}")
+    dtype = np.float16 if half else np.float32
+    data = {name: np.ascontiguousarray(a, dtype=dtype) for name, a in mapping.items()}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path) as tmp, OpenEXR.File(header, data) as exr:
+        exr.write(str(tmp))
+    return Path(path)
+
+
+def read_exr(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+    """Read every channel of an OpenEXR file as float32 ``(H, W)`` arrays keyed by channel name.
+
+    Interleaved RGB(A) channel groups that the binding returns as ``(H, W, C)`` are split into
+    ``R``, ``G``, ``B`` (``A``).
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        ValueError: if the file is not a readable EXR (the message names the file).
+    """
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"EXR file '{path}' does not exist")
+    try:
+        with OpenEXR.File(str(path)) as exr:
+            raw = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
+    except Exception as exc:
+        raise ValueError(f"cannot read EXR file '{path}': {exc}") from exc
+    out: dict[str, np.ndarray] = {}
+    for name, pixels in raw.items():
+        if pixels.ndim == 3:
+            letters = list(name) if len(name) == pixels.shape[-1] else [f"{name}{i}" for i in range(pixels.shape[-1])]
+            for i, letter in enumerate(letters):
+                out[letter] = pixels[..., i].astype(np.float32)
+        else:
+            out[name] = pixels.astype(np.float32)
+    return out
+
+
+def write_png(path: str | os.PathLike[str], image: np.ndarray, *, bit_depth: int = 8) -> Path:
+    """Write an integer or [0, 1]-float image as an 8- or 16-bit PNG, atomically.
+
+    Float input is clipped to [0, 1] and scaled to the full range of ``bit_depth``; integer input is
+    written as is (it must fit ``bit_depth``). Shapes: ``(H, W)`` grey, ``(H, W, 3)`` RGB,
+    ``(H, W, 4)`` RGBA (16-bit colour is written through OpenCV, which PIL cannot do).
+    """
+    import cv2
+
+    if bit_depth not in (8, 16):
+        raise ValueError(f"write_png: bit_depth must be 8 or 16, got {bit_depth}")
+    dtype = np.uint8 if bit_depth == 8 else np.uint16
+    top = np.iinfo(dtype).max
+    if np.issubdtype(image.dtype, np.floating):
+        if not np.isfinite(image).all():
+            raise ValueError("write_png: image contains NaN or inf")
+        data = np.round(np.clip(image, 0.0, 1.0) * top).astype(dtype)
+    else:
+        if image.size and (image.min() < 0 or image.max() > top):
+            raise ValueError(f"write_png: integer values must lie in [0, {top}] for {bit_depth}-bit PNG")
+        data = image.astype(dtype)
+    if data.ndim == 3 and data.shape[-1] in (3, 4):
+        data = data[..., [2, 1, 0, 3][: data.shape[-1]]]  # OpenCV stores BGR(A)
+    elif data.ndim != 2:
+        raise ValueError(f"write_png: image must be (H, W), (H, W, 3) or (H, W, 4); got {image.shape}")
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(data)):
+            raise ValueError(f"write_png: OpenCV could not write '{path}'")
+    return Path(path)
+
+
+def read_png(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a PNG (or TIFF) exactly as stored: uint8/uint16, ``(H, W)`` or ``(H, W, C)`` RGB order.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        ValueError: if the file is truncated or not an image (the message names the file).
+    """
+    from PIL import Image
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image file '{path}' does not exist")
+    try:
+        with Image.open(path) as img:
+            img.load()
+            array = np.array(img)
+    except Exception as exc:
+        raise ValueError(f"cannot read image '{path}' (truncated or not an image?): {exc}") from exc
+    if array.dtype == np.int32 or array.dtype == np.int64:  # PIL 'I' mode for 16-bit PNG
+        array = array.astype(np.uint16)
+    elif array.dtype == np.bool_:
+        array = array.astype(np.uint8)
+    return array
+
+
+def colormap_png(
+    path: str | os.PathLike[str],
+    image: np.ndarray,
+    *,
+    vmin: float | None = None,
+    vmax: float | None = None,
+    cmap: str = "viridis",
+    mask: np.ndarray | None = None,
+    title: str | None = None,
+    colorbar: bool = False,
+) -> Path:
+    """Write a scalar ``(H, W)`` map as a colour-mapped 8-bit PNG preview.
+
+    Args:
+        vmin, vmax: colour range; default the 1st/99th percentiles of the finite, unmasked values.
+        cmap: matplotlib colour map name (``twilight`` suits AoLP in [0, pi)).
+        mask: boolean ``(H, W)``; False pixels are drawn black.
+        title, colorbar: when either is given the map is drawn with matplotlib with a labelled scale
+            bar (a figure, not pixel-exact); otherwise the PNG is pixel-exact, one pixel per value.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib import colormaps
+
+    image = np.asarray(image, dtype=np.float64)
+    if image.ndim != 2:
+        raise ValueError(f"colormap_png: image must be (H, W); got {image.shape}")
+    valid = np.isfinite(image)
+    if mask is not None:
+        valid &= np.asarray(mask, dtype=bool)
+    values = image[valid]
+    lo = float(np.percentile(values, 1)) if vmin is None and values.size else (vmin or 0.0)
+    hi = float(np.percentile(values, 99)) if vmax is None and values.size else (vmax if vmax is not None else 1.0)
+    if hi <= lo:
+        hi = lo + 1e-12
+    if title is None and not colorbar:
+        normalised = np.clip((np.where(valid, image, lo) - lo) / (hi - lo), 0.0, 1.0)
+        rgba = colormaps[cmap](normalised)
+        rgba[~valid] = (0.0, 0.0, 0.0, 1.0)
+        return write_png(path, rgba[..., :3].astype(np.float64), bit_depth=8)
+
+    import matplotlib.pyplot as plt
+
+    height, width = image.shape
+    fig, ax = plt.subplots(figsize=(max(3.0, 4.0 * width / max(height, 1)) + 1.0, 4.0), dpi=100)
+    shown = np.ma.array(image, mask=~valid)
+    handle = ax.imshow(shown, cmap=cmap, vmin=lo, vmax=hi, interpolation="nearest")
+    ax.set_axis_off()
+    if title:
+        ax.set_title(title)
+    if colorbar:
+        fig.colorbar(handle, ax=ax, fraction=0.046, pad=0.04)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return Path(path)

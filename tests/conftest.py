@@ -1,0 +1,25 @@
+"""Test-wide settings: one torch thread per xdist worker, deterministic seeds, shared paths."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+torch.set_num_threads(1)
+
+TEST_DATA = Path(__file__).parent / "data"
+
+
+@pytest.fixture(autouse=True)
+def _seed() -> None:
+    torch.manual_seed(0)
+    np.random.seed(0)
+
+
+@pytest.fixture
+def test_data() -> Path:
+    """Folder of small real-data files copied into the repository (see tests/data/README.md)."""
+    return TEST_DATA

@@ -1,0 +1,51 @@
+"""EXR/PNG round trips and atomic writes."""
+
+import numpy as np
+import pytest
+
+from polarface.io import atomic_path, colormap_png, read_exr, read_png, write_exr, write_png
+
+
+def test_exr_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    a = rng.random((5, 7)).astype(np.float32)
+    write_exr(tmp_path / "a.exr", {"I0": a, "I90": 2 * a})
+    back = read_exr(tmp_path / "a.exr")
+    np.testing.assert_array_equal(back["I0"], a)
+    np.testing.assert_array_equal(back["I90"], 2 * a)
+    rgb = rng.random((4, 3, 3)).astype(np.float32)
+    write_exr(tmp_path / "rgb.exr", rgb)
+    back = read_exr(tmp_path / "rgb.exr")
+    np.testing.assert_array_equal(np.stack([back[c] for c in "RGB"], -1), rgb)
+
+
+def test_png_round_trip_16bit(tmp_path):
+    raw = (np.arange(64, dtype=np.uint16).reshape(8, 8) * 60).astype(np.uint16)
+    write_png(tmp_path / "raw.png", raw, bit_depth=16)
+    back = read_png(tmp_path / "raw.png")
+    assert back.dtype == np.uint16
+    np.testing.assert_array_equal(back, raw)
+
+
+def test_truncated_png_named(tmp_path):
+    write_png(tmp_path / "x.png", np.zeros((16, 16), np.uint8))
+    data = (tmp_path / "x.png").read_bytes()
+    (tmp_path / "bad.png").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="bad.png"):
+        read_png(tmp_path / "bad.png")
+
+
+def test_atomic_path_leaves_nothing_on_error(tmp_path):
+    with pytest.raises(RuntimeError), atomic_path(tmp_path / "out.json") as tmp:
+        tmp.write_text("partial")
+        raise RuntimeError("crash")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_colormap_png(tmp_path):
+    img = np.linspace(0, 1, 100).reshape(10, 10)
+    colormap_png(tmp_path / "c.png", img, mask=img > 0.2)
+    out = read_png(tmp_path / "c.png")
+    assert out.shape == (10, 10, 3) and (out[0, 0] == 0).all()
+    colormap_png(tmp_path / "d.png", img, title="t", colorbar=True)
+    assert read_png(tmp_path / "d.png").ndim == 3
