@@ -1,1 +1,92 @@
-"""polarface.geometry"""
+"""Geometry: meshes with UV atlases, the bundled head, cameras, Embree ray casting, UV rasterisation,
+normals from heights (torch, differentiable), rigid poses and expression deformations.
+
+Units mm, angles radians; cameras in the OpenCV convention; UVs v up (``docs/geometry.md``).
+"""
+
+from polarface.geometry.camera import PinholeCamera, distort_normalized, undistort_normalized
+from polarface.geometry.deform import (
+    EXPRESSIONS,
+    ExpressionConfig,
+    ExpressionRig,
+    dynamic_sequence_weights,
+    flipped_faces,
+    smooth_falloff,
+)
+from polarface.geometry.head_asset import HeadAsset, load_head_asset, pick_landmark, srgb_to_linear
+from polarface.geometry.heights import height_gradients, normals_from_height_gradients, normals_from_heights
+from polarface.geometry.mesh import (
+    TriangleMesh,
+    face_areas,
+    face_normals,
+    load_mesh,
+    save_obj,
+    save_ply,
+    vertex_normals,
+)
+from polarface.geometry.poses import (
+    StaticSequenceConfig,
+    check_rigid,
+    euler_from_rotation,
+    invert_rigid,
+    load_poses,
+    rigid_transform,
+    rotation_from_euler,
+    save_poses,
+    static_sequence_poses,
+)
+from polarface.geometry.raycast import RayCaster, RayHits, embree_available
+from polarface.geometry.uv_raster import (
+    UVRaster,
+    dilate_texture,
+    rasterize_uv,
+    reposition,
+    sample_texture,
+    texel_uv,
+    texels_to_world,
+)
+
+__all__ = [
+    "EXPRESSIONS",
+    "ExpressionConfig",
+    "ExpressionRig",
+    "HeadAsset",
+    "PinholeCamera",
+    "RayCaster",
+    "RayHits",
+    "StaticSequenceConfig",
+    "TriangleMesh",
+    "UVRaster",
+    "check_rigid",
+    "dilate_texture",
+    "distort_normalized",
+    "dynamic_sequence_weights",
+    "embree_available",
+    "euler_from_rotation",
+    "face_areas",
+    "face_normals",
+    "flipped_faces",
+    "height_gradients",
+    "invert_rigid",
+    "load_head_asset",
+    "load_mesh",
+    "load_poses",
+    "normals_from_height_gradients",
+    "normals_from_heights",
+    "pick_landmark",
+    "rasterize_uv",
+    "reposition",
+    "rigid_transform",
+    "rotation_from_euler",
+    "sample_texture",
+    "save_obj",
+    "save_ply",
+    "save_poses",
+    "smooth_falloff",
+    "srgb_to_linear",
+    "static_sequence_poses",
+    "texel_uv",
+    "texels_to_world",
+    "undistort_normalized",
+    "vertex_normals",
+]
