@@ -2,8 +2,57 @@
 
 Pure, differentiable, device- and dtype-agnostic torch functions; numpy/float in gives the same
 kind out. Conventions (units, frames, the T = 1 - R choice) are in ``docs/conventions.md``.
+
+Modules: :mod:`~polarface.optics.stokes` (analyzer images, DoP, AoLP), :mod:`~polarface.optics.fresnel`,
+:mod:`~polarface.optics.mueller` (rotator, polarizer, depolarizer, Fresnel matrices, Stokes frames),
+:mod:`~polarface.optics.microfacet` (GGX, Smith), :mod:`~polarface.optics.dop` (diffuse/specular DoP and
+inverses), :mod:`~polarface.optics.pbssrdf` (full Mueller matrices P_s, P_ss, P_sss, coaxial model) and
+:mod:`~polarface.optics.image_formation` (fast per-pixel forward model) and
+:mod:`~polarface.optics.precomputed` (the same with the geometry precomputed, for inverse rendering).
 """
 
+from polarface.optics.dop import (
+    diffuse_dop,
+    max_diffuse_dop,
+    specular_dop,
+    zenith_from_diffuse_dop,
+    zenith_from_specular_dop,
+)
+from polarface.optics.fresnel import (
+    FresnelTerms,
+    brewster_angle,
+    fresnel_reflectance,
+    fresnel_terms,
+    fresnel_transmittance,
+    fresnel_transmittance_exit,
+)
+from polarface.optics.image_formation import (
+    DEFAULT_LIGHT_STOKES,
+    PolarimetricImages,
+    render_polarimetric,
+    subsurface_entry_flux,
+    subsurface_exit_stokes,
+)
+from polarface.optics.microfacet import ggx_d, smith_g, smith_g1, smith_g1_over_cos
+from polarface.optics.mueller import (
+    depolarizer,
+    double_angle_cos_sin,
+    frame_rotation_angle,
+    incidence_frame_angle,
+    linear_polarizer,
+    mueller_fresnel_reflection,
+    mueller_fresnel_transmission,
+    plane_azimuth,
+    rotator,
+    stokes_frame,
+)
+from polarface.optics.pbssrdf import (
+    pbssrdf_coaxial_mueller,
+    pbssrdf_mueller,
+    pbssrdf_specular_mueller,
+    pbssrdf_subsurface_mueller,
+)
+from polarface.optics.precomputed import PrecomputedGeometry, precompute_geometry, render_precomputed
 from polarface.optics.stokes import (
     ANALYZER_ANGLES,
     analyzer_intensity,
@@ -15,9 +64,46 @@ from polarface.optics.stokes import (
 
 __all__ = [
     "ANALYZER_ANGLES",
+    "DEFAULT_LIGHT_STOKES",
+    "FresnelTerms",
+    "PolarimetricImages",
+    "PrecomputedGeometry",
     "analyzer_intensity",
     "aolp",
+    "brewster_angle",
+    "depolarizer",
+    "diffuse_dop",
+    "double_angle_cos_sin",
+    "frame_rotation_angle",
+    "fresnel_reflectance",
+    "fresnel_terms",
+    "fresnel_transmittance",
+    "fresnel_transmittance_exit",
+    "ggx_d",
+    "incidence_frame_angle",
     "intensities_from_stokes",
     "linear_dop",
+    "linear_polarizer",
+    "max_diffuse_dop",
+    "mueller_fresnel_reflection",
+    "mueller_fresnel_transmission",
+    "pbssrdf_coaxial_mueller",
+    "pbssrdf_mueller",
+    "pbssrdf_specular_mueller",
+    "pbssrdf_subsurface_mueller",
+    "plane_azimuth",
+    "precompute_geometry",
+    "render_polarimetric",
+    "render_precomputed",
+    "rotator",
+    "smith_g",
+    "smith_g1",
+    "smith_g1_over_cos",
+    "specular_dop",
+    "stokes_frame",
     "stokes_from_intensities",
+    "subsurface_entry_flux",
+    "subsurface_exit_stokes",
+    "zenith_from_diffuse_dop",
+    "zenith_from_specular_dop",
 ]

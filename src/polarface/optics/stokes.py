@@ -51,7 +51,8 @@ def analyzer_intensity(stokes: torch.Tensor, theta: torch.Tensor) -> torch.Tenso
     """
     _check_stokes(stokes)
     two_theta = 2.0 * theta
-    return 0.5 * (stokes[..., 0] + stokes[..., 1] * torch.cos(two_theta) + stokes[..., 2] * torch.sin(two_theta))
+    s0, s1, s2 = stokes[..., 0], stokes[..., 1], stokes[..., 2]
+    return 0.5 * (s0 + s1 * torch.cos(two_theta) + s2 * torch.sin(two_theta))
 
 
 @array_api("i0", "i45", "i90", "i135")
@@ -102,7 +103,8 @@ def linear_dop(stokes: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     s0 = stokes[..., 0]
     squared = stokes[..., 1] ** 2 + stokes[..., 2] ** 2
     positive = squared > 0
-    magnitude = torch.where(positive, torch.sqrt(torch.where(positive, squared, torch.ones_like(squared))), 0.0)
+    safe = torch.where(positive, squared, torch.ones_like(squared))
+    magnitude = torch.where(positive, torch.sqrt(safe), 0.0)
     lit = s0 > eps
     return torch.where(lit, magnitude / torch.where(lit, s0, torch.ones_like(s0)), torch.zeros_like(s0))
 
