@@ -1,0 +1,513 @@
+"""The capture store: raw frames, manifest and chunked derived arrays of one capture session.
+
+Layout (documented in ``docs/capture_store.md``)::
+
+    CAPTURE/
+      rig.json                    the rig (polarface.capture.rig.Rig)
+      manifest.json               frames, timestamps, sequence kind, raw file names (rewritten after
+                                  every frame; ``complete`` becomes true in finalize)
+      raw/<camera_id>/<frame:06d>.png   raw counts, 16-bit PNG (8-bit for <= 8-bit cameras)
+      frames/<frame:06d>.json     completion marker of one frame (written last, atomically)
+      derived.zarr/               zarr v3 group (Blosc-LZ4 + shuffle), one slot per frame index on axis 0:
+        stacks/<camera_id>        float32 (F, 4, H, W[, 3])  I0, I45, I90, I135
+        masks/<camera_id>         uint8   (F, H, W)  bit 0 saturated, bit 1 repaired defect
+        spectral/stacks           float32 (F, 4, H, W, 6)  the two Dolby cameras merged on the
+                                  reference camera's grid (plane fallback of
+                                  polarface.capture.observations.merge_six_channels)
+        spectral/valid            uint8   (F, H, W)  1 where both cameras see the pixel unsaturated
+
+Observations (i_sss, i_zeta, i_s, dop, aolp) are derived on read from the stored stacks, for the
+requested region only (:meth:`CaptureStore.observation`, :meth:`CaptureStore.spectral_observation`):
+they cost no disk and cannot disagree with the stacks.
+
+Atomicity: raw PNGs and JSON files are written through :mod:`polarface.io.atomic`; zarr chunks are
+written before a frame's marker, and a marker is removed before its frame is rewritten, so a crash
+leaves either a complete frame or a frame without marker, which readers refuse and a rerun redoes.
+Arrays grow along the frame axis; one frame of one camera is in memory at a time.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from polarface.capture.demosaic import DemosaicMethod, PolarizationStack, demosaic_camera
+from polarface.capture.observations import (
+    OBSERVATION_NAMES,
+    merge_six_channels,
+    observations_from_stack,
+)
+from polarface.capture.rig import Camera, Rig
+from polarface.io.atomic import write_json_atomic
+from polarface.io.images import read_png, write_png
+
+__all__ = ["CaptureStore", "FrameRecord", "raw_bit_depth_ok"]
+
+FORMAT = "polarface-capture"
+VERSION = 1
+_POLARIZATION = ("mono-polarization", "color-polarization")
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One frame of the manifest.
+
+    Attributes:
+        index: frame index (>= 0), the slot along axis 0 of the derived arrays.
+        timestamp: seconds since the start of the sequence.
+        raw: camera id -> raw file path relative to the store root.
+        derived: True when the derived arrays of the polarimetric cameras are complete.
+    """
+
+    index: int
+    timestamp: float
+    raw: dict[str, str]
+    derived: bool
+
+
+def raw_bit_depth_ok(raw: np.ndarray, camera: Camera) -> None:
+    """Raise ``ValueError`` if ``raw`` does not fit ``camera`` (dtype, size, bit depth, range)."""
+    if not np.issubdtype(raw.dtype, np.integer):
+        raise ValueError(f"raw frame of camera '{camera.id}' must be integer counts; got dtype {raw.dtype}")
+    expected = (camera.height, camera.width) if camera.sensor != "rgb" else None
+    if expected and raw.shape != expected:
+        raise ValueError(f"raw frame of camera '{camera.id}' has shape {raw.shape}; rig declares {expected}")
+    if camera.sensor == "rgb" and raw.shape[:2] != (camera.height, camera.width):
+        raise ValueError(
+            f"image of camera '{camera.id}' has shape {raw.shape}; rig declares "
+            f"{(camera.height, camera.width)}"
+        )
+    if camera.bit_depth > 8 and raw.dtype == np.uint8:
+        raise ValueError(
+            f"raw frame of camera '{camera.id}' is 8-bit but the rig declares bit_depth {camera.bit_depth}"
+        )
+    if raw.size and (raw.min() < 0 or raw.max() > 2**camera.bit_depth - 1):
+        raise ValueError(
+            f"raw frame of camera '{camera.id}' has values up to {raw.max()}, "
+            f"beyond bit_depth {camera.bit_depth}"
+        )
+
+
+def _observation(intensities: np.ndarray, name: str) -> np.ndarray:
+    flags = np.zeros(intensities.shape[1:3], dtype=bool)
+    return getattr(observations_from_stack(PolarizationStack(intensities, flags, flags)), name)
+
+
+def _digest(raw: np.ndarray) -> str:
+    return hashlib.sha1(np.ascontiguousarray(raw).tobytes() + str(raw.shape).encode()).hexdigest()
+
+
+class CaptureStore:
+    """A capture store directory (see the module docstring). Use :meth:`create` or :meth:`open`."""
+
+    def __init__(self, root: Path, rig: Rig, sequence: str, chunk: int = 512) -> None:
+        self.root = Path(root)
+        self.rig = rig
+        self.sequence = sequence
+        self.chunk = chunk
+        self.plane_distance_mm: float | None = None  # None: the rig's convergence distance
+        self._group = None
+
+    # ----------------------------------------------------------------------------------- writer
+    @classmethod
+    def create(
+        cls,
+        path: str | os.PathLike[str],
+        rig: Rig,
+        *,
+        sequence: Literal["static", "dynamic"] = "static",
+        chunk: int = 512,
+    ) -> CaptureStore:
+        """Create a store, or reopen an unfinished/finished one with the same rig to resume.
+
+        Raises:
+            ValueError: on a bad ``sequence``, or an existing store with a different rig.
+        """
+        if sequence not in ("static", "dynamic"):
+            raise ValueError(f"argument 'sequence' must be 'static' or 'dynamic'; got {sequence!r}")
+        root = Path(path)
+        rig_path = root / "rig.json"
+        if rig_path.exists():
+            existing = Rig.load(rig_path)
+            if existing.model_dump(mode="json") != rig.model_dump(mode="json"):
+                raise ValueError(f"store '{root}' exists with a different rig.json; choose another output")
+        else:
+            if root.exists() and any(root.iterdir()):
+                raise ValueError(f"output '{root}' exists and is not a capture store")
+            root.mkdir(parents=True, exist_ok=True)
+            rig.save(rig_path)
+        (root / "frames").mkdir(exist_ok=True)
+        store = cls(root, rig, sequence, chunk)
+        store._write_manifest(complete=False)
+        return store
+
+    def add_frame(
+        self,
+        frame_index: int,
+        timestamp: float,
+        raws: Mapping[str, np.ndarray],
+        *,
+        process: bool = True,
+        method: DemosaicMethod = "residual",
+    ) -> bool:
+        """Store one frame: raw PNGs, then (``process``) stacks, masks and observations, then the marker.
+
+        A frame whose marker records the same raw content (and derived state) is skipped (resume).
+
+        Args:
+            frame_index: slot >= 0.
+            timestamp: seconds.
+            raws: camera id -> raw counts ``(H, W)`` (integer); every polarimetric camera of the rig.
+            process: compute the derived arrays.
+            method: demosaicing method.
+
+        Returns:
+            True if the frame was written, False if skipped as already complete.
+
+        Raises:
+            ValueError: unknown camera, missing polarimetric camera, wrong size/bit depth/dtype.
+        """
+        if int(frame_index) != frame_index or frame_index < 0:
+            raise ValueError(f"argument 'frame_index' must be a non-negative integer; got {frame_index}")
+        if not np.isfinite(timestamp):
+            raise ValueError(f"argument 'timestamp' must be finite; got {timestamp}")
+        frame_index = int(frame_index)
+        for cam_id in raws:
+            self.rig.camera(cam_id)
+        missing = [c.id for c in self.rig.polarimetric_cameras() if c.id not in raws]
+        if missing:
+            raise ValueError(f"frame {frame_index}: raw frames missing for polarimetric camera(s) {missing}")
+        arrays = {cam_id: np.asarray(raw) for cam_id, raw in raws.items()}
+        for cam_id, raw in arrays.items():
+            raw_bit_depth_ok(raw, self.rig.camera(cam_id))
+        digests = {cam_id: _digest(raw) for cam_id, raw in arrays.items()}
+        marker_path = self._marker(frame_index)
+        if marker_path.exists():
+            old = json.loads(marker_path.read_text(encoding="utf-8"))
+            if (
+                old.get("digests") == digests
+                and old.get("derived", False) >= process
+                and (not process or old.get("method") == method)
+            ):
+                return False
+            marker_path.unlink()  # the frame is rewritten: untrust it first
+            self._write_manifest(complete=False)
+        raw_paths = {}
+        for cam_id, raw in arrays.items():
+            relative = f"raw/{cam_id}/{frame_index:06d}.png"
+            bit_depth = 8 if self.rig.camera(cam_id).bit_depth <= 8 else 16
+            write_png(self.root / relative, raw, bit_depth=bit_depth)
+            raw_paths[cam_id] = relative
+        if process:
+            stacks = {}
+            for camera in self.rig.polarimetric_cameras():
+                if camera.sensor in _POLARIZATION:
+                    stacks[camera.id] = self._write_derived(frame_index, camera, arrays[camera.id], method)
+            if self.spectral_reference is not None:
+                self._write_spectral(frame_index, stacks)
+        marker = {
+            "frame_index": frame_index,
+            "timestamp": float(timestamp),
+            "raw": raw_paths,
+            "digests": digests,
+            "derived": bool(process),
+            "method": method if process else None,
+        }
+        write_json_atomic(marker_path, marker)
+        self._write_manifest(complete=False)
+        return True
+
+    def finalize(self) -> dict:
+        """Write ``manifest.json`` listing every completed frame, then validate the store."""
+        manifest = self._write_manifest(complete=True)
+        self.validate()
+        return manifest
+
+    # ----------------------------------------------------------------------------------- reader
+    @classmethod
+    def open(cls, path: str | os.PathLike[str], *, validate: bool = True) -> CaptureStore:
+        """Open an existing store (reads ``rig.json`` and ``manifest.json``; validates by default).
+
+        Raises:
+            FileNotFoundError: if the store, its rig or its manifest is missing.
+            ValueError: on an invalid rig/manifest or files that disagree with the manifest.
+        """
+        root = Path(path)
+        manifest_path = root / "manifest.json"
+        if not manifest_path.is_file():
+            raise FileNotFoundError(f"'{root}' is not a capture store: no manifest.json")
+        rig = Rig.load(root / "rig.json")
+        manifest = cls._read_manifest(manifest_path)
+        store = cls(root, rig, manifest["sequence"])
+        if validate:
+            store.validate()
+        return store
+
+    @property
+    def manifest(self) -> dict:
+        """The parsed ``manifest.json``."""
+        return self._read_manifest(self.root / "manifest.json")
+
+    @property
+    def frames(self) -> list[FrameRecord]:
+        """Frames listed in the manifest, in index order."""
+        return [
+            FrameRecord(int(f["index"]), float(f["timestamp"]), dict(f["raw"]), bool(f.get("derived", False)))
+            for f in self.manifest["frames"]
+        ]
+
+    def __iter__(self) -> Iterator[FrameRecord]:
+        return iter(self.frames)
+
+    def validate(self, *, deep: bool = False) -> None:
+        """Check the manifest against the files; ``deep`` also reads every raw frame's values.
+
+        Raises:
+            ValueError: listing every problem (missing raw file or frame marker, camera not in the
+                rig, wrong image size or bit depth, raw files not in the manifest).
+        """
+        from PIL import Image
+
+        problems: list[str] = []
+        listed: set[str] = set()
+        camera_sets = set()
+        for frame in self.frames:
+            if not self._marker(frame.index).is_file():
+                problems.append(
+                    f"frame {frame.index}: completion marker frames/{frame.index:06d}.json is missing"
+                )
+            camera_sets.add(tuple(sorted(frame.raw)))
+            for cam_id, relative in frame.raw.items():
+                listed.add(relative)
+                try:
+                    camera = self.rig.camera(cam_id)
+                except ValueError as exc:
+                    problems.append(f"frame {frame.index}: {exc}")
+                    continue
+                path = self.root / relative
+                if not path.is_file():
+                    problems.append(
+                        f"frame {frame.index}: raw file '{relative}' of camera '{cam_id}' is missing"
+                    )
+                    continue
+                try:
+                    with Image.open(path) as img:
+                        size, mode = img.size, img.mode
+                except Exception as exc:
+                    problems.append(f"frame {frame.index}: raw file '{relative}' is not an image ({exc})")
+                    continue
+                if (size[1], size[0]) != (camera.height, camera.width):
+                    problems.append(
+                        f"frame {frame.index}: '{relative}' is {size[0]}x{size[1]}, camera "
+                        f"'{cam_id}' declares {camera.width}x{camera.height}"
+                    )
+                if camera.bit_depth > 8 and mode in ("L", "P", "1", "RGB"):
+                    problems.append(
+                        f"frame {frame.index}: '{relative}' is 8-bit ({mode}), camera '{cam_id}' "
+                        f"declares bit_depth {camera.bit_depth}"
+                    )
+                if deep:
+                    try:
+                        raw_bit_depth_ok(read_png(path), camera)
+                    except ValueError as exc:
+                        problems.append(f"frame {frame.index}: '{relative}': {exc}")
+        if len(camera_sets) > 1:
+            problems.append(f"frames hold different camera sets: {sorted(camera_sets)}")
+        raw_dir = self.root / "raw"
+        if raw_dir.is_dir():
+            for path in sorted(raw_dir.glob("*/*")):
+                relative = path.relative_to(self.root).as_posix()
+                if not path.name.startswith(".tmp-") and relative not in listed:
+                    problems.append(f"raw file '{relative}' is not in the manifest")
+        if problems:
+            raise ValueError(f"capture store '{self.root}' is invalid:\n  " + "\n  ".join(problems))
+
+    def read_raw(self, frame_index: int, camera_id: str) -> np.ndarray:
+        """Raw counts of one frame of one camera, as stored."""
+        record = self._record(frame_index)
+        if camera_id not in record.raw:
+            raise ValueError(f"frame {frame_index} has no raw frame for camera '{camera_id}'")
+        return read_png(self.root / record.raw[camera_id])
+
+    def stack(
+        self, frame_index: int, camera_id: str, region: tuple[slice, slice] | None = None
+    ) -> np.ndarray:
+        """Float32 ``(4, h, w[, 3])`` I0/I45/I90/I135 of a frame, read lazily (only ``region``)."""
+        array = self._derived_array(f"stacks/{camera_id}", frame_index)
+        rows, cols = region or (slice(None), slice(None))
+        return np.asarray(array[frame_index, :, rows, cols])
+
+    def mask(self, frame_index: int, camera_id: str, region: tuple[slice, slice] | None = None) -> np.ndarray:
+        """uint8 ``(h, w)`` mask bits (1 saturated, 2 repaired defect) of a frame."""
+        array = self._derived_array(f"masks/{camera_id}", frame_index)
+        rows, cols = region or (slice(None), slice(None))
+        return np.asarray(array[frame_index, rows, cols])
+
+    def observation(
+        self, name: str, frame_index: int, camera_id: str, region: tuple[slice, slice] | None = None
+    ) -> np.ndarray:
+        """One observation image (``i_sss``, ``i_zeta``, ``i_s``, ``dop``, ``aolp``), float32
+        ``(h, w[, 3])``, computed from the stored stack of ``region`` only."""
+        if name not in OBSERVATION_NAMES:
+            raise ValueError(f"argument 'name' must be one of {OBSERVATION_NAMES}; got {name!r}")
+        return _observation(self.stack(frame_index, camera_id, region), name)
+
+    # -------------------------------------------------------------------------------- internals
+    def _marker(self, frame_index: int) -> Path:
+        return self.root / "frames" / f"{frame_index:06d}.json"
+
+    def _record(self, frame_index: int) -> FrameRecord:
+        for frame in self.frames:
+            if frame.index == frame_index:
+                return frame
+        raise ValueError(f"frame {frame_index} is not in the manifest of '{self.root}'")
+
+    def _zarr(self, mode: str = "a"):
+        import zarr
+
+        if self._group is None or mode == "a":
+            self._group = zarr.open_group(self.root / "derived.zarr", mode=mode)
+        return self._group
+
+    def _derived_array(self, name: str, frame_index: int):
+        record = self._record(frame_index)
+        if not record.derived:
+            raise ValueError(f"frame {frame_index} has no completed derived arrays (rerun ingest)")
+        try:
+            return self._zarr("r")[name]
+        except (KeyError, FileNotFoundError) as exc:
+            raise ValueError(f"derived array '{name}' is missing from '{self.root}/derived.zarr'") from exc
+
+    def _ensure(self, name: str, frame_index: int, tail: tuple[int, ...], dtype: str, spatial_axis: int):
+        group = self._zarr("a")
+        chunks = [1, *tail]
+        for axis in (spatial_axis, spatial_axis + 1):
+            chunks[axis + 1] = min(self.chunk, tail[axis])
+        if spatial_axis == 1:
+            chunks[1] = 1
+        if name in group:
+            array = group[name]
+            if tuple(array.shape[1:]) != tail:
+                raise ValueError(f"derived array '{name}' has shape {array.shape}, expected (F, {tail})")
+            if array.shape[0] <= frame_index:
+                array.resize((frame_index + 1, *tail))
+            return array
+        fill = 0 if dtype == "uint8" else float("nan")
+        from zarr.codecs import BloscCodec
+
+        return group.create_array(
+            name,
+            compressors=[BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")],
+            shape=(frame_index + 1, *tail),
+            chunks=tuple(chunks),
+            dtype=dtype,
+            fill_value=fill,
+        )
+
+    @property
+    def spectral_reference(self) -> str | None:
+        """Reference camera of the six-channel merge: the first polarimetric colour camera, when the
+        polarimetric colour cameras' ``colour_channels`` cover channels 0..5 exactly; else None."""
+        cameras = [c for c in self.rig.polarimetric_cameras() if c.sensor == "color-polarization"]
+        channels = sorted(v for c in cameras for v in c.colour_channels.values())
+        return cameras[0].id if channels == list(range(6)) else None
+
+    def spectral_stack(self, frame_index: int, region: tuple[slice, slice] | None = None) -> np.ndarray:
+        """Float32 ``(4, h, w, 6)`` six-channel I0/I45/I90/I135 on the reference grid, read lazily."""
+        array = self._derived_array("spectral/stacks", frame_index)
+        rows, cols = region or (slice(None), slice(None))
+        return np.asarray(array[frame_index, :, rows, cols])
+
+    def spectral_observation(
+        self, name: str, frame_index: int, region: tuple[slice, slice] | None = None
+    ) -> np.ndarray:
+        """One six-channel observation float32 ``(h, w, 6)`` on the reference grid (from the stack)."""
+        if name not in OBSERVATION_NAMES:
+            raise ValueError(f"argument 'name' must be one of {OBSERVATION_NAMES}; got {name!r}")
+        return _observation(self.spectral_stack(frame_index, region), name)
+
+    def spectral_valid(self, frame_index: int, region: tuple[slice, slice] | None = None) -> np.ndarray:
+        """bool ``(h, w)``: the merged pixel is seen unsaturated by both cameras."""
+        array = self._derived_array("spectral/valid", frame_index)
+        rows, cols = region or (slice(None), slice(None))
+        return np.asarray(array[frame_index, rows, cols]).astype(bool)
+
+    def _write_spectral(self, frame_index: int, stacks: dict) -> None:
+        reference = self.spectral_reference
+        cameras = [c.id for c in self.rig.polarimetric_cameras() if c.sensor == "color-polarization"]
+        merged, valid = merge_six_channels(
+            {cam: stacks[cam].intensities for cam in cameras},
+            self.rig,
+            reference,
+            plane_distance_mm=self.plane_distance_mm,
+            masks={cam: stacks[cam].valid for cam in cameras},
+        )
+        shape = merged.shape[1:3]
+        self._ensure("spectral/stacks", frame_index, merged.shape, "float32", 1)[frame_index] = merged
+        self._ensure("spectral/valid", frame_index, shape, "uint8", 0)[frame_index] = valid.astype(np.uint8)
+
+    def _write_derived(
+        self, frame_index: int, camera: Camera, raw: np.ndarray, method: DemosaicMethod
+    ) -> PolarizationStack:
+        stack = demosaic_camera(raw, camera, method=method)
+        image_tail = stack.intensities.shape[1:]
+        stacks = self._ensure(f"stacks/{camera.id}", frame_index, (4, *image_tail), "float32", 1)
+        stacks[frame_index] = stack.intensities
+        mask = stack.saturated.astype(np.uint8) | (stack.defects.astype(np.uint8) << 1)
+        self._ensure(f"masks/{camera.id}", frame_index, mask.shape, "uint8", 0)[frame_index] = mask
+        return stack
+
+    def _write_manifest(self, *, complete: bool) -> dict:
+        frames = []
+        for path in sorted((self.root / "frames").glob("[0-9]*.json")):
+            marker = json.loads(path.read_text(encoding="utf-8"))
+            frames.append(
+                {
+                    "index": marker["frame_index"],
+                    "timestamp": marker["timestamp"],
+                    "raw": marker["raw"],
+                    "derived": marker["derived"],
+                    "method": marker.get("method"),
+                }
+            )
+        frames.sort(key=lambda f: f["index"])
+        manifest = {
+            "format": FORMAT,
+            "version": VERSION,
+            "sequence": self.sequence,
+            "complete": complete,
+            "frame_count": len(frames),
+            "cameras": [c.id for c in self.rig.cameras],
+            "derived_store": "derived.zarr",
+            "observations": list(OBSERVATION_NAMES),
+            "frames": frames,
+        }
+        write_json_atomic(self.root / "manifest.json", manifest)
+        return manifest
+
+    @staticmethod
+    def _read_manifest(path: Path) -> dict:
+        try:
+            manifest = json.loads(path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"manifest '{path}' is not valid JSON: {exc}") from exc
+        if manifest.get("format") != FORMAT:
+            raise ValueError(f"manifest '{path}': field 'format' must be {FORMAT!r}")
+        if manifest.get("sequence") not in ("static", "dynamic"):
+            raise ValueError(f"manifest '{path}': field 'sequence' must be 'static' or 'dynamic'")
+        frames = manifest.get("frames")
+        if not isinstance(frames, list) or any(not {"index", "timestamp", "raw"} <= set(f) for f in frames):
+            raise ValueError(
+                f"manifest '{path}': field 'frames' must list objects with index, timestamp, raw"
+            )
+        indices = [f["index"] for f in frames]
+        if len(set(indices)) != len(indices):
+            raise ValueError(f"manifest '{path}': duplicated frame indices")
+        return manifest

@@ -1,0 +1,45 @@
+"""Build a capture store from raw frames: RAW_DIR/<camera_id>/<frame>.png plus a rig.json.
+
+See ``docs/capture_store.md`` for the RAW_DIR layout (optional ``timestamps.csv``) and for the store
+layout (``rig.json``, ``manifest.json``, ``raw/``, ``frames/``, ``derived.zarr``). Rerunning on the
+same output resumes: completed frames with unchanged raw data are skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+NAME = "ingest"
+HELP = "validate raw frames against a rig and build a capture store with observations"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("raw_dir", type=Path, help="RAW_DIR/<camera_id>/<frame>.png")
+    parser.add_argument("--rig", type=Path, required=True, help="rig.json")
+    parser.add_argument("--out", type=Path, required=True, help="capture store directory")
+    parser.add_argument("--sequence", default="static", choices=["static", "dynamic"])
+    parser.add_argument("--method", default="residual", choices=["residual", "bilinear"])
+    parser.add_argument("--fps", type=float, default=20.0, help="frame rate when there is no timestamps.csv")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from polarface.capture.ingest import ingest_directory
+    from polarface.capture.rig import Rig
+
+    rig = Rig.load(args.rig)
+    store = ingest_directory(
+        args.raw_dir,
+        rig,
+        args.out,
+        sequence=args.sequence,
+        method=args.method,
+        fps=args.fps,
+        progress=not args.no_progress,
+    )
+    print(
+        f"capture store '{store.root}': {len(store.frames)} frame(s), cameras "
+        f"{sorted({c for f in store.frames for c in f.raw})}"
+    )
+    return 0

@@ -1,0 +1,146 @@
+"""polarface.capture.rig: schema validation, load/save, the paper rig."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from polarface.capture.rig import Camera, LightModule, Rig, SpectralModel, look_at, paper_rig
+
+
+def _camera(**overrides):
+    data = {
+        "id": "cam0",
+        "role": "polarimetric",
+        "sensor": "mono-polarization",
+        "width": 64,
+        "height": 48,
+        "K": [[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]],
+    }
+    data.update(overrides)
+    return data
+
+
+def test_paper_rig_structure():
+    rig = paper_rig()
+    assert len(rig.polarimetric_cameras()) == 2 and len(rig.cameras) == 10 and len(rig.lights) == 8
+    upper, lower = rig.camera("pol_upper"), rig.camera("pol_lower")
+    assert sorted([*upper.colour_channels.values(), *lower.colour_channels.values()]) == list(range(6))
+    assert upper.sensor == "color-polarization" and upper.width == 2448 and upper.height == 2048
+    # 250 mm field at 1 m
+    assert upper.intrinsics[0, 0] * 0.25 == pytest.approx(2448)
+    # lights: 100 mm radius around the lens axis -> 5.72 deg at 1 m
+    for light in rig.lights:
+        radius = math.hypot(*light.position_mm[:2])
+        assert math.degrees(math.atan2(radius, 1000.0)) == pytest.approx(5.71, abs=0.02)
+        assert light.stokes == (1.0, 1.0, 0.0, 0.0)
+    # cameras verge on the face centre
+    face = np.array([0.0, 0.0, 1000.0, 1.0])
+    for camera in rig.cameras:
+        point = camera.pose @ face
+        pixel = camera.intrinsics @ (point[:3] / point[2])
+        assert pixel[:2] == pytest.approx([(camera.width - 1) / 2, (camera.height - 1) / 2], abs=1e-6)
+
+
+def test_paper_rig_presets_scale():
+    small = paper_rig(scale=2.0, width=64, height=48)
+    assert small.camera("pol_upper").K[0][0] == pytest.approx(256.0)
+    assert small.camera("pol_upper").K[0][2] == pytest.approx(31.5)
+    assert math.hypot(*small.lights[0].position_mm[:2]) == pytest.approx(200.0)
+    with pytest.raises(ValueError, match="multiples of 4"):
+        paper_rig(width=30, height=48)
+    with pytest.raises(ValueError, match="scale"):
+        paper_rig(scale=0)
+
+
+def test_save_load_roundtrip(tmp_path):
+    rig = paper_rig(width=64, height=48)
+    path = rig.save(tmp_path / "rig.json")
+    assert Rig.load(path) == rig
+    assert not list(tmp_path.glob(".tmp-*"))
+
+
+@pytest.mark.parametrize(
+    ("overrides", "field"),
+    [
+        ({"K": [[1, 0], [0, 1]]}, "K"),
+        ({"K": [[-1, 0, 0], [0, 1, 0], [0, 0, 1]]}, "K"),
+        ({"world_to_camera": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, "world_to_camera"),
+        ({"sensor": "thermal"}, "sensor"),
+        ({"role": "hero"}, "role"),
+        ({"width": 0}, "width"),
+        ({"bit_depth": 12, "white_level": 5000}, "white_level"),
+        ({"black_level": -1}, "black_level"),
+        ({"distortion": [0.1, 0.2, 0.3]}, "distortion"),
+        ({"colour_channels": {"R": 7}}, "colour_channels"),
+        ({"colour_channels": {"R": 1}}, "mono-polarization"),
+        ({"unknown": 1}, "unknown"),
+    ],
+)
+def test_camera_errors_name_field(overrides, field):
+    with pytest.raises(ValueError, match=field):
+        Camera.model_validate(_camera(**overrides))
+
+
+def test_rig_errors(tmp_path):
+    with pytest.raises(ValueError, match="unique"):
+        Rig.model_validate({"cameras": [_camera(), _camera()]})
+    with pytest.raises(ValueError, match="stokes"):
+        LightModule(id="l", position_mm=(0, 0, 0), stokes=(1.0, 2.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="radiant_intensity"):
+        LightModule(id="l", position_mm=(0, 0, 0), radiant_intensity=[1.0, 2.0])
+    with pytest.raises(ValueError, match="not in the rig"):
+        Rig.model_validate({"cameras": [_camera()]}).camera("nope")
+    with pytest.raises(FileNotFoundError, match=r"missing\.json"):
+        Rig.load(tmp_path / "missing.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match=r"bad\.json"):
+        Rig.load(bad)
+    wrong = tmp_path / "wrong.json"
+    wrong.write_text(json.dumps({"cameras": [_camera(width=-3)]}))
+    with pytest.raises(ValueError, match=r"wrong.json(.|\n)*width"):
+        Rig.load(wrong)
+
+
+def _spectral(**overrides):
+    data = {
+        "wavelengths_nm": [420.0, 440.0, 460.0],
+        "channel_responses": np.eye(6, 3).tolist(),
+        "led_spd": [1.0, 1.0, 1.0],
+    }
+    data.update(overrides)
+    return data
+
+
+def test_spectral_model_validation():
+    model = SpectralModel.model_validate(_spectral())
+    assert model.channel_names[0] == "red_upper"
+    for overrides, field in [
+        ({"wavelengths_nm": [440.0, 420.0, 460.0]}, "wavelengths_nm"),
+        ({"channel_responses": np.eye(5, 3).tolist()}, "channel_responses"),
+        ({"led_spd": [1.0, 1.0]}, "led_spd"),
+        ({"channel_names": ["a"] * 6}, "channel_names"),
+        ({"led_spd": [1.0, -1.0, 1.0]}, "led_spd"),
+    ]:
+        with pytest.raises(ValueError, match=field):
+            SpectralModel.model_validate(_spectral(**overrides))
+
+
+def test_spectral_to_calibration_roundtrip():
+    from polarface.skin import spectral
+
+    calibration = spectral.default_spectral_calibration()
+    model = SpectralModel.from_calibration(calibration)
+    again = model.to_calibration()
+    np.testing.assert_allclose(
+        np.asarray(again.to_dict()["channel_responses"]), np.asarray(model.channel_responses)
+    )
+
+
+def test_look_at_is_opencv():
+    pose = look_at(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 10.0]))
+    np.testing.assert_allclose(pose, np.eye(4), atol=1e-12)
