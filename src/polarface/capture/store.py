@@ -46,7 +46,7 @@ from polarface.capture.observations import (
 )
 from polarface.capture.rig import Camera, Rig
 from polarface.io.atomic import write_json_atomic
-from polarface.io.images import read_png, write_png
+from polarface.io.images import image_header, read_png, write_png
 
 __all__ = ["CaptureStore", "FrameRecord", "raw_bit_depth_ok"]
 
@@ -273,7 +273,6 @@ class CaptureStore:
             ValueError: listing every problem (missing raw file or frame marker, camera not in the
                 rig, wrong image size or bit depth, raw files not in the manifest).
         """
-        from PIL import Image
 
         problems: list[str] = []
         listed: set[str] = set()
@@ -298,20 +297,19 @@ class CaptureStore:
                     )
                     continue
                 try:
-                    with Image.open(path) as img:
-                        size, mode = img.size, img.mode
-                except Exception as exc:
+                    width, height, channels, bits = image_header(path)
+                except ValueError as exc:
                     problems.append(f"frame {frame.index}: raw file '{relative}' is not an image ({exc})")
                     continue
-                if (size[1], size[0]) != (camera.height, camera.width):
+                if (height, width) != (camera.height, camera.width):
                     problems.append(
-                        f"frame {frame.index}: '{relative}' is {size[0]}x{size[1]}, camera "
+                        f"frame {frame.index}: '{relative}' is {width}x{height}, camera "
                         f"'{cam_id}' declares {camera.width}x{camera.height}"
                     )
-                if camera.bit_depth > 8 and mode in ("L", "P", "1", "RGB"):
+                if camera.bit_depth > 8 and bits <= 8:
                     problems.append(
-                        f"frame {frame.index}: '{relative}' is 8-bit ({mode}), camera '{cam_id}' "
-                        f"declares bit_depth {camera.bit_depth}"
+                        f"frame {frame.index}: '{relative}' is {bits}-bit ({channels} channel(s)), "
+                        f"camera '{cam_id}' declares bit_depth {camera.bit_depth}"
                     )
                 if deep:
                     try:

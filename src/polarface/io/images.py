@@ -15,7 +15,7 @@ import numpy as np
 
 from polarface.io.atomic import atomic_path
 
-__all__ = ["colormap_png", "read_exr", "read_png", "write_exr", "write_png"]
+__all__ = ["colormap_png", "image_header", "read_exr", "read_png", "write_exr", "write_png"]
 
 
 def write_exr(
@@ -134,22 +134,49 @@ def read_png(path: str | os.PathLike[str]) -> np.ndarray:
         FileNotFoundError: if ``path`` does not exist.
         ValueError: if the file is truncated or not an image (the message names the file).
     """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image file '{path}' does not exist")
+    array = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if array is None:
+        raise ValueError(f"cannot read image '{path}' (truncated, corrupt or not an image)")
+    if array.ndim == 3 and array.shape[-1] in (3, 4):
+        array = array[..., [2, 1, 0, 3][: array.shape[-1]]]  # OpenCV decodes BGR(A)
+    return np.ascontiguousarray(array)
+
+
+def image_header(path: str | os.PathLike[str]) -> tuple[int, int, int, int]:
+    """``(width, height, channels, bits per sample)`` of a PNG or TIFF without decoding its pixels.
+
+    PNG headers are parsed directly (PIL reports 16-bit colour PNGs as 8-bit ``RGB``); other formats
+    go through PIL.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist. ValueError: if it is not a readable image.
+    """
+    import struct
+
     from PIL import Image
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image file '{path}' does not exist")
+    with open(path, "rb") as handle:
+        head = handle.read(33)
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and len(head) >= 26:
+        width, height, bits, colour_type = struct.unpack(">IIBB", head[16:26])
+        channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(colour_type)
+        if channels is None:
+            raise ValueError(f"image '{path}': unknown PNG colour type {colour_type}")
+        return width, height, channels, 8 if colour_type == 3 else bits
     try:
         with Image.open(path) as img:
-            img.load()
-            array = np.array(img)
+            bits = {"1": 1, "L": 8, "P": 8, "RGB": 8, "RGBA": 8, "I;16": 16, "I;16B": 16, "I": 32, "F": 32}
+            return img.size[0], img.size[1], len(img.getbands()), bits.get(img.mode, 8)
     except Exception as exc:
-        raise ValueError(f"cannot read image '{path}' (truncated or not an image?): {exc}") from exc
-    if array.dtype == np.int32 or array.dtype == np.int64:  # PIL 'I' mode for 16-bit PNG
-        array = array.astype(np.uint16)
-    elif array.dtype == np.bool_:
-        array = array.astype(np.uint8)
-    return array
+        raise ValueError(f"cannot read image header of '{path}': {exc}") from exc
 
 
 def colormap_png(

@@ -1,0 +1,481 @@
+"""The rig simulator: synthetic captures of the bundled head with ground truth.
+
+``simulate(out_dir, SimulationConfig(...))`` writes (layout in ``docs/simulate.md``)::
+
+    SIM_DIR/
+      simulation.json            configuration, channel order, exposure, timings, peak memory
+      static/                    capture store (polarface.capture.store), sequence "static"
+      dynamic/                   capture store, sequence "dynamic"
+      ground_truth/
+        maps/<name>.exr          parameter maps on the UV atlas (Y channel; rho_sss_bar: 6 named channels)
+        maps/mask.png            atlas coverage
+        mesh_rest.obj            the rest mesh in the model frame (mm, with UVs)
+        static/poses.json        model -> rig-world 4x4 per static frame
+        static/meshes/NNNNNN.ply posed mesh per static frame (rig world, mm)
+        dynamic/meshes/NNNNNN.ply deformed + placed mesh per dynamic frame
+        dynamic/maps/NNNNNN_c_h_out.exr, NNNNNN_rho_sss_bar.exr   per-frame maps that change (blood flow)
+        observations.zarr        noise-free I_sss, I_zeta, I_s and texel->pixel visibility per view
+
+Frames are resumable: the capture store skips complete frames and ground-truth files are written
+atomically and skipped when present, so an interrupted run continues where it stopped. Rendering is
+deterministic; raw noise is drawn from ``numpy.random.default_rng((seed, sequence, frame, camera))``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import resource
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from polarface.capture.rig import Camera, Rig, paper_rig
+from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
+from polarface.capture.store import CaptureStore
+from polarface.geometry.camera import PinholeCamera
+from polarface.geometry.deform import ExpressionRig, dynamic_sequence_weights
+from polarface.geometry.head_asset import HeadAsset, load_head_asset
+from polarface.geometry.heights import normals_from_heights
+from polarface.geometry.mesh import TriangleMesh, save_obj, save_ply
+from polarface.geometry.poses import StaticSequenceConfig, save_poses, static_sequence_poses
+from polarface.geometry.raycast import RayCaster
+from polarface.geometry.uv_raster import UVRaster, rasterize_uv, reposition
+from polarface.io import write_exr, write_json_atomic, write_png
+from polarface.simulate.ground_truth import AppearanceMaps, blood_flow_factor, build_appearance_maps
+from polarface.simulate.presets import SimulationPreset, get_preset, get_skin_type
+from polarface.simulate.render import FrameTextures, render_view
+from polarface.simulate.texture_sss import SubsurfaceModel, entering_flux, texture_space_exitance
+
+__all__ = ["SimulationConfig", "SimulationScene", "head_placement", "simulate"]
+
+LOGGER = logging.getLogger(__name__)
+FRAME_RATE_HZ = 20.0
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulationConfig:
+    """What to simulate.
+
+    Attributes:
+        preset: ``tiny``, ``demo`` or ``full`` (:mod:`polarface.simulate.presets`).
+        seed: seed of the ground-truth variations and of the sensor noise.
+        skin_type: ``I``..``VI``.
+        noise: add shot/read noise (False: only quantisation).
+        subsurface_blur: diffuse light in texture space (False: local ``R_bar`` only, for tests).
+        sequences: which sequences to render (``static``, ``dynamic``).
+        exposure_fill: the exposure puts the 99.5th percentile of the first frame's co-polarized image
+            at this fraction of the full well (fixed for the whole capture).
+    """
+
+    preset: str = "demo"
+    seed: int = 0
+    skin_type: str = "II"
+    noise: bool = True
+    subsurface_blur: bool = True
+    sequences: tuple[str, ...] = ("static", "dynamic")
+    exposure_fill: float = 0.8
+
+    def __post_init__(self) -> None:
+        get_preset(self.preset)
+        get_skin_type(self.skin_type)
+        bad = set(self.sequences) - {"static", "dynamic"}
+        if bad or not self.sequences:
+            raise ValueError(f"argument 'sequences' must be a non-empty subset of static/dynamic; got {self.sequences}")
+        if not 0 < self.exposure_fill <= 1:
+            raise ValueError(f"argument 'exposure_fill' must lie in (0, 1]; got {self.exposure_fill}")
+
+
+def head_placement(distance_mm: float = 1000.0) -> np.ndarray:
+    """Model -> rig-world transform placing the head in front of the polarimetric module.
+
+    The rig world (:func:`polarface.capture.rig.paper_rig`) has y down and z towards the subject;
+    the model frame has y up and the face towards +z. A half turn about x makes the face look at the
+    cameras; the translation puts the face (about 90 mm in front of the model origin, 10 mm below it)
+    at ``distance_mm`` on the optical axis.
+    """
+    placement = np.diag([1.0, -1.0, -1.0, 1.0])
+    placement[:3, 3] = (0.0, -10.0, distance_mm + 90.0)
+    return placement
+
+
+@dataclasses.dataclass
+class SimulationScene:
+    """Everything fixed over a simulation: rig, asset, rest raster, maps, subsurface model.
+
+    Built once by :meth:`build`; reused for every frame.
+    """
+
+    config: SimulationConfig
+    preset: SimulationPreset
+    rig: Rig
+    asset: HeadAsset
+    raster: UVRaster
+    maps: AppearanceMaps
+    calibration: object
+    subsurface: SubsurfaceModel
+    placement: np.ndarray
+    exposure: float | None = None
+
+    @classmethod
+    def build(cls, config: SimulationConfig) -> SimulationScene:
+        preset = get_preset(config.preset)
+        rig = paper_rig(width=preset.width, height=preset.height)
+        if rig.spectral is None:  # pragma: no cover - the skin module is part of the package
+            raise ValueError("the rig has no spectral calibration")
+        calibration = rig.spectral.to_calibration()
+        asset = load_head_asset(texture_resolution=preset.texture_resolution)
+        raster = rasterize_uv(asset.mesh, preset.texture_resolution)
+        landmarks = {name: asset.landmark_position(name) for name in asset.landmarks}
+        maps = build_appearance_maps(
+            albedo_linear=asset.albedo,
+            specular=asset.specular[..., 0],
+            displacement_mm=asset.displacement[..., 0],
+            positions=raster.position,
+            mask=raster.mask,
+            landmarks=landmarks,
+            skin_type=get_skin_type(config.skin_type),
+            calibration=calibration,
+            seed=config.seed,
+        )
+        subsurface = SubsurfaceModel.build(_chromophores(maps), raster, calibration.wavelengths_nm)
+        return cls(config, preset, rig, asset, raster, maps, calibration, subsurface, head_placement())
+
+
+def _chromophores(maps: AppearanceMaps) -> dict[str, np.ndarray]:
+    return {"c_m": maps.c_m, "beta_m": maps.beta_m, "c_h_in": maps.c_h_in, "c_h_out": maps.c_h_out}
+
+
+def _pinhole(camera: Camera) -> PinholeCamera:
+    return PinholeCamera(
+        K=np.asarray(camera.K, dtype=np.float64),
+        world_to_camera=np.asarray(camera.world_to_camera, dtype=np.float64),
+        width=camera.width,
+        height=camera.height,
+        distortion=np.asarray(camera.distortion, dtype=np.float64) if camera.distortion else np.zeros(5),
+    )
+
+
+def _camera_channels(camera: Camera) -> tuple[int, int, int]:
+    return tuple(camera.colour_channels[c] for c in ("R", "G", "B"))  # type: ignore[return-value]
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderedFrame:
+    """The per-camera renders and the geometry of one frame (internal to the pipeline)."""
+
+    mesh: TriangleMesh
+    views: dict  # camera id -> ViewRender
+    raster: UVRaster
+    shading_normal: np.ndarray
+
+
+def render_frame(scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps,
+                 subsurface: SubsurfaceModel) -> RenderedFrame:
+    """Render every camera of the rig for one posed/deformed head (noise-free radiance)."""
+    caster = RayCaster(mesh_world)
+    raster = reposition(scene.raster, mesh_world)
+    mask_t = torch.from_numpy(raster.mask)
+    shading = normals_from_heights(
+        torch.from_numpy(maps.displacement_mm.astype(np.float64)),
+        torch.from_numpy(raster.tangent_u.astype(np.float64)),
+        torch.from_numpy(raster.tangent_v.astype(np.float64)),
+        torch.from_numpy(raster.normal.astype(np.float64)),
+        torch.from_numpy(raster.texel_size_u.astype(np.float64)),
+        torch.from_numpy(raster.texel_size_v.astype(np.float64)),
+        mask_t,
+    ).numpy()
+    lights = np.array([light.position_mm for light in scene.rig.lights], dtype=np.float64)
+    intensity = float(scene.rig.lights[0].radiant_intensity if np.ndim(scene.rig.lights[0].radiant_intensity) == 0
+                      else scene.rig.lights[0].radiant_intensity[0])
+    reference = _pinhole(scene.rig.polarimetric_cameras()[0])
+    flux = entering_flux(caster, raster, shading, maps.eta, lights, intensity, reference.up_vector)
+    exitance = texture_space_exitance(flux, subsurface, scene.calibration, blur=scene.config.subsurface_blur)
+    textures = FrameTextures.build(
+        {"eta": maps.eta, "alpha_s": maps.alpha_s, "alpha_ss": maps.alpha_ss, "rho_s": maps.rho_s, "rho_ss": maps.rho_ss},
+        shading, exitance, raster.mask,
+    )
+    views = {}
+    for camera in scene.rig.cameras:
+        pinhole = _pinhole(camera)
+        if camera.role == "polarimetric":
+            views[camera.id] = render_view(caster, mesh_world, pinhole, textures, lights, intensity,
+                                           _camera_channels(camera), polarization=True)
+        else:
+            views[camera.id] = render_view(caster, mesh_world, pinhole, textures, lights, intensity,
+                                           tuple(range(6)), polarization=False)
+    return RenderedFrame(mesh_world, views, raster, shading)
+
+
+def _with_stereo_resolution(rig: Rig, width: int, height: int) -> Rig:
+    """The rig with its RGB stereo cameras resampled to ``width`` x ``height`` (K scaled)."""
+    cameras = []
+    for camera in rig.cameras:
+        if camera.role == "stereo" and (camera.width, camera.height) != (width, height):
+            scale_x, scale_y = width / camera.width, height / camera.height
+            K = np.asarray(camera.K, dtype=np.float64).copy()
+            K[0] *= scale_x
+            K[1] *= scale_y
+            K[0, 2] = (width - 1) / 2.0
+            K[1, 2] = (height - 1) / 2.0
+            camera = camera.model_copy(update={"width": width, "height": height, "K": K.tolist()})
+        cameras.append(camera)
+    return Rig.model_validate({**rig.model_dump(mode="json"), "cameras": [c.model_dump(mode="json") for c in cameras]})
+
+
+def _stereo_rgb(s0: np.ndarray, rig: Rig) -> np.ndarray:
+    """RGB of an unfiltered camera from the six half-band channels: mean of each colour's two halves."""
+    upper, lower = rig.polarimetric_cameras()[:2]
+    rgb = [0.5 * (s0[..., upper.colour_channels[c]] + s0[..., lower.colour_channels[c]]) for c in ("R", "G", "B")]
+    return np.stack(rgb, axis=-1)
+
+
+def _raw_frames(scene: SimulationScene, frame: RenderedFrame, sequence: str, index: int) -> dict[str, np.ndarray]:
+    """Noisy (or noise-free) integer raw frames of every camera."""
+    noise = SensorNoise(exposure=float(scene.exposure))
+    raws = {}
+    for camera_number, camera in enumerate(scene.rig.cameras):
+        view = frame.views[camera.id]
+        rng = np.random.default_rng((scene.config.seed, 0 if sequence == "static" else 1, index, camera_number))
+        if camera.role == "polarimetric":
+            images = [torch.from_numpy(np.ascontiguousarray(view.images[k])) for k in ("i0", "i45", "i90", "i135")]
+            signal = mosaic(*images, sensor=camera.sensor).numpy()
+            raws[camera.id] = simulate_raw(signal, noise, seed=rng, noiseless=not scene.config.noise)
+        else:
+            rgb = _stereo_rgb(view.images["s0"], scene.rig)
+            channels = [simulate_raw(rgb[..., c], noise, seed=rng, noiseless=not scene.config.noise) for c in range(3)]
+            raws[camera.id] = np.stack(channels, axis=-1)
+    return raws
+
+
+def _exposure_from(frame: RenderedFrame, scene: SimulationScene) -> float:
+    """Exposure putting the 99.5th percentile of the co-polarized image at ``exposure_fill``."""
+    camera = scene.rig.polarimetric_cameras()[0]
+    view = frame.views[camera.id]
+    values = view.images["i0"][view.mask]
+    level = float(np.percentile(values, 99.5)) if values.size else 1.0
+    return scene.config.exposure_fill / max(level, 1e-12)
+
+
+def _texel_visibility(caster: RayCaster, raster: UVRaster, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+    """``(visible (Ht, Wt) bool, pixel (Ht, Wt, 2) float32)`` of every texel in one camera.
+
+    A texel is visible when it faces the camera, projects inside the image and the camera ray towards
+    it first hits the surface within 0.5 mm of it.
+    """
+    mask = raster.mask
+    points = raster.position[mask].astype(np.float64)
+    centre = camera.center
+    rays = points - centre
+    distance = np.linalg.norm(rays, axis=1)
+    directions = rays / distance[:, None]
+    facing = np.einsum("nc,nc->n", raster.normal[mask], -directions) > 0.0
+    pixels, depth = camera.project(points)
+    inside = (depth > 0) & (pixels[:, 0] >= -0.5) & (pixels[:, 0] <= camera.width - 0.5) \
+        & (pixels[:, 1] >= -0.5) & (pixels[:, 1] <= camera.height - 0.5)
+    hits = caster.first_hits(np.repeat(centre[None], len(points), axis=0), directions)
+    unoccluded = hits.hit & (np.abs(hits.distance - distance) < 0.5)
+    visible = np.zeros(mask.shape, bool)
+    visible[mask] = facing & inside & unoccluded
+    pixel_map = np.full((*mask.shape, 2), -1.0, np.float32)
+    pixel_map[mask] = pixels.astype(np.float32)
+    return visible, pixel_map
+
+
+def _write_static_ground_truth(root: Path, scene: SimulationScene, poses: np.ndarray) -> None:
+    """Maps, rest mesh, poses and the channel description (once per simulation)."""
+    maps_dir = root / "maps"
+    names = list(scene.calibration.channel_names)
+    for name, values in scene.maps.scalar_maps().items():
+        write_exr(maps_dir / f"{name}.exr", {"Y": values})
+    write_exr(maps_dir / "rho_sss_bar.exr", {n: scene.maps.rho_sss_bar[..., i] for i, n in enumerate(names)})
+    write_png(maps_dir / "mask.png", scene.maps.mask.astype(np.uint8) * 255)
+    save_obj(root / "mesh_rest.obj", scene.asset.mesh)
+    save_poses(root / "static" / "poses.json", poses)
+
+
+class _ObservationWriter:
+    """Noise-free observations and texel visibility per view in ``observations.zarr`` (resumable)."""
+
+    def __init__(self, path: Path, scene: SimulationScene, counts: dict[str, int]) -> None:
+        import zarr
+
+        self.root = zarr.open_group(str(path), mode="a")
+        self.scene = scene
+        self.counts = counts
+
+    def _array(self, name: str, shape: tuple[int, ...], dtype: str, fill):
+        chunks = (1, *shape[1:])
+        return self.root.require_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill)
+
+    def done(self, sequence: str, index: int) -> bool:
+        return bool(self.root.attrs.get(f"{sequence}/{index}", False))
+
+    def write(self, sequence: str, index: int, frame: RenderedFrame) -> None:
+        count = self.counts[sequence]
+        height, width = self.scene.raster.mask.shape
+        for camera in self.scene.rig.polarimetric_cameras():
+            view = frame.views[camera.id]
+            h, w = view.mask.shape
+            prefix = f"{sequence}/{camera.id}"
+            images = view.images
+            values = {
+                "i_sss": 2.0 * images["i90"],
+                "i_zeta": images["i135"] - images["i45"],
+                "i_s": images["i0"] - images["i90"],
+            }
+            for name, image in values.items():
+                self._array(f"{prefix}/{name}", (count, h, w, 3), "float32", 0.0)[index] = image
+            self._array(f"{prefix}/mask", (count, h, w), "bool", False)[index] = view.mask
+            self._array(f"{prefix}/uv", (count, h, w, 2), "float32", 0.0)[index] = view.uv
+            caster = RayCaster(frame.mesh)
+            visible, pixel = _texel_visibility(caster, frame.raster, _pinhole(camera))
+            self._array(f"{prefix}/texel_visible", (count, height, width), "bool", False)[index] = visible
+            self._array(f"{prefix}/texel_pixel", (count, height, width, 2), "float32", -1.0)[index] = pixel
+        self.root.attrs[f"{sequence}/{index}"] = True
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _frames(scene: SimulationScene, sequence: str) -> Iterable[tuple[int, float, TriangleMesh, AppearanceMaps, SubsurfaceModel]]:
+    """Yield ``(index, timestamp s, mesh in rig world, maps, subsurface model)`` of a sequence."""
+    preset = scene.preset
+    asset = scene.asset
+    if sequence == "static":
+        poses = static_poses(scene)
+        for index, pose in enumerate(poses):
+            yield index, index / FRAME_RATE_HZ, asset.mesh.transformed(pose), scene.maps, scene.subsurface
+        return
+    rig = ExpressionRig(asset.mesh, asset.landmarks)
+    weights = dynamic_sequence_weights(preset.dynamic_frames)
+    pressed = _pressed_patch(scene)
+    for index in range(preset.dynamic_frames):
+        time_s = index * preset.dynamic_frame_step / FRAME_RATE_HZ
+        mesh = rig.deform(weights[index]).transformed(scene.placement)
+        lowered = 0.8 * (1.0 - float(blood_flow_factor(time_s)))
+        c_h_out = (scene.maps.c_h_out * (1.0 - lowered * pressed)).astype(np.float32)
+        maps = _with_c_h_out(scene, c_h_out)
+        subsurface = SubsurfaceModel.build(_chromophores(maps), scene.raster, scene.calibration.wavelengths_nm,
+                                           shapes=scene.subsurface.shapes)
+        yield index, time_s, mesh, maps, subsurface
+
+
+def static_poses(scene: SimulationScene) -> np.ndarray:
+    """Model -> rig-world poses ``(N, 4, 4)`` of the static sequence (chair rotation, then placement)."""
+    config = StaticSequenceConfig(
+        frame_count=scene.preset.static_frames,
+        yaw_range=math.radians(scene.preset.yaw_range_deg),
+        pitch_amplitude=math.radians(scene.preset.pitch_range_deg / 2.0),
+        pivot=tuple(float(v) for v in scene.asset.neck_pivot),
+    )
+    return np.stack([scene.placement @ pose for pose in static_sequence_poses(config)])
+
+
+def _pressed_patch(scene: SimulationScene) -> np.ndarray:
+    """``(Ht, Wt)`` weight of the pressed forehead patch (Gaussian, sigma 10 mm, 15 mm above the brows)."""
+    centre = scene.asset.landmark_position("forehead") + np.array([0.0, -15.0, 0.0])
+    distance2 = ((np.where(scene.raster.mask[..., None], scene.raster.position, 0.0) - centre) ** 2).sum(-1)
+    return np.where(scene.raster.mask, np.exp(-0.5 * distance2 / 10.0**2), 0.0)
+
+
+def _with_c_h_out(scene: SimulationScene, c_h_out: np.ndarray) -> AppearanceMaps:
+    """Maps with a new outer haemoglobin map and the matching six-channel rho_sss_bar."""
+    from polarface.skin.layers import subsurface_albedo
+
+    mask = scene.maps.mask
+    r_bar = subsurface_albedo(
+        torch.from_numpy(scene.maps.c_m[mask].astype(np.float64)),
+        torch.from_numpy(scene.maps.beta_m[mask].astype(np.float64)),
+        torch.from_numpy(scene.maps.c_h_in[mask].astype(np.float64)),
+        torch.from_numpy(c_h_out[mask].astype(np.float64)),
+        scene.calibration.wavelengths_nm,
+    )
+    rho = np.zeros_like(scene.maps.rho_sss_bar)
+    rho[mask] = scene.calibration.integrate(r_bar).float().numpy()
+    return scene.maps.replace(c_h_out=c_h_out, rho_sss_bar=rho)
+
+
+def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = True) -> dict:
+    """Render the configured sequences into ``out_dir`` (see the module docstring); returns the summary.
+
+    Resumable: rerunning with the same configuration skips complete frames.
+
+    Raises:
+        ValueError: if ``out_dir`` holds a simulation with another configuration.
+    """
+    started = time.perf_counter()
+    out = Path(out_dir)
+    summary_path = out / "simulation.json"
+    config_dict = dataclasses.asdict(config)
+    config_dict["sequences"] = list(config.sequences)
+    if summary_path.exists():
+        previous = json.loads(summary_path.read_text(encoding="utf-8"))
+        if previous.get("config") != config_dict:
+            raise ValueError(f"'{out}' holds a simulation with another configuration {previous.get('config')}")
+    out.mkdir(parents=True, exist_ok=True)
+    scene = SimulationScene.build(config)
+    scene.rig = _with_stereo_resolution(scene.rig, scene.preset.stereo_width, scene.preset.stereo_height)
+    setup_s = time.perf_counter() - started
+    poses = static_poses(scene)
+    gt = out / "ground_truth"
+    _write_static_ground_truth(gt, scene, poses)
+    counts = {"static": scene.preset.static_frames, "dynamic": scene.preset.dynamic_frames}
+    writer = _ObservationWriter(gt / "observations.zarr", scene, counts)
+    timings: dict[str, float] = {"setup_s": setup_s}
+    for sequence in config.sequences:
+        seq_started = time.perf_counter()
+        store: CaptureStore | None = None
+        frames = _frames(scene, sequence)
+        bar = tqdm(frames, total=counts[sequence], desc=f"simulate {sequence}", unit="frame", disable=not progress)
+        for index, time_s, mesh, maps, subsurface in bar:
+            frame = render_frame(scene, mesh, maps, subsurface)
+            if scene.exposure is None:
+                scene.exposure = _exposure_from(frame, scene)
+                scene.rig = _with_exposure(scene.rig, scene.exposure)
+            if store is None:
+                store = CaptureStore.create(out / sequence, scene.rig, sequence=sequence)
+            raws = _raw_frames(scene, frame, sequence, index)
+            store.add_frame(index, time_s, raws)
+            mesh_path = gt / sequence / "meshes" / f"{index:06d}.ply"
+            if not mesh_path.exists():
+                save_ply(mesh_path, mesh)
+            if sequence == "dynamic":
+                names = list(scene.calibration.channel_names)
+                write_exr(gt / "dynamic" / "maps" / f"{index:06d}_c_h_out.exr", {"Y": maps.c_h_out})
+                write_exr(gt / "dynamic" / "maps" / f"{index:06d}_rho_sss_bar.exr",
+                          {n: maps.rho_sss_bar[..., i] for i, n in enumerate(names)})
+            if not writer.done(sequence, index):
+                writer.write(sequence, index, frame)
+        if store is not None:
+            store.finalize()
+        timings[f"{sequence}_s"] = time.perf_counter() - seq_started
+    summary = {
+        "format": "polarface-simulation",
+        "version": 1,
+        "config": config_dict,
+        "preset": dataclasses.asdict(scene.preset),
+        "channel_names": list(scene.calibration.channel_names),
+        "exposure": scene.exposure,
+        "frame_rate_hz": FRAME_RATE_HZ,
+        "head_placement": scene.placement.tolist(),
+        "timings": {**timings, "total_s": time.perf_counter() - started},
+        "peak_rss_mb": _peak_rss_mb(),
+    }
+    write_json_atomic(summary_path, summary)
+    return summary
+
+
+def _with_exposure(rig: Rig, exposure: float) -> Rig:
+    """The rig with every camera's exposure set (so demosaiced images come back in radiance units)."""
+    data = rig.model_dump(mode="json")
+    for camera in data["cameras"]:
+        camera["exposure"] = exposure
+    return Rig.model_validate(data)

@@ -1,0 +1,171 @@
+"""Texture-space subsurface scattering of the simulator (paper supplement Eq. simple_sss).
+
+Per frame:
+
+1. **Entry** at every texel ``x_i`` of the posed head: for each LED module, a shadow ray from the
+   texel decides visibility, and :func:`polarface.optics.subsurface_entry_flux` gives the flux
+   entering the skin (entry Fresnel transmission with its polarization dependence, times the shading
+   ``I_L (n . w_i) / Gamma^2``). The flux is spectrally flat (white-normalised LED), so it is one
+   scalar map ``E``.
+2. **Diffusion** on the 15-wavelength grid with the heterogeneous two-layer model
+   (:func:`polarface.skin.heterogeneous.render_layered_subsurface`): per-texel layer totals from the
+   chromophore maps, fixed normalised sum-of-Gaussians shapes per layer and wavelength fitted at the
+   median texel, separable blurs honouring the texel size in mm (median size times a per-texel
+   stretch from the UV parameterisation).
+3. **Channels**: the exitance spectra are integrated into the six camera channels with the rig's
+   spectral calibration (white-normalised: a unit exitance at every wavelength gives 1).
+
+The exit Fresnel transmission and its polarization are applied per camera pixel
+(:mod:`polarface.simulate.render`). Light does not cross UV seams (a documented limitation of
+texture-space diffusion; the seams of the bundled head lie behind the ears and under the chin).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from polarface.geometry.raycast import RayCaster
+from polarface.geometry.uv_raster import UVRaster
+from polarface.optics.image_formation import subsurface_entry_flux
+from polarface.skin.heterogeneous import ProfileShapes, fit_layer_shapes, render_layered_subsurface
+from polarface.skin.layers import LayerTotals, SkinLayerConstants, layer_optics, layer_totals
+
+__all__ = ["SubsurfaceModel", "entering_flux", "texture_space_exitance"]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SubsurfaceModel:
+    """Per-texel layer totals and the fixed SoG shapes of one set of chromophore maps.
+
+    Attributes:
+        wavelengths_nm: ``(L,)`` float64 grid.
+        totals: :class:`LayerTotals`, each ``(L, Ht, Wt)`` float32 (zero outside the atlas).
+        shapes: :class:`ProfileShapes` with ``(L, J)`` normalised weights (median texel).
+        texel_size_mm: the median texel size of the rest-pose raster, mm.
+        stretch: ``(Ht, Wt, 2)`` per-texel size / median size along u (x) and v (y).
+        mask: ``(Ht, Wt)`` float32 0/1 atlas coverage.
+    """
+
+    wavelengths_nm: torch.Tensor
+    totals: LayerTotals
+    shapes: ProfileShapes
+    texel_size_mm: float
+    stretch: torch.Tensor
+    mask: torch.Tensor
+
+    @classmethod
+    def build(
+        cls,
+        chromophores: dict[str, np.ndarray],
+        raster: UVRaster,
+        wavelengths_nm: torch.Tensor,
+        constants: SkinLayerConstants = SkinLayerConstants(),  # noqa: B008 - frozen dataclass
+        shapes: ProfileShapes | None = None,
+    ) -> SubsurfaceModel:
+        """Layer totals from ``chromophores`` (``c_m``, ``beta_m``, ``c_h_in``, ``c_h_out`` maps).
+
+        ``shapes`` default: fitted to the layer profiles at the median parameters of the atlas.
+        """
+        mask = raster.mask
+        params = [torch.from_numpy(np.asarray(chromophores[k][mask], np.float64)) for k in ("c_m", "beta_m", "c_h_in", "c_h_out")]
+        optics = layer_optics(*params, wavelengths_nm, constants)
+        per_texel = layer_totals(*optics, constants)  # each (N, L)
+        height, width = mask.shape
+        totals = []
+        for value in per_texel:
+            full = torch.zeros(wavelengths_nm.numel(), height, width, dtype=torch.float32)
+            full[:, torch.from_numpy(mask)] = value.T.float()
+            totals.append(full)
+        if shapes is None:
+            median = [p.median().reshape(1) for p in params]
+            shapes = fit_layer_shapes(layer_optics(*median, wavelengths_nm, constants), constants)
+            shapes = ProfileShapes(*(w[0] for w in shapes[:5]), relative_error=shapes.relative_error)
+        sizes = np.stack([raster.texel_size_u, raster.texel_size_v], axis=-1)
+        texel_size = float(np.median(sizes[mask]))
+        stretch = np.where(mask[..., None], np.clip(sizes / texel_size, 0.05, 20.0), 1.0)
+        return cls(
+            wavelengths_nm=wavelengths_nm,
+            totals=LayerTotals(*totals),
+            shapes=shapes,
+            texel_size_mm=texel_size,
+            stretch=torch.from_numpy(stretch.astype(np.float32)),
+            mask=torch.from_numpy(mask.astype(np.float32)),
+        )
+
+
+def entering_flux(
+    caster: RayCaster,
+    raster: UVRaster,
+    shading_normal: np.ndarray,
+    eta: np.ndarray,
+    light_positions: np.ndarray,
+    light_intensity: float,
+    camera_up: np.ndarray,
+    chunk: int = 262144,
+) -> np.ndarray:
+    """``(Ht, Wt)`` float32 flux entering the skin per texel, summed over visible LED modules.
+
+    Args:
+        caster: ray caster of the posed mesh ``raster`` was repositioned onto.
+        raster: posed raster (positions mm, geometric frame).
+        shading_normal: ``(Ht, Wt, 3)`` world unit normals including the displacement detail.
+        eta: ``(Ht, Wt)`` refractive index map.
+        light_positions: ``(K, 3)`` mm; light_intensity: radiant intensity per module.
+        camera_up: ``(3,)`` up vector defining the lights' polarization frame.
+    """
+    mask = raster.mask
+    out = np.zeros(mask.shape, np.float32)
+    points = raster.position[mask].astype(np.float64)
+    normals = shading_normal[mask].astype(np.float64)
+    geometric = raster.normal[mask].astype(np.float64)
+    etas = np.maximum(eta[mask].astype(np.float64), 1.0 + 1e-6)
+    lights = np.asarray(light_positions, np.float64)
+    flux = np.zeros(points.shape[0])
+    up = torch.from_numpy(np.asarray(camera_up, np.float64))
+    for start in range(0, points.shape[0], chunk):
+        stop = min(start + chunk, points.shape[0])
+        visible = caster.shadow_rays(points[start:stop], geometric[start:stop], lights)  # (n, K)
+        for k in range(lights.shape[0]):
+            lit = visible[:, k]
+            if not lit.any():
+                continue
+            phi = subsurface_entry_flux(
+                torch.from_numpy(normals[start:stop][lit]),
+                torch.from_numpy(points[start:stop][lit]),
+                up,
+                torch.from_numpy(lights[k : k + 1]),
+                torch.tensor([float(light_intensity)], dtype=torch.float64),
+                torch.from_numpy(etas[start:stop][lit])[:, None],
+            )
+            flux[start:stop][lit] += phi[:, 0].numpy()
+    out[mask] = flux
+    return out
+
+
+def texture_space_exitance(
+    flux: np.ndarray, model: SubsurfaceModel, calibration, *, blur: bool = True
+) -> np.ndarray:
+    """``(Ht, Wt, 6)`` float32 diffused exitance per camera channel (before the exit Fresnel factor).
+
+    Args:
+        flux: ``(Ht, Wt)`` entering flux (:func:`entering_flux`).
+        model: layer totals and shapes.
+        calibration: the rig's ``SpectralCalibration`` on ``model.wavelengths_nm``.
+        blur: False replaces the diffusion by its local total (``R_bar E``; for tests of the
+            blur-free model).
+    """
+    energy = torch.from_numpy(flux.astype(np.float32))[None].expand(model.wavelengths_nm.numel(), -1, -1)
+    if blur:
+        spectral = render_layered_subsurface(
+            energy, tuple(model.totals), model.shapes, model.texel_size_mm,
+            stretch=model.stretch, mask=model.mask,
+        )
+    else:
+        r_out_f, t_out_f, r_out_b, t_out_b, r_in_f = model.totals
+        r_bar = r_out_f + t_out_f * r_in_f * t_out_b / (1.0 - r_out_b * r_in_f)
+        spectral = r_bar * energy
+    channels = calibration.integrate(spectral.permute(1, 2, 0).double())
+    return channels.float().numpy()
