@@ -119,16 +119,12 @@ def check_range(
         bad = tensor < low if low_inclusive else tensor <= low
         if bool(bad.any()):
             op = ">=" if low_inclusive else ">"
-            raise ValueError(
-                f"argument '{name}' must be {op} {low}; got min {float(tensor.min()):.6g}"
-            )
+            raise ValueError(f"argument '{name}' must be {op} {low}; got min {float(tensor.min()):.6g}")
     if high is not None:
         bad = tensor > high if high_inclusive else tensor >= high
         if bool(bad.any()):
             op = "<=" if high_inclusive else "<"
-            raise ValueError(
-                f"argument '{name}' must be {op} {high}; got max {float(tensor.max()):.6g}"
-            )
+            raise ValueError(f"argument '{name}' must be {op} {high}; got max {float(tensor.max()):.6g}")
     return tensor
 
 
@@ -146,8 +142,7 @@ def check_shape_tail(tensor: torch.Tensor, name: str, tail: Sequence[int]) -> to
     tail = tuple(tail)
     if tensor.ndim < len(tail) or tuple(tensor.shape[-len(tail) :]) != tail:
         raise ValueError(
-            f"argument '{name}' must have shape (..., {', '.join(map(str, tail))}); "
-            f"got {tuple(tensor.shape)}"
+            f"argument '{name}' must have shape (..., {', '.join(map(str, tail))}); got {tuple(tensor.shape)}"
         )
     return tensor
 
@@ -234,4 +229,3 @@ def array_api(*array_args: str) -> Callable[[F], F]:
         return wrapper  # type: ignore[return-value]
 
     return decorator
-

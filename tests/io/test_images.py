@@ -31,7 +31,7 @@ def test_truncated_png_named(tmp_path):
     write_png(tmp_path / "x.png", np.zeros((16, 16), np.uint8))
     data = (tmp_path / "x.png").read_bytes()
     (tmp_path / "bad.png").write_bytes(data[: len(data) // 2])
-    with pytest.raises(ValueError, match="bad.png"):
+    with pytest.raises(ValueError, match=r"bad\.png"):
         read_png(tmp_path / "bad.png")
 
 

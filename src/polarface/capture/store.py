@@ -327,6 +327,10 @@ class CaptureStore:
         if problems:
             raise ValueError(f"capture store '{self.root}' is invalid:\n  " + "\n  ".join(problems))
 
+    def has_frame(self, frame_index: int) -> bool:
+        """True when frame ``frame_index`` was written completely (its completion marker exists)."""
+        return self._marker(int(frame_index)).is_file()
+
     def read_raw(self, frame_index: int, camera_id: str) -> np.ndarray:
         """Raw counts of one frame of one camera, as stored."""
         record = self._record(frame_index)

@@ -16,21 +16,19 @@ HELP = "render a synthetic rig capture of the bundled head with ground truth"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", choices=("tiny", "demo", "full"), default="demo", help="size preset")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the map variations and sensor noise")
+    parser.add_argument(
+        "--seed", type=int, default=0, help="seed of the sensor noise (ground truth is fixed)"
+    )
     parser.add_argument("--skin-type", default="II", help="Fitzpatrick skin type I..VI (default II)")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--sequences", default="static,dynamic", help="comma list of static,dynamic")
     parser.add_argument("--no-noise", action="store_true", help="noise-free raw (quantisation only)")
     parser.add_argument("--no-blur", action="store_true", help="local subsurface model (no diffusion blur)")
-    parser.add_argument("--device", default="cpu", help="accepted for symmetry; the simulator runs on CPU")
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
-
     from polarface.simulate.pipeline import SimulationConfig, simulate
 
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     config = SimulationConfig(
         preset=args.preset,
         seed=args.seed,
@@ -40,5 +38,9 @@ def run(args: argparse.Namespace) -> int:
         sequences=tuple(s.strip() for s in args.sequences.split(",") if s.strip()),
     )
     summary = simulate(args.out, config)
-    print(json.dumps({"out": args.out, "timings": summary["timings"], "peak_rss_mb": summary["peak_rss_mb"]}, indent=2))
+    print(
+        json.dumps(
+            {"out": args.out, "timings": summary["timings"], "peak_rss_mb": summary["peak_rss_mb"]}, indent=2
+        )
+    )
     return 0

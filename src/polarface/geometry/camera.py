@@ -285,14 +285,18 @@ class PinholeCamera:
 
     @classmethod
     def from_dict(cls, payload: dict) -> PinholeCamera:
-        """Inverse of :meth:`to_dict` (``distortion`` optional)."""
+        """Inverse of :meth:`to_dict`; also takes a rig camera's ``model_dump()``.
+
+        ``distortion`` is optional (missing, None or empty means none).
+        """
         try:
+            distortion = payload.get("distortion")
             return cls(
                 np.asarray(payload["K"], dtype=np.float64),
                 np.asarray(payload["world_to_camera"], dtype=np.float64),
                 int(payload["width"]),
                 int(payload["height"]),
-                np.asarray(payload.get("distortion", np.zeros(5)), dtype=np.float64),
+                np.asarray(distortion, dtype=np.float64) if distortion else np.zeros(5),
             )
         except KeyError as exc:
             raise ValueError(f"camera description lacks key {exc}") from exc

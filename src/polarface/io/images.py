@@ -46,7 +46,9 @@ def write_exr(
             raise ValueError(f"write_exr: image must be (H, W) or (H, W, C); got {channels.shape}")
         count = array.shape[-1]
         if names is None:
-            names = ["Y"] if count == 1 else ["R", "G", "B"] if count == 3 else [f"C{i}" for i in range(count)]
+            names = (
+                ["Y"] if count == 1 else ["R", "G", "B"] if count == 3 else [f"C{i}" for i in range(count)]
+            )
         if len(names) != count:
             raise ValueError(f"write_exr: {count} channels but {len(names)} names {list(names)}")
         mapping = {n: array[..., i] for i, n in enumerate(names)}
@@ -88,7 +90,11 @@ def read_exr(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
     for name, pixels in raw.items():
         if pixels.ndim == 3:
-            letters = list(name) if len(name) == pixels.shape[-1] else [f"{name}{i}" for i in range(pixels.shape[-1])]
+            letters = (
+                list(name)
+                if len(name) == pixels.shape[-1]
+                else [f"{name}{i}" for i in range(pixels.shape[-1])]
+            )
             for i, letter in enumerate(letters):
                 out[letter] = pixels[..., i].astype(np.float32)
         else:
@@ -212,7 +218,11 @@ def colormap_png(
         valid &= np.asarray(mask, dtype=bool)
     values = image[valid]
     lo = float(np.percentile(values, 1)) if vmin is None and values.size else (vmin or 0.0)
-    hi = float(np.percentile(values, 99)) if vmax is None and values.size else (vmax if vmax is not None else 1.0)
+    hi = (
+        float(np.percentile(values, 99))
+        if vmax is None and values.size
+        else (vmax if vmax is not None else 1.0)
+    )
     if hi <= lo:
         hi = lo + 1e-12
     if title is None and not colorbar:

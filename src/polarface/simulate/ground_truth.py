@@ -156,57 +156,65 @@ def _srgb_linear_of_chromophores(
 def chromophore_multipliers_from_albedo(
     albedo_linear: np.ndarray,
     mask: np.ndarray,
-    base: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    base: tuple[float, float, float, float],
     *,
     log_range: float = 2.0,
-    iterations: int = 60,
+    lut_steps: int = 41,
+    chunk: int = 65536,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-texel multipliers of melanin and outer haemoglobin explaining the albedo's colour.
+    """Per-texel log-multipliers of melanin and outer haemoglobin explaining the albedo's colour.
 
-    Solves, per texel, ``min_{a, b} || log rgb_model(C_m e^a, C_h_out e^b) - log rgb_model(C_m, C_h_out)
-    - (log albedo - log median albedo) ||^2`` through the skin model (differentiable two-layer
-    diffusion totals -> CIE 1931 -> linear sRGB), by Gauss-Newton on all texels at once, starting
-    from a = b = 0 and keeping ``|a|, |b| <= log_range``.
+    Through the skin model: a table of modelled colours ``g(a, b) = log rgb(C_m e^a, C_h_out e^b) -
+    log rgb(C_m, C_h_out)`` (two-layer diffusion total -> CIE 1931 -> linear sRGB) over a
+    ``lut_steps`` x ``lut_steps`` grid of ``a, b`` in ``[-log_range, log_range]`` at the ``base``
+    parameters; each texel's colour relative to the median colour, ``f = log albedo - log median``,
+    is matched to its nearest table entry and refined by one linearised least-squares step with the
+    table's finite-difference Jacobian (continuous values, no banding).
 
     Args:
         albedo_linear: ``(H, W, 3)`` linear RGB albedo texture (any scale: only ratios matter).
         mask: ``(H, W)`` bool texels to solve; others get 0.
-        base: base maps ``(c_m, beta_m, c_h_in, c_h_out)``, each ``(H, W)``.
+        base: scalar ``(c_m, beta_m, c_h_in, c_h_out)`` around which the multipliers act.
         log_range: bound on the natural-log multipliers.
-        iterations: Gauss-Newton iterations.
+        lut_steps: table resolution per axis.
+        chunk: texels per nearest-neighbour block (memory bound).
 
     Returns:
         ``(a, b)``: ``(H, W)`` float32 natural-log multipliers of ``c_m`` and ``c_h_out``.
     """
-    rgb = np.clip(albedo_linear[mask].astype(np.float64), 1e-4, None)
-    target = np.log(rgb) - np.log(np.median(rgb, axis=0))
-    target_t = torch.from_numpy(target)
-    c_m, beta_m, c_h_in, c_h_out = (torch.from_numpy(np.asarray(m[mask], dtype=np.float64)) for m in base)
-    reference = torch.log(_srgb_linear_of_chromophores(c_m, beta_m, c_h_in, c_h_out).clamp_min(1e-8))
+    grid = torch.linspace(-log_range, log_range, lut_steps, dtype=torch.float64)
+    aa, bb = torch.meshgrid(grid, grid, indexing="ij")
+    c_m, beta_m, c_h_in, c_h_out = (torch.tensor(float(v), dtype=torch.float64) for v in base)
+    rgb = _srgb_linear_of_chromophores(
+        c_m * torch.exp(aa.reshape(-1)),
+        beta_m.expand(aa.numel()),
+        c_h_in.expand(aa.numel()),
+        c_h_out * torch.exp(bb.reshape(-1)),
+    )
+    table = torch.log(rgb.clamp_min(1e-8)).reshape(lut_steps, lut_steps, 3)
+    centre = lut_steps // 2
+    table = table - table[centre, centre]
+    step = float(grid[1] - grid[0])
+    # Finite-difference Jacobian of the table along a and b (central inside, one-sided at the rim).
+    jac_a = torch.gradient(table, spacing=step, dim=0)[0]
+    jac_b = torch.gradient(table, spacing=step, dim=1)[0]
+    flat_table = table.reshape(-1, 3)
 
-    params = torch.zeros(target_t.shape[0], 2, dtype=torch.float64)
-    for _ in range(iterations):
-        params = params.detach().requires_grad_(True)
-
-        def model(p: torch.Tensor) -> torch.Tensor:
-            rgb_model = _srgb_linear_of_chromophores(
-                c_m * torch.exp(p[:, 0]), beta_m, c_h_in, c_h_out * torch.exp(p[:, 1])
-            )
-            return torch.log(rgb_model.clamp_min(1e-8)) - reference
-
-        residual = model(params) - target_t  # (N, 3)
-        # Jacobian (N, 3, 2) by two forward-mode-free backward passes per output channel.
-        jac_rows = []
-        for channel in range(3):
-            (grad,) = torch.autograd.grad(residual[:, channel].sum(), params, retain_graph=channel < 2)
-            jac_rows.append(grad)
-        jacobian = torch.stack(jac_rows, dim=1)
-        normal = jacobian.transpose(1, 2) @ jacobian + 1e-6 * torch.eye(2, dtype=torch.float64)
-        rhs = jacobian.transpose(1, 2) @ residual.detach().unsqueeze(-1)
-        step = torch.linalg.solve(normal, rhs).squeeze(-1)
-        params = (params.detach() - step).clamp(-log_range, log_range)
-        if float(step.abs().max()) < 1e-6:
-            break
+    rgb_texels = np.clip(albedo_linear[mask].astype(np.float64), 1e-4, None)
+    target = torch.from_numpy(np.log(rgb_texels) - np.log(np.median(rgb_texels, axis=0)))
+    params = torch.empty(target.shape[0], 2, dtype=torch.float64)
+    for start in range(0, target.shape[0], chunk):
+        block = target[start : start + chunk]
+        nearest = torch.cdist(block, flat_table).argmin(dim=1)
+        ia, ib = nearest // lut_steps, nearest % lut_steps
+        jac = torch.stack([jac_a[ia, ib], jac_b[ia, ib]], dim=-1)  # (n, 3, 2)
+        residual = (block - table[ia, ib]).unsqueeze(-1)
+        normal = jac.transpose(1, 2) @ jac + 1e-9 * torch.eye(2, dtype=torch.float64)
+        delta = torch.linalg.solve(normal, jac.transpose(1, 2) @ residual).squeeze(-1)
+        delta = delta.clamp(-step, step)  # stay within the neighbouring cells
+        params[start : start + chunk, 0] = grid[ia] + delta[:, 0]
+        params[start : start + chunk, 1] = grid[ib] + delta[:, 1]
+    params = params.clamp(-log_range, log_range)
     a = np.zeros(mask.shape, np.float32)
     b = np.zeros(mask.shape, np.float32)
     a[mask] = params[:, 0].numpy()
@@ -266,7 +274,14 @@ def build_appearance_maps(
     beta_m = np.clip(base_beta_m + 0.015 * smooth_random_field(shape, corr, rng), 0.0, 1.0)
     c_h_in = np.clip(base_c_h_in * (1.0 + 0.15 * smooth_random_field(shape, corr, rng)), 1e-3, 0.3)
     log_m, log_h = chromophore_multipliers_from_albedo(
-        albedo_linear, mask, (base_c_m, beta_m, base_c_h_in, base_c_h_out)
+        albedo_linear,
+        mask,
+        (
+            float(np.median(base_c_m[mask])),
+            float(np.median(beta_m[mask])),
+            float(np.median(base_c_h_in[mask])),
+            float(np.median(base_c_h_out[mask])),
+        ),
     )
     c_m = np.clip(base_c_m * np.exp(log_m), 1e-3, 0.5)
     c_h_out = np.clip(base_c_h_out * np.exp(log_h), 1e-3, 0.3)
@@ -275,7 +290,7 @@ def build_appearance_maps(
 
     spec = np.clip(specular.astype(np.float64), 0.0, 1.0)
     spec_norm = spec / max(float(np.percentile(spec[mask], 95)), 1e-6)
-    eta = 1.38 + 0.10 * oily + 0.01 * smooth_random_field(shape, corr, rng)
+    eta = 1.395 + 0.08 * oily + 0.008 * smooth_random_field(shape, corr, rng)
     eta = np.clip(eta, 1.38, 1.48)
     alpha_s = np.clip(0.62 - 0.30 * oily + 0.02 * smooth_random_field(shape, corr, rng), 0.30, 0.65)
     alpha_ss = np.clip(0.95 + 0.02 * smooth_random_field(shape, corr, rng), 0.90, 1.0)
@@ -285,8 +300,11 @@ def build_appearance_maps(
 
     wavelengths = torch.as_tensor(spectral.DEFAULT_WAVELENGTHS_NM, dtype=torch.float64)
     r_bar = subsurface_albedo(
-        torch.from_numpy(c_m[mask]), torch.from_numpy(beta_m[mask]),
-        torch.from_numpy(c_h_in[mask]), torch.from_numpy(c_h_out[mask]), wavelengths,
+        torch.from_numpy(c_m[mask]),
+        torch.from_numpy(beta_m[mask]),
+        torch.from_numpy(c_h_in[mask]),
+        torch.from_numpy(c_h_out[mask]),
+        wavelengths,
     )
     rho_sss_bar = np.zeros((*shape, 6), np.float32)
     rho_sss_bar[mask] = calibration.integrate(r_bar).numpy()
@@ -318,4 +336,3 @@ def blood_flow_factor(time_s: np.ndarray | float, recovery_s: float = 2.0) -> np
     """
     tau = recovery_s / 3.0
     return 1.0 - np.exp(-np.asarray(time_s, dtype=np.float64) / tau)
-

@@ -57,6 +57,8 @@ __all__ = ["SimulationConfig", "SimulationScene", "head_placement", "simulate"]
 
 LOGGER = logging.getLogger(__name__)
 FRAME_RATE_HZ = 20.0
+#: Seed of the ground-truth map variations (fixed, so the simulation seed changes the noise only).
+MAP_SEED = 2024
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,10 +67,13 @@ class SimulationConfig:
 
     Attributes:
         preset: ``tiny``, ``demo`` or ``full`` (:mod:`polarface.simulate.presets`).
-        seed: seed of the ground-truth variations and of the sensor noise.
+        seed: seed of the sensor noise (the ground-truth maps are fixed: a different seed changes the
+            noise only).
         skin_type: ``I``..``VI``.
         noise: add shot/read noise (False: only quantisation).
         subsurface_blur: diffuse light in texture space (False: local ``R_bar`` only, for tests).
+        texel_stretch: blur with each texel's own size in mm (exact for a distorted atlas, ~20x
+            slower) instead of the atlas's median texel size.
         sequences: which sequences to render (``static``, ``dynamic``).
         exposure_fill: the exposure puts the 99.5th percentile of the first frame's co-polarized image
             at this fraction of the full well (fixed for the whole capture).
@@ -79,6 +84,7 @@ class SimulationConfig:
     skin_type: str = "II"
     noise: bool = True
     subsurface_blur: bool = True
+    texel_stretch: bool = False
     sequences: tuple[str, ...] = ("static", "dynamic")
     exposure_fill: float = 0.8
 
@@ -87,7 +93,9 @@ class SimulationConfig:
         get_skin_type(self.skin_type)
         bad = set(self.sequences) - {"static", "dynamic"}
         if bad or not self.sequences:
-            raise ValueError(f"argument 'sequences' must be a non-empty subset of static/dynamic; got {self.sequences}")
+            raise ValueError(
+                f"argument 'sequences' must be a non-empty subset of static/dynamic; got {self.sequences}"
+            )
         if not 0 < self.exposure_fill <= 1:
             raise ValueError(f"argument 'exposure_fill' must lie in (0, 1]; got {self.exposure_fill}")
 
@@ -142,9 +150,11 @@ class SimulationScene:
             landmarks=landmarks,
             skin_type=get_skin_type(config.skin_type),
             calibration=calibration,
-            seed=config.seed,
+            seed=MAP_SEED,
         )
-        subsurface = SubsurfaceModel.build(_chromophores(maps), raster, calibration.wavelengths_nm)
+        subsurface = SubsurfaceModel.build(
+            _chromophores(maps), raster, calibration.wavelengths_nm, per_texel_stretch=config.texel_stretch
+        )
         return cls(config, preset, rig, asset, raster, maps, calibration, subsurface, head_placement())
 
 
@@ -153,13 +163,7 @@ def _chromophores(maps: AppearanceMaps) -> dict[str, np.ndarray]:
 
 
 def _pinhole(camera: Camera) -> PinholeCamera:
-    return PinholeCamera(
-        K=np.asarray(camera.K, dtype=np.float64),
-        world_to_camera=np.asarray(camera.world_to_camera, dtype=np.float64),
-        width=camera.width,
-        height=camera.height,
-        distortion=np.asarray(camera.distortion, dtype=np.float64) if camera.distortion else np.zeros(5),
-    )
+    return PinholeCamera.from_dict(camera.model_dump())
 
 
 def _camera_channels(camera: Camera) -> tuple[int, int, int]:
@@ -176,8 +180,9 @@ class RenderedFrame:
     shading_normal: np.ndarray
 
 
-def render_frame(scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps,
-                 subsurface: SubsurfaceModel) -> RenderedFrame:
+def render_frame(
+    scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps, subsurface: SubsurfaceModel
+) -> RenderedFrame:
     """Render every camera of the rig for one posed/deformed head (noise-free radiance)."""
     caster = RayCaster(mesh_world)
     raster = reposition(scene.raster, mesh_world)
@@ -192,24 +197,44 @@ def render_frame(scene: SimulationScene, mesh_world: TriangleMesh, maps: Appeara
         mask_t,
     ).numpy()
     lights = np.array([light.position_mm for light in scene.rig.lights], dtype=np.float64)
-    intensity = float(scene.rig.lights[0].radiant_intensity if np.ndim(scene.rig.lights[0].radiant_intensity) == 0
-                      else scene.rig.lights[0].radiant_intensity[0])
+    intensity = float(
+        scene.rig.lights[0].radiant_intensity
+        if np.ndim(scene.rig.lights[0].radiant_intensity) == 0
+        else scene.rig.lights[0].radiant_intensity[0]
+    )
     reference = _pinhole(scene.rig.polarimetric_cameras()[0])
     flux = entering_flux(caster, raster, shading, maps.eta, lights, intensity, reference.up_vector)
     exitance = texture_space_exitance(flux, subsurface, scene.calibration, blur=scene.config.subsurface_blur)
     textures = FrameTextures.build(
-        {"eta": maps.eta, "alpha_s": maps.alpha_s, "alpha_ss": maps.alpha_ss, "rho_s": maps.rho_s, "rho_ss": maps.rho_ss},
-        shading, exitance, raster.mask,
+        {
+            "eta": maps.eta,
+            "alpha_s": maps.alpha_s,
+            "alpha_ss": maps.alpha_ss,
+            "rho_s": maps.rho_s,
+            "rho_ss": maps.rho_ss,
+        },
+        shading,
+        exitance,
+        raster.mask,
     )
     views = {}
     for camera in scene.rig.cameras:
         pinhole = _pinhole(camera)
         if camera.role == "polarimetric":
-            views[camera.id] = render_view(caster, mesh_world, pinhole, textures, lights, intensity,
-                                           _camera_channels(camera), polarization=True)
+            views[camera.id] = render_view(
+                caster,
+                mesh_world,
+                pinhole,
+                textures,
+                lights,
+                intensity,
+                _camera_channels(camera),
+                polarization=True,
+            )
         else:
-            views[camera.id] = render_view(caster, mesh_world, pinhole, textures, lights, intensity,
-                                           tuple(range(6)), polarization=False)
+            views[camera.id] = render_view(
+                caster, mesh_world, pinhole, textures, lights, intensity, tuple(range(6)), polarization=False
+            )
     return RenderedFrame(mesh_world, views, raster, shading)
 
 
@@ -226,30 +251,43 @@ def _with_stereo_resolution(rig: Rig, width: int, height: int) -> Rig:
             K[1, 2] = (height - 1) / 2.0
             camera = camera.model_copy(update={"width": width, "height": height, "K": K.tolist()})
         cameras.append(camera)
-    return Rig.model_validate({**rig.model_dump(mode="json"), "cameras": [c.model_dump(mode="json") for c in cameras]})
+    return Rig.model_validate(
+        {**rig.model_dump(mode="json"), "cameras": [c.model_dump(mode="json") for c in cameras]}
+    )
 
 
 def _stereo_rgb(s0: np.ndarray, rig: Rig) -> np.ndarray:
     """RGB of an unfiltered camera from the six half-band channels: mean of each colour's two halves."""
     upper, lower = rig.polarimetric_cameras()[:2]
-    rgb = [0.5 * (s0[..., upper.colour_channels[c]] + s0[..., lower.colour_channels[c]]) for c in ("R", "G", "B")]
+    rgb = [
+        0.5 * (s0[..., upper.colour_channels[c]] + s0[..., lower.colour_channels[c]]) for c in ("R", "G", "B")
+    ]
     return np.stack(rgb, axis=-1)
 
 
-def _raw_frames(scene: SimulationScene, frame: RenderedFrame, sequence: str, index: int) -> dict[str, np.ndarray]:
+def _raw_frames(
+    scene: SimulationScene, frame: RenderedFrame, sequence: str, index: int
+) -> dict[str, np.ndarray]:
     """Noisy (or noise-free) integer raw frames of every camera."""
     noise = SensorNoise(exposure=float(scene.exposure))
     raws = {}
     for camera_number, camera in enumerate(scene.rig.cameras):
         view = frame.views[camera.id]
-        rng = np.random.default_rng((scene.config.seed, 0 if sequence == "static" else 1, index, camera_number))
+        rng = np.random.default_rng(
+            (scene.config.seed, 0 if sequence == "static" else 1, index, camera_number)
+        )
         if camera.role == "polarimetric":
-            images = [torch.from_numpy(np.ascontiguousarray(view.images[k])) for k in ("i0", "i45", "i90", "i135")]
-            signal = mosaic(*images, sensor=camera.sensor).numpy()
+            images = [
+                torch.from_numpy(np.ascontiguousarray(view.images[k])) for k in ("i0", "i45", "i90", "i135")
+            ]
+            # Analyzer intensities are >= 0; clip float rounding (~1e-8) of s0 - s1 at dark pixels.
+            signal = np.clip(mosaic(*images, sensor=camera.sensor).numpy(), 0.0, None)
             raws[camera.id] = simulate_raw(signal, noise, seed=rng, noiseless=not scene.config.noise)
         else:
-            rgb = _stereo_rgb(view.images["s0"], scene.rig)
-            channels = [simulate_raw(rgb[..., c], noise, seed=rng, noiseless=not scene.config.noise) for c in range(3)]
+            rgb = np.clip(_stereo_rgb(view.images["s0"], scene.rig), 0.0, None)
+            channels = [
+                simulate_raw(rgb[..., c], noise, seed=rng, noiseless=not scene.config.noise) for c in range(3)
+            ]
             raws[camera.id] = np.stack(channels, axis=-1)
     return raws
 
@@ -263,7 +301,9 @@ def _exposure_from(frame: RenderedFrame, scene: SimulationScene) -> float:
     return scene.config.exposure_fill / max(level, 1e-12)
 
 
-def _texel_visibility(caster: RayCaster, raster: UVRaster, camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
+def _texel_visibility(
+    caster: RayCaster, raster: UVRaster, camera: PinholeCamera
+) -> tuple[np.ndarray, np.ndarray]:
     """``(visible (Ht, Wt) bool, pixel (Ht, Wt, 2) float32)`` of every texel in one camera.
 
     A texel is visible when it faces the camera, projects inside the image and the camera ray towards
@@ -277,8 +317,13 @@ def _texel_visibility(caster: RayCaster, raster: UVRaster, camera: PinholeCamera
     directions = rays / distance[:, None]
     facing = np.einsum("nc,nc->n", raster.normal[mask], -directions) > 0.0
     pixels, depth = camera.project(points)
-    inside = (depth > 0) & (pixels[:, 0] >= -0.5) & (pixels[:, 0] <= camera.width - 0.5) \
-        & (pixels[:, 1] >= -0.5) & (pixels[:, 1] <= camera.height - 0.5)
+    inside = (
+        (depth > 0)
+        & (pixels[:, 0] >= -0.5)
+        & (pixels[:, 0] <= camera.width - 0.5)
+        & (pixels[:, 1] >= -0.5)
+        & (pixels[:, 1] <= camera.height - 0.5)
+    )
     hits = caster.first_hits(np.repeat(centre[None], len(points), axis=0), directions)
     unoccluded = hits.hit & (np.abs(hits.distance - distance) < 0.5)
     visible = np.zeros(mask.shape, bool)
@@ -345,7 +390,9 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _frames(scene: SimulationScene, sequence: str) -> Iterable[tuple[int, float, TriangleMesh, AppearanceMaps, SubsurfaceModel]]:
+def _frames(
+    scene: SimulationScene, sequence: str
+) -> Iterable[tuple[int, float, TriangleMesh, AppearanceMaps, SubsurfaceModel]]:
     """Yield ``(index, timestamp s, mesh in rig world, maps, subsurface model)`` of a sequence."""
     preset = scene.preset
     asset = scene.asset
@@ -363,8 +410,13 @@ def _frames(scene: SimulationScene, sequence: str) -> Iterable[tuple[int, float,
         lowered = 0.8 * (1.0 - float(blood_flow_factor(time_s)))
         c_h_out = (scene.maps.c_h_out * (1.0 - lowered * pressed)).astype(np.float32)
         maps = _with_c_h_out(scene, c_h_out)
-        subsurface = SubsurfaceModel.build(_chromophores(maps), scene.raster, scene.calibration.wavelengths_nm,
-                                           shapes=scene.subsurface.shapes)
+        subsurface = SubsurfaceModel.build(
+            _chromophores(maps),
+            scene.raster,
+            scene.calibration.wavelengths_nm,
+            shapes=scene.subsurface.shapes,
+            per_texel_stretch=scene.config.texel_stretch,
+        )
         yield index, time_s, mesh, maps, subsurface
 
 
@@ -419,7 +471,9 @@ def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = 
     if summary_path.exists():
         previous = json.loads(summary_path.read_text(encoding="utf-8"))
         if previous.get("config") != config_dict:
-            raise ValueError(f"'{out}' holds a simulation with another configuration {previous.get('config')}")
+            raise ValueError(
+                f"'{out}' holds a simulation with another configuration {previous.get('config')}"
+            )
     out.mkdir(parents=True, exist_ok=True)
     scene = SimulationScene.build(config)
     scene.rig = _with_stereo_resolution(scene.rig, scene.preset.stereo_width, scene.preset.stereo_height)
@@ -433,27 +487,41 @@ def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = 
     for sequence in config.sequences:
         seq_started = time.perf_counter()
         store: CaptureStore | None = None
+        if (out / sequence / "rig.json").exists():
+            store = CaptureStore.create(
+                out / sequence, Rig.load(out / sequence / "rig.json"), sequence=sequence
+            )
+            scene.rig = store.rig
+            scene.exposure = float(store.rig.cameras[0].exposure)
         frames = _frames(scene, sequence)
-        bar = tqdm(frames, total=counts[sequence], desc=f"simulate {sequence}", unit="frame", disable=not progress)
+        bar = tqdm(
+            frames, total=counts[sequence], desc=f"simulate {sequence}", unit="frame", disable=not progress
+        )
         for index, time_s, mesh, maps, subsurface in bar:
+            mesh_path = gt / sequence / "meshes" / f"{index:06d}.ply"
+            if (
+                store is not None
+                and store.has_frame(index)
+                and writer.done(sequence, index)
+                and mesh_path.exists()
+            ):
+                continue  # resume: this frame is complete
             frame = render_frame(scene, mesh, maps, subsurface)
             if scene.exposure is None:
                 scene.exposure = _exposure_from(frame, scene)
                 scene.rig = _with_exposure(scene.rig, scene.exposure)
             if store is None:
                 store = CaptureStore.create(out / sequence, scene.rig, sequence=sequence)
-            raws = _raw_frames(scene, frame, sequence, index)
-            store.add_frame(index, time_s, raws)
-            mesh_path = gt / sequence / "meshes" / f"{index:06d}.ply"
-            if not mesh_path.exists():
-                save_ply(mesh_path, mesh)
+            store.add_frame(index, time_s, _raw_frames(scene, frame, sequence, index))
+            save_ply(mesh_path, mesh)
             if sequence == "dynamic":
                 names = list(scene.calibration.channel_names)
                 write_exr(gt / "dynamic" / "maps" / f"{index:06d}_c_h_out.exr", {"Y": maps.c_h_out})
-                write_exr(gt / "dynamic" / "maps" / f"{index:06d}_rho_sss_bar.exr",
-                          {n: maps.rho_sss_bar[..., i] for i, n in enumerate(names)})
-            if not writer.done(sequence, index):
-                writer.write(sequence, index, frame)
+                write_exr(
+                    gt / "dynamic" / "maps" / f"{index:06d}_rho_sss_bar.exr",
+                    {n: maps.rho_sss_bar[..., i] for i, n in enumerate(names)},
+                )
+            writer.write(sequence, index, frame)
         if store is not None:
             store.finalize()
         timings[f"{sequence}_s"] = time.perf_counter() - seq_started

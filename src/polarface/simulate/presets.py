@@ -108,12 +108,16 @@ def get_preset(name: str) -> SimulationPreset:
     try:
         return PRESETS[name]
     except KeyError:
-        raise ValueError(f"argument 'preset': unknown preset {name!r}; choose one of {sorted(PRESETS)}") from None
+        raise ValueError(
+            f"argument 'preset': unknown preset {name!r}; choose one of {sorted(PRESETS)}"
+        ) from None
 
 
 def get_skin_type(name: str) -> SkinTypePreset:
     """The skin-type preset ``I``..``VI`` (case-insensitive); ValueError naming the choices."""
     key = str(name).strip().upper()
     if key not in SKIN_TYPES:
-        raise ValueError(f"argument 'skin_type': unknown skin type {name!r}; choose one of {list(SKIN_TYPES)}")
+        raise ValueError(
+            f"argument 'skin_type': unknown skin type {name!r}; choose one of {list(SKIN_TYPES)}"
+        )
     return SKIN_TYPES[key]

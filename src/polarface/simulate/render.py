@@ -63,7 +63,8 @@ class FrameTextures:
         exitance: np.ndarray,
         mask: np.ndarray,
     ) -> FrameTextures:
-        """Stack and fill ``parameters`` (name -> ``(Ht, Wt)``), normals ``(Ht, Wt, 3)``, exitance ``(Ht, Wt, 6)``."""
+        """Stack and fill ``parameters`` (name -> ``(Ht, Wt)``), normals ``(Ht, Wt, 3)`` and the
+        exitance ``(Ht, Wt, 6)``."""
         layers = [parameters[name][..., None] for name in PARAMETER_ORDER]
         stack = np.concatenate([*layers, shading_normal, exitance], axis=-1).astype(np.float32)
         return cls(torch.from_numpy(fill_empty_texels(stack, mask)))
@@ -152,7 +153,9 @@ def render_view(
         params = {name: sampled[:, i : i + 1] for i, name in enumerate(PARAMETER_ORDER)}
         exitance = sampled[:, channel_index]
         # Subsurface: exit Fresnel transmission with its polarization applied to the diffused exitance.
-        exit_stokes = subsurface_exit_stokes(normal, position, centre, up, params["eta"].clamp_min(1.0 + 1e-6))
+        exit_stokes = subsurface_exit_stokes(
+            normal, position, centre, up, params["eta"].clamp_min(1.0 + 1e-6)
+        )
         stokes = exitance[..., None] * exit_stokes  # (N, C, 4)
         # Specular and single scattering: each LED module, times its shadow-ray visibility.
         visible = caster.shadow_rays(hits.point[local], hits.geometric_normal[local], lights)  # (N, K)
@@ -162,18 +165,29 @@ def render_view(
             if not bool(lit.any()):
                 continue
             images = render_polarimetric(
-                normal, position, centre, up,
+                normal,
+                position,
+                centre,
+                up,
                 torch.from_numpy(lights[k : k + 1]),
                 torch.full((1, len(channels)), float(light_intensity), dtype=torch.float64),
-                params["eta"].clamp_min(1.0 + 1e-6), params["alpha_s"].clamp_min(1e-3),
-                params["alpha_ss"].clamp_min(1e-3), params["rho_s"].clamp_min(0.0),
-                params["rho_ss"].clamp_min(0.0), 0.0,
+                params["eta"].clamp_min(1.0 + 1e-6),
+                params["alpha_s"].clamp_min(1e-3),
+                params["alpha_ss"].clamp_min(1e-3),
+                params["rho_s"].clamp_min(0.0),
+                params["rho_ss"].clamp_min(0.0),
+                0.0,
                 diffused_exitance=no_exitance,
             )
             stokes = stokes + lit * images.stokes
         s0, s1, s2 = stokes[..., 0], stokes[..., 1], stokes[..., 2]
         if polarization:
-            totals = {"i0": 0.5 * (s0 + s1), "i45": 0.5 * (s0 + s2), "i90": 0.5 * (s0 - s1), "i135": 0.5 * (s0 - s2)}
+            totals = {
+                "i0": 0.5 * (s0 + s1),
+                "i45": 0.5 * (s0 + s2),
+                "i90": 0.5 * (s0 - s1),
+                "i135": 0.5 * (s0 - s2),
+            }
         else:
             totals = {"s0": s0}
         for name in names:
