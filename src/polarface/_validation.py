@@ -11,6 +11,8 @@ Conventions (see ``docs/conventions.md``):
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
@@ -27,7 +29,25 @@ __all__ = [
     "check_range",
     "check_shape_tail",
     "check_unit_vectors",
+    "trusted_inputs",
 ]
+
+_TRUSTED = contextvars.ContextVar("polarface_trusted_inputs", default=False)
+
+
+@contextlib.contextmanager
+def trusted_inputs():
+    """Skip the value checks (finite, range, unit length) inside this block.
+
+    For internal hot loops whose inputs were validated once upstream (the simulator's per-light
+    rendering, the inverse stage's iterations). Shape checks and dtype conversion still run.
+    """
+    token = _TRUSTED.set(True)
+    try:
+        yield
+    finally:
+        _TRUSTED.reset(token)
+
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -96,6 +116,8 @@ def as_float_tensor(
 
 def check_finite(tensor: torch.Tensor, name: str) -> torch.Tensor:
     """Raise ``ValueError`` naming ``name`` if ``tensor`` holds NaN or inf."""
+    if _TRUSTED.get():
+        return tensor
     if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
         bad = int((~torch.isfinite(tensor)).sum())
         raise ValueError(f"argument '{name}' contains {bad} NaN or infinite value(s)")
@@ -115,6 +137,8 @@ def check_range(
 
     The bounds are open instead of closed where ``low_inclusive``/``high_inclusive`` is False.
     """
+    if _TRUSTED.get():
+        return tensor
     if low is not None:
         bad = tensor < low if low_inclusive else tensor <= low
         if bool(bad.any()):
@@ -150,6 +174,8 @@ def check_shape_tail(tensor: torch.Tensor, name: str, tail: Sequence[int]) -> to
 def check_unit_vectors(tensor: torch.Tensor, name: str, atol: float = 1e-3) -> torch.Tensor:
     """Raise ``ValueError`` if vectors on the last axis (size 3) are not unit length within ``atol``."""
     check_last_dim(tensor, name, 3)
+    if _TRUSTED.get():
+        return tensor
     norm = torch.linalg.vector_norm(tensor.detach(), dim=-1)
     if bool(((norm - 1.0).abs() > atol).any()):
         raise ValueError(
