@@ -1,0 +1,92 @@
+"""Simulator throughput: render time per preset and peak memory, and the docs figure of one frame.
+
+Usage:
+    python benchmarks/bench_simulate.py --preset tiny [--out DIR] [--figure docs/images/simulated_frame.png]
+
+Prints setup time, seconds per static/dynamic frame, total and peak RSS (numbers, not a timed test).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def figure(sim_dir: Path, path: Path) -> None:
+    """I0, I90, DoP and an sRGB preview of static frame 0 of the upper-band camera, side by side."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from polarface.capture.store import CaptureStore
+    from polarface.optics import linear_dop, stokes_from_intensities
+
+    store = CaptureStore.open(sim_dir / "static")
+    stack = store.stack(0, "pol_upper")  # (4, H, W, 3) I0, I45, I90, I135 in radiance units
+    i0, i45, i90, i135 = stack
+    dop = linear_dop(stokes_from_intensities(i0.mean(-1), i45.mean(-1), i90.mean(-1), i135.mean(-1)))
+    lit = (i0 + i90).mean(-1) > 0.02 * float((i0 + i90).mean(-1).max())
+    dop = np.where(lit, dop, np.nan)  # no DoP where there is no light (background)
+    scale = float(np.percentile(i0, 99.5))
+    s0 = i0 + i90
+    srgb = np.clip(s0 / float(np.percentile(s0, 99.5)), 0, 1) ** (1 / 2.2)
+    panels = [
+        ("I0 (co-polarized)", np.clip(i0.mean(-1) / scale, 0, 1), "gray"),
+        ("I90 (cross-polarized)", np.clip(i90.mean(-1) / scale, 0, 1), "gray"),
+        ("linear DoP", np.clip(dop, 0, 0.3), "magma"),
+        ("colour preview (upper bands)", srgb, None),
+    ]
+    fig, axes = plt.subplots(1, 4, figsize=(16, 4.2), dpi=110)
+    for ax, (title, image, cmap) in zip(axes, panels, strict=True):
+        handle = ax.imshow(image, cmap=cmap)
+        ax.set_title(title)
+        ax.set_axis_off()
+        if cmap == "magma":
+            fig.colorbar(handle, ax=ax, fraction=0.046, pad=0.02)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--preset", default="tiny", choices=("tiny", "demo", "full"))
+    parser.add_argument("--out", default=None, help="simulation folder (default: a temporary one)")
+    parser.add_argument("--figure", default=None, help="write the one-frame figure here")
+    parser.add_argument("--sequences", default="static,dynamic")
+    args = parser.parse_args()
+
+    from polarface.simulate.pipeline import SimulationConfig, simulate
+    from polarface.simulate.presets import get_preset
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(args.out or Path(tmp) / "sim")
+        sequences = tuple(s for s in args.sequences.split(",") if s)
+        started = time.perf_counter()
+        summary = simulate(out, SimulationConfig(preset=args.preset, sequences=sequences), progress=True)
+        wall = time.perf_counter() - started
+        preset = get_preset(args.preset)
+        timings = summary["timings"]
+        report = {
+            "preset": args.preset,
+            "wall_s": round(wall, 1),
+            "setup_s": round(timings["setup_s"], 1),
+            "s_per_static_frame": round(timings.get("static_s", 0.0) / preset.static_frames, 2),
+            "s_per_dynamic_frame": round(timings.get("dynamic_s", 0.0) / max(preset.dynamic_frames, 1), 2),
+            "peak_rss_mb": round(summary["peak_rss_mb"], 0),
+        }
+        print(json.dumps(report, indent=2))
+        if args.figure:
+            figure(out, Path(args.figure))
+            print(f"figure written to {args.figure}")
+
+
+if __name__ == "__main__":
+    main()
