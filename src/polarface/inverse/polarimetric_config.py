@@ -1,0 +1,147 @@
+"""Configuration and reparameterisation of the static polarimetric stage.
+
+``PolarimetricConfig`` holds the optimiser options and the loss weights (paper defaults);
+:func:`maps_from_raw` / :func:`raw_from_maps` map between the unconstrained optimisation variables and
+the physical maps (ranges in :mod:`polarface.inverse.polarimetric_fit`'s docstring).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import torch
+
+from polarface.inverse.polarimetric_losses import LossWeights
+
+__all__ = ["PARAMETER_NAMES", "PolarimetricConfig", "initial_raw", "maps_from_raw", "raw_from_maps"]
+
+#: Output maps (``rho_sss_bar`` has 6 channels, the others one).
+PARAMETER_NAMES = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "rho_sss_bar", "displacement_mm")
+
+
+@dataclasses.dataclass(frozen=True)
+class PolarimetricConfig:
+    """Options of the static polarimetric stage (defaults: paper weights; optimiser settings validated
+    on the simulator, see docs/reconstruct.md).
+
+    Attributes:
+        weights: :class:`LossWeights`.
+        optimizer: ``rmsprop`` (paper) or ``adam``; lr: learning rate on the raw variables;
+        iterations: optimiser steps per patch; lr_final_fraction: cosine decay to this fraction of lr;
+        warmup: linear learning-rate warm-up steps.
+        patch: largest patch side (texels); halo: halo width (texels, >= 2 for the 5x5 window);
+        sample_budget: most samples (texel x view) held per patch.
+        eta_range, alpha_range: reparameterisation ranges; rho_max: largest lobe albedo;
+        h_scale_mm: H per unit of its raw variable.
+        init_eta, init_alpha_s, init_alpha_ss, init_rho_ss: initial values.
+        init_eta_search: start eta per texel from a grid search of the DoP relation
+            (:func:`polarface.inverse.polarimetric_init.init_eta`).
+        seed: torch seed (deterministic runs).
+    """
+
+    weights: LossWeights = dataclasses.field(default_factory=LossWeights)
+    optimizer: str = "rmsprop"
+    lr: float = 0.03
+    iterations: int = 150
+    lr_final_fraction: float = 0.1
+    warmup: int = 20
+    patch: int = 64
+    halo: int = 4
+    sample_budget: int = 300_000
+    eta_range: tuple[float, float] = (1.05, 2.5)
+    alpha_range: tuple[float, float] = (0.02, 1.5)
+    rho_max: float = 2.0
+    h_scale_mm: float = 0.05
+    init_eta: float = 1.5
+    init_alpha_s: float = 0.4
+    init_alpha_ss: float = 0.8
+    init_rho_ss: float = 0.2
+    init_eta_search: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.optimizer not in ("rmsprop", "adam"):
+            raise ValueError(f"argument 'optimizer' must be 'rmsprop' or 'adam'; got {self.optimizer!r}")
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ValueError(f"argument 'lr' must be > 0; got {self.lr}")
+        if int(self.iterations) < 0:
+            raise ValueError(f"argument 'iterations' must be >= 0; got {self.iterations}")
+        if not 0 < self.lr_final_fraction <= 1:
+            raise ValueError(f"argument 'lr_final_fraction' must be in (0, 1]; got {self.lr_final_fraction}")
+        if int(self.patch) < 4 or int(self.halo) < 2:
+            raise ValueError(
+                f"arguments 'patch' >= 4 and 'halo' >= 2 required; got {self.patch}, {self.halo}"
+            )
+        if int(self.sample_budget) < 1000:
+            raise ValueError(f"argument 'sample_budget' must be >= 1000; got {self.sample_budget}")
+        lo, hi = self.eta_range
+        if not 1.0 < lo < self.init_eta < hi:
+            raise ValueError(
+                f"arguments 'eta_range' {self.eta_range} / 'init_eta' {self.init_eta}: "
+                "need 1 < lo < init < hi"
+            )
+        lo, hi = self.alpha_range
+        if not 0.0 < lo < self.init_alpha_s < self.init_alpha_ss < hi:
+            raise ValueError(
+                "arguments 'alpha_range'/'init_alpha_s'/'init_alpha_ss': "
+                "need 0 < lo < alpha_s < alpha_ss < hi"
+            )
+        if not 0 < self.init_rho_ss < self.rho_max:
+            raise ValueError(f"argument 'init_rho_ss' must lie in (0, rho_max); got {self.init_rho_ss}")
+        if not self.h_scale_mm > 0:
+            raise ValueError(f"argument 'h_scale_mm' must be > 0; got {self.h_scale_mm}")
+
+
+def _logit(p: np.ndarray | float) -> np.ndarray:
+    p = np.clip(np.asarray(p, dtype=np.float64), 1e-6, 1 - 1e-6)
+    return np.log(p / (1 - p))
+
+
+def maps_from_raw(raw: dict[str, torch.Tensor], config: PolarimetricConfig) -> dict[str, torch.Tensor]:
+    """Physical maps from raw variables (``(..., 1)`` or ``(..., 6)`` each; differentiable)."""
+    e_lo, e_hi = config.eta_range
+    a_lo, a_hi = config.alpha_range
+    alpha_s = a_lo + (a_hi - a_lo) * torch.sigmoid(raw["alpha_s"])
+    return {
+        "eta": e_lo + (e_hi - e_lo) * torch.sigmoid(raw["eta"]),
+        "alpha_s": alpha_s,
+        "alpha_ss": alpha_s + (a_hi - alpha_s) * torch.sigmoid(raw["alpha_ss"]),
+        "rho_s": config.rho_max * torch.sigmoid(raw["rho_s"]),
+        "rho_ss": config.rho_max * torch.sigmoid(raw["rho_ss"]),
+        "rho_sss_bar": torch.sigmoid(raw["rho_sss_bar"]),
+        "displacement_mm": config.h_scale_mm * raw["displacement_mm"],
+    }
+
+
+def raw_from_maps(maps: dict[str, np.ndarray], config: PolarimetricConfig) -> dict[str, np.ndarray]:
+    """Inverse of :func:`maps_from_raw` (numpy, values clipped into the open ranges)."""
+    e_lo, e_hi = config.eta_range
+    a_lo, a_hi = config.alpha_range
+    alpha_s = np.clip(maps["alpha_s"], a_lo + 1e-6, a_hi - 1e-6)
+    return {
+        "eta": _logit((maps["eta"] - e_lo) / (e_hi - e_lo)),
+        "alpha_s": _logit((alpha_s - a_lo) / (a_hi - a_lo)),
+        "alpha_ss": _logit((maps["alpha_ss"] - alpha_s) / (a_hi - alpha_s)),
+        "rho_s": _logit(maps["rho_s"] / config.rho_max),
+        "rho_ss": _logit(maps["rho_ss"] / config.rho_max),
+        "rho_sss_bar": _logit(maps["rho_sss_bar"]),
+        "displacement_mm": np.asarray(maps["displacement_mm"], dtype=np.float64) / config.h_scale_mm,
+    }
+
+
+def initial_raw(resolution: tuple[int, int], config: PolarimetricConfig) -> dict[str, np.ndarray]:
+    """Raw variables of the initial maps (``(Ht, Wt, C)`` float32; albedos refined per patch)."""
+    height, width = resolution
+    ones = np.ones((height, width, 1))
+    maps = {
+        "eta": config.init_eta * ones,
+        "alpha_s": config.init_alpha_s * ones,
+        "alpha_ss": config.init_alpha_ss * ones,
+        "rho_s": 0.3 * ones,
+        "rho_ss": config.init_rho_ss * ones,
+        "rho_sss_bar": 0.4 * np.ones((height, width, 6)),
+        "displacement_mm": 0.0 * ones,
+    }
+    return {k: v.astype(np.float32) for k, v in raw_from_maps(maps, config).items()}

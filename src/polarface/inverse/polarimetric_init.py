@@ -1,0 +1,146 @@
+"""Closed-form per-texel starts of the static polarimetric fit (eta, rho_sss_bar, alpha_s, rho_s).
+
+Evaluated on one patch's samples with :func:`polarface.inverse.polarimetric_model.render_samples`
+(vectorised; per-texel sums with ``index_add``). See :mod:`polarface.inverse.polarimetric_fit`.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from polarface.inverse.polarimetric_model import SampleBatch, render_samples
+
+__all__ = ["init_albedos", "init_eta", "nan_median_filter"]
+
+
+def nan_median_filter(values: torch.Tensor, window: int = 5) -> torch.Tensor:
+    """Median over the ``window x window`` neighbourhood of a ``(h, w)`` map, ignoring NaN (NaN where the
+    whole window is NaN). Used on the per-texel eta starts: the paper's eta smoothness prior, applied
+    robustly to grid-search outliers caused by noise."""
+    pad = window // 2
+    padded = torch.nn.functional.pad(values[None, None], (pad, pad, pad, pad), value=float("nan"))[0, 0]
+    patches = padded.unfold(0, window, 1).unfold(1, window, 1)  # (h, w, window, window)
+    return torch.nanmedian(patches.reshape(*values.shape, -1), dim=-1).values
+
+
+def init_albedos(
+    batch: SampleBatch,
+    normal: torch.Tensor,
+    params: dict[str, torch.Tensor],
+    texel_count: int,
+    alpha_grid: tuple[float, ...] = (0.15, 0.25, 0.35, 0.45, 0.55, 0.65, 0.8),
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-texel closed-form starts: rho_sss_bar ``(T, 6)`` (linear least squares on I_sss at
+    the initial eta), then ``rho_s`` and ``alpha_s`` ``(T,)``: for each alpha_s of ``alpha_grid`` the
+    least-squares rho_s of the I_s residual left by the subsurface and single-scattering terms; the
+    best pair is kept."""
+    texel, ch = batch.texel, batch.channels
+    zero = torch.zeros_like(params["eta"][texel, 0])
+    one3 = torch.ones((batch.count, 3), dtype=normal.dtype, device=normal.device)
+    with torch.no_grad():
+        unit = render_samples(
+            batch,
+            normal[texel],
+            params["eta"][texel, 0],
+            params["alpha_s"][texel, 0],
+            params["alpha_ss"][texel, 0],
+            zero,
+            zero,
+            one3,
+        )
+        num = torch.zeros(texel_count * 6, dtype=normal.dtype, device=normal.device)
+        den = torch.zeros_like(num)
+        flat = (texel[:, None] * 6 + ch).reshape(-1)
+        num.index_add_(0, flat, (unit.i_sss * batch.observed[:, 0]).reshape(-1))
+        den.index_add_(0, flat, (unit.i_sss * unit.i_sss).reshape(-1))
+        rho_sss = (num / den.clamp_min(1e-30)).reshape(texel_count, 6)
+        has = den.reshape(texel_count, 6) > 0
+        fallback = torch.where(has, rho_sss, torch.nan).nanmean(dim=1, keepdim=True).nan_to_num(0.4)
+        rho_sss = torch.where(has, rho_sss, fallback).clamp(0.01, 0.98)
+        rest = render_samples(  # subsurface + single scattering at their initial values
+            batch,
+            normal[texel],
+            params["eta"][texel, 0],
+            params["alpha_s"][texel, 0],
+            params["alpha_ss"][texel, 0],
+            zero,
+            params["rho_ss"][texel, 0],
+            torch.gather(rho_sss[texel], 1, ch),
+        )
+        residual = batch.observed[:, 2] - rest.i_s
+        energy = torch.zeros(texel_count, dtype=normal.dtype, device=normal.device)
+        energy.index_add_(0, texel, (residual**2).sum(-1))
+        best_cost = torch.full((texel_count,), torch.inf, dtype=normal.dtype, device=normal.device)
+        rho_s = torch.full((texel_count,), 0.3, dtype=normal.dtype, device=normal.device)
+        alpha_s = params["alpha_s"][:, 0].clone()
+        ones = torch.ones_like(zero)
+        # grid over alpha_s; rho_s in closed form (linear least squares on I_s) for each
+        for value in alpha_grid:
+            alpha = torch.full_like(zero, float(value))
+            spec = render_samples(
+                batch,
+                normal[texel],
+                params["eta"][texel, 0],
+                alpha,
+                alpha + 0.1,
+                ones,
+                zero,
+                torch.zeros_like(one3),
+            )
+            num_s = torch.zeros(texel_count, dtype=normal.dtype, device=normal.device)
+            den_s = torch.zeros_like(num_s)
+            num_s.index_add_(0, texel, (spec.specular_s1 * residual).sum(-1))
+            den_s.index_add_(0, texel, (spec.specular_s1**2).sum(-1))
+            fit = (num_s / den_s.clamp_min(1e-30)).clamp(0.02, 1.5)
+            cost = energy - 2 * fit * num_s + fit * fit * den_s
+            better = (den_s > 0) & (cost < best_cost)
+            best_cost = torch.where(better, cost, best_cost)
+            rho_s = torch.where(better, fit, rho_s)
+            alpha_s = torch.where(better, torch.full_like(alpha_s, float(value)), alpha_s)
+    return rho_sss, rho_s, alpha_s
+
+
+def init_eta(
+    batch: SampleBatch,
+    normal: torch.Tensor,
+    params: dict[str, torch.Tensor],
+    texel_count: int,
+    eta_range: tuple[float, float],
+    steps: int = 36,
+) -> torch.Tensor:
+    """Per-texel eta ``(T,)`` from a grid search of the refractive-index (DoP) relation alone.
+
+    The signed ratio ``I_zeta / I_sss`` of the subsurface term depends on eta and the geometry only
+    (not on albedos or lighting, DESIGN.md: signed components), and ``I135 - I45`` carries no specular
+    under the polarized near-coaxial light; least squares over each texel's views (weighted by the
+    observed ``I_sss``) on a grid over ``eta_range`` give a start close to the optimum, so the joint
+    optimisation does not have to drag eta across the range. Texels without samples get NaN.
+    """
+    texel = batch.texel
+    obs = batch.observed
+    floor = 0.05 * float(obs[:, 0].mean())
+    ratio_obs = obs[:, 1] / obs[:, 0].clamp_min(floor)
+    weight = obs[:, 0].clamp_min(0.0)
+    zero = torch.zeros_like(params["eta"][texel, 0])
+    ones3 = torch.ones((batch.count, 3), dtype=normal.dtype, device=normal.device)
+    lo, hi = eta_range
+    grid = torch.linspace(lo + 0.02, hi - 0.02, steps, dtype=normal.dtype, device=normal.device)
+    costs = torch.zeros((steps, texel_count), dtype=normal.dtype, device=normal.device)
+    with torch.no_grad():
+        for g, value in enumerate(grid):
+            pred = render_samples(
+                batch,
+                normal[texel],
+                torch.full_like(zero, float(value)),
+                params["alpha_s"][texel, 0],
+                params["alpha_ss"][texel, 0],
+                zero,
+                zero,
+                ones3,
+            )
+            ratio = pred.i_zeta / pred.i_sss.clamp_min(1e-30)
+            costs[g].index_add_(0, texel, (weight * (ratio - ratio_obs) ** 2).sum(-1))
+        best = grid[costs.argmin(dim=0)]
+        seen = torch.zeros(texel_count, dtype=torch.bool, device=normal.device)
+        seen[texel] = True
+    return torch.where(seen, best, torch.nan)

@@ -1,0 +1,222 @@
+"""A small synthetic static capture with known maps: a UV-mapped spherical cap on a turning chair.
+
+For tests, benchmarks and examples of the polarimetric stage without the full head simulator: the
+cap (radius ``radius_mm``, orthographic UV chart) is posed in front of :func:`polarface.capture.rig.paper_rig`
+(small image), its parameter maps are smooth fields, the subsurface term is *local*
+(``E = rho_sss_bar Phi``, the polarimetric stage's own model), and the frames are rendered with the
+simulator's ray-cast renderer (:func:`polarface.simulate.render.render_view`: shadow rays, full Mueller
+specular), mosaicked, quantised (optionally with shot/read noise) and stored with
+:class:`polarface.capture.store.CaptureStore` (demosaiced on ingest), exactly as real data would be.
+
+``make_sphere_capture(out)`` writes::
+
+    out/static/        capture store
+    out/ground_truth/  maps/<name>.exr + mask.png, mesh_rest.obj, static/poses.json (simulator layout)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from polarface.capture.rig import Rig, paper_rig
+from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
+from polarface.capture.store import CaptureStore
+from polarface.geometry.heights import normals_from_heights
+from polarface.geometry.mesh import TriangleMesh, save_obj
+from polarface.geometry.poses import rigid_transform, save_poses
+from polarface.geometry.raycast import RayCaster
+from polarface.geometry.uv_raster import rasterize_uv, reposition
+from polarface.io import write_exr, write_png
+from polarface.texture.unwrap import pinhole
+
+__all__ = ["SphereCaptureConfig", "make_sphere_capture", "sphere_cap_mesh", "sphere_maps"]
+
+
+@dataclasses.dataclass(frozen=True)
+class SphereCaptureConfig:
+    """Sizes of the synthetic capture (defaults: a few seconds to build).
+
+    Attributes:
+        width, height: polarimetric image size (multiples of 4); texture_resolution: atlas side.
+        frames: static frames; yaw_range_deg: +- yaw sweep; radius_mm: cap radius; cap_deg: cap half angle.
+        noise: shot/read noise; seed: noise and map seed; heights: add a displacement bump field.
+    """
+
+    width: int = 160
+    height: int = 128
+    texture_resolution: int = 24
+    frames: int = 4
+    yaw_range_deg: float = 25.0
+    radius_mm: float = 70.0
+    cap_deg: float = 70.0
+    noise: bool = False
+    seed: int = 0
+    heights: bool = True
+
+
+def sphere_cap_mesh(radius_mm: float = 70.0, cap_deg: float = 70.0, segments: int = 48) -> TriangleMesh:
+    """Spherical cap around +z (model frame, centre at the origin, mm) with an orthographic UV chart."""
+    limit = math.sin(math.radians(cap_deg))
+    grid = np.linspace(-limit, limit, segments + 1)
+    x, y = np.meshgrid(grid, grid)
+    inside = x * x + y * y <= limit * limit + 1e-12
+    index = -np.ones(x.shape, np.int64)
+    index[inside] = np.arange(int(inside.sum()))
+    z = np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, 1.0))
+    vertices = radius_mm * np.stack([x[inside], y[inside], z[inside]], axis=1)
+    uv = np.stack([(x[inside] / limit + 1) / 2, (y[inside] / limit + 1) / 2], axis=1)
+    a, b = index[:-1, :-1], index[:-1, 1:]
+    c, d = index[1:, :-1], index[1:, 1:]
+    full = (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)
+    faces = np.concatenate(
+        [np.stack([a[full], b[full], d[full]], 1), np.stack([a[full], d[full], c[full]], 1)]
+    )
+    return TriangleMesh.from_arrays(vertices, np.asarray(faces), uv, source="sphere cap")
+
+
+def sphere_maps(
+    resolution: int, mask: np.ndarray, seed: int = 0, heights: bool = True
+) -> dict[str, np.ndarray]:
+    """Smooth ground-truth maps ``(R, R)`` float32 (``rho_sss_bar`` ``(R, R, 6)``) in skin-like ranges."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:resolution, 0:resolution] / max(resolution - 1, 1)
+    phase = rng.uniform(0, 2 * np.pi, 8)
+    def wave(k: int) -> np.ndarray:
+        along_u = np.sin(2 * np.pi * (x * (1 + k % 2) + phase[k]) / 1.5)
+        return along_u * np.cos(2 * np.pi * (y + phase[k + 1]) / 1.7)
+
+    maps = {
+        "eta": 1.42 + 0.05 * wave(0),
+        "alpha_s": 0.4 + 0.08 * wave(1),
+        "alpha_ss": 0.9 + 0.05 * wave(2),
+        "rho_s": 0.5 + 0.15 * wave(3),
+        "rho_ss": 0.25 + 0.05 * wave(4),
+        "displacement_mm": (0.04 * np.sin(2 * np.pi * 2.5 * x) * np.sin(2 * np.pi * 2.0 * y))
+        if heights
+        else np.zeros_like(x),
+    }
+    base = np.array([0.55, 0.40, 0.30, 0.50, 0.35, 0.25])
+    maps["rho_sss_bar"] = base[None, None] * (1.0 + 0.15 * wave(5)[..., None])
+    out = {
+        k: np.where(mask if v.ndim == 2 else mask[..., None], v, 0.0).astype(np.float32)
+        for k, v in maps.items()
+    }
+    out["eta"] = np.where(mask, out["eta"], 1.4).astype(np.float32)
+    return out
+
+
+def _placement(yaw: float) -> np.ndarray:
+    """Model -> rig world: face the cameras (half turn about x), turn by ``yaw``, put it at 1 m."""
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    turn = rigid_transform(yaw=yaw)
+    move = np.eye(4)
+    move[:3, 3] = (0.0, 0.0, 1000.0)
+    return move @ flip @ turn
+
+
+def make_sphere_capture(out: str | Path, config: SphereCaptureConfig | None = None) -> dict:
+    """Render and store the synthetic capture (layout in the module docstring); returns a summary.
+
+    Returns:
+        ``{"capture": path, "ground_truth": path, "maps": maps, "mask": mask, "rig": Rig}``.
+    """
+    from polarface.simulate.render import FrameTextures, render_view
+    from polarface.simulate.texture_sss import entering_flux
+
+    config = config or SphereCaptureConfig()
+    out = Path(out)
+    mesh = sphere_cap_mesh(config.radius_mm, config.cap_deg)
+    raster = rasterize_uv(mesh, config.texture_resolution)
+    maps = sphere_maps(config.texture_resolution, raster.mask, config.seed, config.heights)
+    rig = paper_rig(width=config.width, height=config.height)
+    cameras = rig.polarimetric_cameras()
+    lights = np.array([light.position_mm for light in rig.lights])
+    intensity = float(rig.lights[0].radiant_intensity)
+    yaws = np.radians(np.linspace(-config.yaw_range_deg, config.yaw_range_deg, config.frames))
+    poses = np.stack([_placement(float(yaw)) for yaw in yaws])
+    reference_up = pinhole(cameras[0]).up_vector
+    renders = []
+    for pose in poses:
+        mesh_world = mesh.transformed(pose)
+        caster = RayCaster(mesh_world)
+        posed = reposition(raster, mesh_world)
+        t = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float64))  # noqa: E731
+        shading = normals_from_heights(
+            t(maps["displacement_mm"]),
+            t(posed.tangent_u),
+            t(posed.tangent_v),
+            t(posed.normal),
+            t(posed.texel_size_u),
+            t(posed.texel_size_v),
+            torch.from_numpy(posed.mask),
+        ).numpy()
+        flux = entering_flux(caster, posed, shading, maps["eta"], lights, intensity, reference_up)
+        exitance = maps["rho_sss_bar"] * flux[..., None]
+        textures = FrameTextures.build(
+            {k: maps[k] for k in ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss")},
+            shading,
+            exitance,
+            posed.mask,
+        )
+        views = {}
+        for camera in cameras:
+            channels = tuple(camera.colour_channels[c] for c in ("R", "G", "B"))
+            views[camera.id] = render_view(
+                caster, mesh_world, pinhole(camera), textures, lights, intensity, channels
+            )
+        renders.append(views)
+    peak = max(
+        float(np.percentile(v.images["i0"][v.mask], 99.5))
+        for r in renders
+        for v in r.values()
+        if v.mask.any()
+    )
+    exposure = 0.8 / max(peak, 1e-12)
+    data = rig.model_dump(mode="json")
+    for camera in data["cameras"]:
+        camera["exposure"] = exposure
+    rig = Rig.model_validate(data)
+    store = CaptureStore.create(out / "static", rig, sequence="static")
+    noise = SensorNoise(exposure=exposure)
+    for index, views in enumerate(renders):
+        raws = {}
+        for number, camera in enumerate(rig.cameras):
+            if camera.role == "polarimetric":
+                images = [
+                    torch.from_numpy(np.ascontiguousarray(views[camera.id].images[k]))
+                    for k in ("i0", "i45", "i90", "i135")
+                ]
+                signal = mosaic(*images, sensor=camera.sensor).numpy()
+            else:
+                signal = np.zeros((camera.height, camera.width, 3))
+            rng = np.random.default_rng((config.seed, index, number))
+            if signal.ndim == 3:
+                raws[camera.id] = np.stack(
+                    [
+                        simulate_raw(signal[..., c], noise, seed=rng, noiseless=not config.noise)
+                        for c in range(3)
+                    ],
+                    axis=-1,
+                )
+            else:
+                raws[camera.id] = simulate_raw(signal, noise, seed=rng, noiseless=not config.noise)
+        store.add_frame(index, index / 20.0, raws)
+    store.finalize()
+    gt = out / "ground_truth"
+    for name, value in maps.items():
+        if name == "rho_sss_bar":
+            names = (
+                rig.spectral.channel_names if rig.spectral is not None else [f"channel{i}" for i in range(6)]
+            )
+            write_exr(gt / "maps" / "rho_sss_bar.exr", {n: value[..., i] for i, n in enumerate(names)})
+        else:
+            write_exr(gt / "maps" / f"{name}.exr", {"Y": value})
+    write_png(gt / "maps" / "mask.png", raster.mask.astype(np.uint8) * 255)
+    save_obj(gt / "mesh_rest.obj", mesh)
+    save_poses(gt / "static" / "poses.json", poses)
+    return {"capture": out / "static", "ground_truth": gt, "maps": maps, "mask": raster.mask, "rig": rig}

@@ -1,0 +1,189 @@
+"""End to end: reconstruct -> evaluate on a synthetic capture; resume; bad input; bench smoke."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from polarface.cli import main
+from polarface.commands.reconstruct import ReconstructContext, run_stages
+from polarface.geometry.mesh import TriangleMesh, load_mesh, save_obj
+from polarface.io import read_exr
+from polarface.texture.synthetic import SphereCaptureConfig, make_sphere_capture
+
+RES = 16
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sim")
+    make_sphere_capture(root, SphereCaptureConfig(texture_resolution=RES, frames=4))
+    return root
+
+
+def _args(sim, out, *extra):
+    return [
+        "reconstruct",
+        str(sim / "static"),
+        "--geometry",
+        str(sim / "ground_truth"),
+        "--out",
+        str(out),
+        "--texture-resolution",
+        str(RES),
+        "--quiet",
+        *extra,
+    ]
+
+
+@pytest.mark.slow
+def test_reconstruct_evaluate_end_to_end(sim, tmp_path, capsys):
+    out = tmp_path / "result"
+    assert main(_args(sim, out, "--iterations", "120")) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["format"] == "polarface-result" and result["texture_resolution"] == [RES, RES]
+    assert len(result["channel_names"]) == 6 and result["stages"]["polarimetric"]["complete"]
+    for name in ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "displacement_mm", "rho_sss_bar"):
+        assert (out / "maps" / f"{name}.exr").exists()
+    assert set(read_exr(out / "maps" / "rho_sss_bar.exr")) == set(result["channel_names"])
+    assert (out / "report.html").exists() and (out / "rig.json").exists() and (out / "mesh.obj").exists()
+    capsys.readouterr()
+    assert main(["evaluate", str(out), "--gt", str(sim)]) == 0
+    metrics = json.loads(capsys.readouterr().out)
+    pol = metrics["polarimetric"]
+    # stated tolerances of the small synthetic capture (4 frames, 160 x 128 px, demosaiced, noise-free)
+    assert pol["rho_sss_bar"]["median_relative_error"] < 0.05
+    assert pol["eta"]["median_abs_error"] < 0.1
+    assert pol["alpha_s"]["median_abs_error"] < 0.1
+    assert pol["normal_angular_error_deg"]["median"] < 2.0
+    assert metrics["rerender"]["held_out_views"] == 2 and metrics["rerender"]["i_sss_rmse"] < 0.15
+
+
+def test_resume_after_interruption_gives_the_same_maps(sim, tmp_path):
+    def context(out, stop=None):
+        return ReconstructContext(
+            sim / "static",
+            out,
+            sim / "ground_truth" / "mesh_rest.obj",
+            sim / "ground_truth" / "static" / "poses.json",
+            RES,
+            "cpu",
+            True,
+            False,
+            0,
+            {"iterations": 15, "patch": 8},
+            stop_after_patches=stop,
+        )
+
+    straight = tmp_path / "straight"
+    straight.mkdir()
+    run_stages(context(straight))
+    interrupted = tmp_path / "interrupted"
+    interrupted.mkdir()
+    with pytest.raises(InterruptedError):
+        run_stages(context(interrupted, stop=1))
+    assert (interrupted / "checkpoints" / "polarimetric.npz").exists()
+    assert not (interrupted / "maps" / "eta.exr").exists()
+    run_stages(context(interrupted))
+    for name in ("eta", "alpha_s", "rho_s", "displacement_mm"):
+        np.testing.assert_array_equal(
+            read_exr(straight / "maps" / f"{name}.exr")["Y"],
+            read_exr(interrupted / "maps" / f"{name}.exr")["Y"],
+        )
+
+
+def test_bad_input_clear_error_and_nothing_written(sim, tmp_path, capsys):
+    out = tmp_path / "r"
+    no_poses = tmp_path / "geometry"
+    no_poses.mkdir()
+    shutil.copy(sim / "ground_truth" / "mesh_rest.obj", no_poses / "mesh_rest.obj")
+    assert main(_args(sim, out, "--geometry", str(no_poses))) == 2
+    assert "poses" in capsys.readouterr().err and not out.exists()
+    # mismatched UV atlas: every UV collapsed onto one point covers no texel
+    mesh = load_mesh(sim / "ground_truth" / "mesh_rest.obj")
+    flat = TriangleMesh.from_arrays(mesh.vertices, mesh.faces, np.full_like(mesh.uv, 0.5))
+    save_obj(tmp_path / "flat.obj", flat)
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(sim / "static"),
+                "--mesh",
+                str(tmp_path / "flat.obj"),
+                "--poses",
+                str(sim / "ground_truth" / "static" / "poses.json"),
+                "--out",
+                str(out),
+                "--texture-resolution",
+                str(RES),
+                "--quiet",
+            ]
+        )
+        == 2
+    )
+    assert "UV atlas" in capsys.readouterr().err and not out.exists()
+    # all-invisible texels: poses that put the head behind the cameras
+    poses = json.loads((sim / "ground_truth" / "static" / "poses.json").read_text())
+    matrices = poses["poses"] if isinstance(poses, dict) else poses
+    for matrix in matrices:
+        matrix[2][3] = -5000.0
+    (tmp_path / "away.json").write_text(json.dumps(matrices))
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(sim / "static"),
+                "--mesh",
+                str(sim / "ground_truth" / "mesh_rest.obj"),
+                "--poses",
+                str(tmp_path / "away.json"),
+                "--out",
+                str(out),
+                "--texture-resolution",
+                str(RES),
+                "--quiet",
+            ]
+        )
+        == 2
+    )
+    assert "invisible" in capsys.readouterr().err and not out.exists()
+    # an existing non-empty output without --resume
+    out.mkdir()
+    (out / "x").write_text("x")
+    assert main(_args(sim, out)) == 2
+
+
+def test_bench_smoke(capsys):
+    assert (
+        main(
+            [
+                "bench",
+                "--side",
+                "8",
+                "--frames",
+                "2",
+                "--iterations",
+                "1",
+                "--baseline-texels",
+                "1",
+                "--threads",
+                "1",
+                "--json",
+            ]
+        )
+        == 0
+    )
+    result = json.loads(capsys.readouterr().out)
+    assert result["fused_texel_view_iterations_per_s"] > 0 and result["speedup"] > 1
+    assert main(["bench", "--side", "2"]) == 2
+
+
+def test_evaluate_bad_input(sim, tmp_path, capsys):
+    assert main(["evaluate", str(tmp_path), "--gt", str(sim)]) == 2
+    assert "result.json" in capsys.readouterr().err
+    (tmp_path / "result.json").write_text("{}")
+    assert main(["evaluate", str(tmp_path), "--gt", str(tmp_path / "nothing")]) == 2
+    assert main(["evaluate", str(tmp_path), "--gt", str(sim), "--groups", "nope"]) == 2

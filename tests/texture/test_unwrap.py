@@ -1,0 +1,118 @@
+"""Texture-space unwrapping of a synthetic capture (sphere cap with known maps)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from polarface.capture.store import CaptureStore
+from polarface.geometry.mesh import load_mesh
+from polarface.geometry.poses import load_poses
+from polarface.inverse.polarimetric import render_view_texture
+from polarface.texture import UnwrapConfig, UnwrapStore, unwrap_capture
+from polarface.texture.synthetic import SphereCaptureConfig, make_sphere_capture
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sphere")
+    info = make_sphere_capture(root, SphereCaptureConfig(texture_resolution=16, frames=3))
+    store = CaptureStore.open(info["capture"])
+    mesh = load_mesh(info["ground_truth"] / "mesh_rest.obj")
+    poses = load_poses(info["ground_truth"] / "static" / "poses.json")
+    return info, store, mesh, poses, root
+
+
+def test_unwrap_layout_and_observations_match_the_forward_model(capture):
+    info, store, mesh, poses, root = capture
+    unwrap = unwrap_capture(
+        store, mesh, poses, root / "u.zarr", UnwrapConfig(texture_resolution=16, patch=8), progress=False
+    )
+    assert unwrap.complete and unwrap.resolution == (16, 16)
+    assert len(unwrap.views) == 6 and {v.camera_id for v in unwrap.views} == {"pol_upper", "pol_lower"}
+    obs, valid, lit = unwrap.read(slice(0, 16), slice(0, 16))
+    assert obs.shape == (6, 16, 16, 3, 3) and valid.shape == (6, 16, 16) and lit.shape == (6, 16, 16, 8)
+    assert valid.any() and np.isfinite(obs).all() and not valid[:, ~info["mask"]].any()
+    assert unwrap.mean_i_sss() > 0
+    # the stored observations agree with the forward model of the true maps (demosaicing error only)
+    observed, predicted, seen = render_view_texture(unwrap, info["maps"], 0)
+    assert seen.sum() > 20
+    relative = np.abs(predicted[seen][:, 0] - observed[seen][:, 0]) / observed[seen][:, 0].mean()
+    assert np.median(relative) < 0.03
+    # reopening gives the same content; the store lists patches with atlas texels only
+    again = UnwrapStore.open(root / "u.zarr")
+    assert [v.to_dict() for v in again.views] == [v.to_dict() for v in unwrap.views]
+    assert all(info["mask"][r, c].any() for r, c in again.patches(8))
+
+
+def test_unwrap_rejects_bad_input_and_writes_nothing(capture):
+    _info, store, mesh, poses, root = capture
+    with pytest.raises(ValueError, match="poses"):
+        unwrap_capture(store, mesh, poses[:2], root / "bad1.zarr", progress=False)
+    assert not (root / "bad1.zarr").exists()
+    away = poses.copy()
+    away[:, :3, 3] = (0.0, 0.0, -5000.0)  # behind the cameras: nothing is visible
+    with pytest.raises(ValueError, match="all-invisible"):
+        unwrap_capture(
+            store, mesh, away, root / "bad2.zarr", UnwrapConfig(texture_resolution=16), progress=False
+        )
+    assert not (root / "bad2.zarr").exists() and not (root / "bad2.zarr.partial").exists()
+
+
+def test_unwrap_resumes_a_partial_store(capture):
+    _info, store, mesh, poses, root = capture
+    config = UnwrapConfig(texture_resolution=16, patch=8)
+    full = unwrap_capture(store, mesh, poses, root / "full.zarr", config, progress=False)
+    partial = unwrap_capture(store, mesh, poses, root / "part.zarr", config, progress=False)
+    (root / "part.zarr").rename(root / "part.zarr.partial")
+    writer = UnwrapStore.open(root / "part.zarr.partial", mode="a")
+    writer.root.attrs["done"] = [0, 1]
+    writer.root.attrs["complete"] = False
+    writer.root["obs"][3] = 0.0
+    resumed = unwrap_capture(store, mesh, poses, root / "part.zarr", config, progress=False)
+    assert resumed.complete and partial is not None
+    np.testing.assert_array_equal(
+        resumed.read(slice(0, 16), slice(0, 16))[0], full.read(slice(0, 16), slice(0, 16))[0]
+    )
+
+
+@pytest.mark.parametrize(
+    "field,value",
+    [
+        ("texture_resolution", 4),
+        ("patch", 2),
+        ("cos_view_min", 1.5),
+        ("holdout_every", 1),
+        ("occlusion_tolerance_mm", 0.0),
+    ],
+)
+def test_config_errors(field, value):
+    with pytest.raises(ValueError, match=field):
+        UnwrapConfig(**{field: value})
+
+
+def test_nan_observations_raise(capture):
+    from polarface.geometry.raycast import RayCaster
+    from polarface.geometry.uv_raster import rasterize_uv
+    from polarface.texture.unwrap import pinhole, sample_view, texel_geometry
+
+    _info, store, mesh, poses, _root = capture
+    geometry = texel_geometry(rasterize_uv(mesh, 16))
+    camera = store.rig.polarimetric_cameras()[0]
+    stack = store.stack(0, camera.id).copy()
+    stack[:] = np.nan
+    world = mesh.transformed(poses[0])
+    lights = np.array([light.position_mm for light in store.rig.lights])
+    with pytest.raises(ValueError, match="NaN"):
+        sample_view(
+            geometry,
+            world,
+            RayCaster(world),
+            pinhole(camera),
+            poses[0],
+            stack,
+            np.zeros(stack.shape[1:3], bool),
+            lights,
+            UnwrapConfig(texture_resolution=16),
+            "frame 0",
+        )
