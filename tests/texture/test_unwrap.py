@@ -94,7 +94,7 @@ def test_config_errors(field, value):
 def test_nan_observations_raise(capture):
     from polarface.geometry.raycast import RayCaster
     from polarface.geometry.uv_raster import rasterize_uv
-    from polarface.texture.unwrap import pinhole, sample_view, texel_geometry
+    from polarface.geometry.camera import camera_from_rig as pinhole, sample_view, texel_geometry
 
     _info, store, mesh, poses, _root = capture
     geometry = texel_geometry(rasterize_uv(mesh, 16))
@@ -108,7 +108,7 @@ def test_nan_observations_raise(capture):
             geometry,
             world,
             RayCaster(world),
-            pinhole(camera),
+            camera_from_rig(camera),
             poses[0],
             stack,
             np.zeros(stack.shape[1:3], bool),

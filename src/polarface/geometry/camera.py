@@ -309,3 +309,8 @@ def _as_points(points: np.ndarray, name: str, size: int = 3) -> np.ndarray:
     if not np.isfinite(array).all():
         raise ValueError(f"argument '{name}' contains NaN or infinite values")
     return array
+
+
+def camera_from_rig(camera) -> PinholeCamera:
+    """The :class:`PinholeCamera` of a rig camera (:class:`polarface.capture.rig.Camera`)."""
+    return PinholeCamera.from_dict(camera.model_dump())

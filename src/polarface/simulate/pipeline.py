@@ -39,7 +39,7 @@ from tqdm import tqdm
 from polarface.capture.rig import Camera, Rig, paper_rig
 from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
 from polarface.capture.store import CaptureStore
-from polarface.geometry.camera import PinholeCamera
+from polarface.geometry.camera import PinholeCamera, camera_from_rig
 from polarface.geometry.deform import ExpressionRig, dynamic_sequence_weights
 from polarface.geometry.head_asset import HeadAsset, load_head_asset
 from polarface.geometry.heights import normals_from_heights
@@ -162,10 +162,6 @@ def _chromophores(maps: AppearanceMaps) -> dict[str, np.ndarray]:
     return {"c_m": maps.c_m, "beta_m": maps.beta_m, "c_h_in": maps.c_h_in, "c_h_out": maps.c_h_out}
 
 
-def _pinhole(camera: Camera) -> PinholeCamera:
-    return PinholeCamera.from_dict(camera.model_dump())
-
-
 def _camera_channels(camera: Camera) -> tuple[int, int, int]:
     return tuple(camera.colour_channels[c] for c in ("R", "G", "B"))  # type: ignore[return-value]
 
@@ -202,7 +198,7 @@ def render_frame(
         if np.ndim(scene.rig.lights[0].radiant_intensity) == 0
         else scene.rig.lights[0].radiant_intensity[0]
     )
-    reference = _pinhole(scene.rig.polarimetric_cameras()[0])
+    reference = camera_from_rig(scene.rig.polarimetric_cameras()[0])
     flux = entering_flux(caster, raster, shading, maps.eta, lights, intensity, reference.up_vector)
     exitance = texture_space_exitance(flux, subsurface, scene.calibration, blur=scene.config.subsurface_blur)
     textures = FrameTextures.build(
@@ -219,12 +215,12 @@ def render_frame(
     )
     views = {}
     for camera in scene.rig.cameras:
-        pinhole = _pinhole(camera)
+        view_camera = camera_from_rig(camera)
         if camera.role == "polarimetric":
             views[camera.id] = render_view(
                 caster,
                 mesh_world,
-                pinhole,
+                view_camera,
                 textures,
                 lights,
                 intensity,
@@ -233,7 +229,14 @@ def render_frame(
             )
         else:
             views[camera.id] = render_view(
-                caster, mesh_world, pinhole, textures, lights, intensity, tuple(range(6)), polarization=False
+                caster,
+                mesh_world,
+                view_camera,
+                textures,
+                lights,
+                intensity,
+                tuple(range(6)),
+                polarization=False,
             )
     return RenderedFrame(mesh_world, views, raster, shading)
 
@@ -380,7 +383,7 @@ class _ObservationWriter:
             self._array(f"{prefix}/mask", (count, h, w), "bool", False)[index] = view.mask
             self._array(f"{prefix}/uv", (count, h, w, 2), "float32", 0.0)[index] = view.uv
             caster = RayCaster(frame.mesh)
-            visible, pixel = _texel_visibility(caster, frame.raster, _pinhole(camera))
+            visible, pixel = _texel_visibility(caster, frame.raster, camera_from_rig(camera))
             self._array(f"{prefix}/texel_visible", (count, height, width), "bool", False)[index] = visible
             self._array(f"{prefix}/texel_pixel", (count, height, width, 2), "float32", -1.0)[index] = pixel
         self.root.attrs[f"{sequence}/{index}"] = True

@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from polarface.capture.rig import Camera, Rig
+from polarface.capture.rig import Rig
 from polarface.capture.store import CaptureStore
-from polarface.geometry.camera import PinholeCamera
+from polarface.geometry.camera import PinholeCamera, camera_from_rig
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster, rasterize_uv
@@ -165,17 +165,6 @@ def texel_geometry(raster: UVRaster) -> TexelGeometry:
     )
 
 
-def pinhole(camera: Camera) -> PinholeCamera:
-    """The :class:`PinholeCamera` of a rig camera."""
-    return PinholeCamera(
-        K=np.asarray(camera.K, dtype=np.float64),
-        world_to_camera=np.asarray(camera.world_to_camera, dtype=np.float64),
-        width=camera.width,
-        height=camera.height,
-        distortion=np.asarray(camera.distortion, dtype=np.float64) if camera.distortion else np.zeros(5),
-    )
-
-
 def _light_intensity(rig: Rig, channels: Sequence[int]) -> np.ndarray:
     rows = []
     for light in rig.lights:
@@ -207,7 +196,7 @@ def build_views(rig: Rig, frames: Sequence[int], poses: np.ndarray, holdout_ever
     if not cameras:
         raise ValueError("the rig has no polarimetric camera")
     _check_lights(rig)
-    reference_up_world = pinhole(cameras[0]).up_vector
+    reference_up_world = camera_from_rig(cameras[0]).up_vector
     lights_world = np.array([light.position_mm for light in rig.lights], dtype=np.float64)
     views = []
     for frame, pose in zip(frames, poses, strict=True):
@@ -215,7 +204,7 @@ def build_views(rig: Rig, frames: Sequence[int], poses: np.ndarray, holdout_ever
         rotation_inv, translation_inv = inverse[:3, :3], inverse[:3, 3]
         held = holdout_every >= 2 and frame % holdout_every == holdout_every - 1
         for camera in cameras:
-            cam = pinhole(camera)
+            cam = camera_from_rig(camera)
             channels = tuple(int(camera.colour_channels[c]) for c in ("R", "G", "B"))
             views.append(
                 ViewSpec(
@@ -542,7 +531,7 @@ def unwrap_capture(
         writer = UnwrapStore.create(partial, geometry, views, config.patch)
     done = writer.done()
     lights_world = np.array([light.position_mm for light in store.rig.lights], dtype=np.float64)
-    cameras = {c.id: pinhole(c) for c in store.rig.polarimetric_cameras()}
+    cameras = {c.id: camera_from_rig(c) for c in store.rig.polarimetric_cameras()}
     frame_pose = dict(zip(frames, poses, strict=True))
     seen_any = False
     bar = tqdm(total=len(views), desc="unwrap views", unit="view", disable=not progress)
