@@ -92,9 +92,10 @@ def test_config_errors(field, value):
 
 
 def test_nan_observations_raise(capture):
+    from polarface.geometry.camera import camera_from_rig
     from polarface.geometry.raycast import RayCaster
     from polarface.geometry.uv_raster import rasterize_uv
-    from polarface.geometry.camera import camera_from_rig as pinhole, sample_view, texel_geometry
+    from polarface.texture.unwrap import sample_view, texel_geometry
 
     _info, store, mesh, poses, _root = capture
     geometry = texel_geometry(rasterize_uv(mesh, 16))
