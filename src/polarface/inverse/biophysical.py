@@ -1,0 +1,424 @@
+"""Biophysical inverse: chromophore maps and layer diffusion profiles from the six-channel ``rho_sss_bar``.
+
+Paper Sec. 5.3 and supplement "Optimization of Biophysically-based Parameters Details". Physics and
+optimisation only (no file I/O; the RESULT-folder stage is :mod:`polarface.inverse.biophysical_stage`).
+
+Stages (:func:`fit_biophysical`):
+
+1. **Coarse** - the maps are area-averaged ``coarse_factor`` times; per texel the local (blur-free)
+   totals model of :func:`~polarface.inverse.biophysical_model.local_channel_albedo` (15 wavelengths
+   -> 6 channels through the rig's calibration) is fitted to ``rho_sss_bar`` by a batched, box-bounded
+   Levenberg-Marquardt from several starts (the paper uses gradient descent; LM on four unknowns per
+   texel converges in tens of iterations instead of thousands). At coarse resolution the blur between
+   texels is negligible (supplement: "as the distance of the neighboring pixel becomes larger, we can
+   ignore the spatial blurring").
+2. **Shapes** - normalised SoG weights of the five layer profiles are fitted at the median texel's
+   parameters (:func:`polarface.skin.heterogeneous.fit_layer_shapes`; nine Gaussians, variances
+   ``4^j (0.01 mm)^2``).
+3. **Fine** - at full resolution, warm-started from the upsampled coarse maps. With
+   ``albedo_model="local"`` (the input is a blur-free albedo such as the simulator's ground truth) the
+   local model is refined per texel. With ``albedo_model="blurred"`` (the input comes from a
+   polarimetric fit of diffusing skin) the heterogeneous layered rendering with separable SoG blurs
+   (supplement Eq. simple_sss) is matched to ``rho_sss_bar`` by *residual correction*: the local
+   targets are moved by the rendering residual, ``t <- t + (rho_obs - render(p))``, and the
+   parameters re-fitted to the targets by LM (a Gauss-Newton step whose Jacobian approximates the
+   normalised blur by the identity; it converges where the blur's transfer is in (0, 1], i.e. it is
+   a regularised deconvolution whose iteration count bounds the noise gain). Shapes and parameters
+   then alternate (coordinate descent, ``shape_rounds``).
+
+All tensors channels-last: ``rho_sss_bar`` ``(H, W, 6)`` in [0, 1]; parameters ``(H, W, 4)`` in
+:data:`~polarface.inverse.biophysical_model.PARAMETER_ORDER` (volume fractions); mask ``(H, W)`` bool.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from typing import Literal
+
+import torch
+import torch.nn.functional as nnf
+
+from polarface._validation import as_float_tensor, check_range
+from polarface.inverse.biophysical_model import (
+    PARAMETER_ORDER,
+    TotalsTable,
+    blurred_channel_albedo,
+    local_channel_albedo,
+    local_channel_albedo_with_jacobian,
+)
+from polarface.skin.heterogeneous import ProfileShapes, fit_layer_shapes
+from polarface.skin.layers import PARAMETER_RANGES, SkinLayerConstants, _layer_optics
+from polarface.skin.sog import default_radial_grid
+
+__all__ = [
+    "BiophysicalConfig",
+    "BiophysicalFit",
+    "fit_biophysical",
+    "fit_local_parameters",
+    "median_shapes",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class BiophysicalConfig:
+    """Settings of the biophysical stage (defaults reproduce the paper's model, Sec. 5.3).
+
+    Attributes:
+        albedo_model: ``"blurred"`` - the input ``rho_sss_bar`` is what a local polarimetric fit of
+            diffusing skin sees (fine stage renders Eq. simple_sss); ``"local"`` - the input is a
+            blur-free local albedo (e.g. simulator ground truth; fine stage uses the local model).
+        coarse_factor: downsampling factor of the coarse stage (1 = none).
+        coarse_iterations: LM iterations per start at coarse resolution.
+        starts: starting points of the coarse fit (a fixed design inside the parameter box).
+        fine_iterations: LM iterations of the full-resolution local refinement.
+        correction_iterations: residual-correction iterations per shape round (blurred model).
+        correction_lm_iterations: LM iterations after each correction.
+        shape_rounds: rounds of the coordinate descent shapes <-> parameters (blurred model).
+        use_stretch: honour the per-texel UV stretch in the blurs (slower; exact for skewed atlases).
+        channel_floor: residuals are divided by ``rho_sss_bar + channel_floor`` (relative weighting).
+        prior_weight: per-parameter weights of a pull of the full-resolution fit towards the upsampled
+            coarse maps (``PARAMETER_ORDER``; zeros = none, the paper's behaviour). Noisy inputs leave
+            ``beta_m`` and ``C_h_in`` weakly determined; the default ``(0, 1, 1, 0)`` trades a little
+            sharpness of those two maps for much less noise (measured in docs/biophysical.md).
+        constants: skin layer constants of the forward model.
+    """
+
+    albedo_model: Literal["blurred", "local"] = "blurred"
+    coarse_factor: int = 8
+    coarse_iterations: int = 40
+    starts: int = 6
+    fine_iterations: int = 10
+    correction_iterations: int = 3
+    correction_lm_iterations: int = 4
+    shape_rounds: int = 1
+    use_stretch: bool = False
+    channel_floor: float = 0.02
+    prior_weight: tuple[float, float, float, float] = (0.0, 1.0, 1.0, 0.0)
+    constants: SkinLayerConstants = dataclasses.field(default_factory=SkinLayerConstants)
+
+    def __post_init__(self) -> None:
+        if self.albedo_model not in ("blurred", "local"):
+            raise ValueError(f"albedo_model must be 'blurred' or 'local'; got {self.albedo_model!r}")
+        for name in ("coarse_factor", "coarse_iterations", "starts", "shape_rounds"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1; got {getattr(self, name)}")
+        for name in ("fine_iterations", "correction_iterations", "correction_lm_iterations"):
+            if int(getattr(self, name)) < 0:
+                raise ValueError(f"{name} must be >= 0; got {getattr(self, name)}")
+        if len(self.prior_weight) != 4 or any(not (w >= 0) for w in self.prior_weight):
+            raise ValueError(f"prior_weight must be 4 values >= 0; got {self.prior_weight}")
+        if not self.channel_floor > 0:
+            raise ValueError(f"channel_floor must be > 0; got {self.channel_floor}")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class BiophysicalFit:
+    """Result of :func:`fit_biophysical`.
+
+    Attributes:
+        parameters: ``(H, W, 4)`` float32 volume fractions (``PARAMETER_ORDER``), 0 outside the mask.
+        shapes: :class:`ProfileShapes` with ``(L, 9)`` normalised SoG weights per layer.
+        rendered: ``(H, W, 6)`` float32 re-rendered ``rho_sss_bar`` under the configured model.
+        spectral: ``(L, H, W)`` float32 rendered subsurface albedo per wavelength (same model).
+        residual_rmse: relative RMSE of ``rendered`` against the input over valid texels.
+        timings_s: seconds per stage.
+    """
+
+    parameters: torch.Tensor
+    shapes: ProfileShapes
+    rendered: torch.Tensor
+    spectral: torch.Tensor
+    residual_rmse: float
+    timings_s: dict[str, float]
+
+
+def _bounds(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    table = torch.tensor([PARAMETER_RANGES[k] for k in PARAMETER_ORDER], dtype=dtype, device=device)
+    return table[:, 0], table[:, 1]
+
+
+def _start_design(starts: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``(S, 4)`` starting parameters: a fixed design of plausible skin (then Halton-like spread)."""
+    base = torch.tensor(
+        [
+            [0.05, 0.10, 0.03, 0.05],
+            [0.02, 0.50, 0.05, 0.02],
+            [0.12, 0.05, 0.02, 0.10],
+            [0.05, 0.80, 0.10, 0.15],
+            [0.25, 0.30, 0.05, 0.05],
+            [0.01, 0.05, 0.20, 0.01],
+            [0.08, 0.20, 0.01, 0.25],
+            [0.35, 0.60, 0.15, 0.20],
+        ],
+        dtype=dtype,
+        device=device,
+    )
+    if starts <= base.shape[0]:
+        return base[:starts]
+    low, high = _bounds(dtype, device)
+    extra = torch.rand(starts - base.shape[0], 4, generator=torch.Generator().manual_seed(0), dtype=dtype)
+    return torch.cat([base, low + (high - low) * extra.to(device)])
+
+
+def fit_local_parameters(
+    rho_sss_bar: torch.Tensor,
+    table: TotalsTable,
+    channel_weights: torch.Tensor,
+    *,
+    start: torch.Tensor | None = None,
+    starts: int = 6,
+    iterations: int = 40,
+    channel_floor: float = 0.02,
+    prior: torch.Tensor | None = None,
+    prior_weight: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fit the local totals model to six-channel albedos, all samples at once (bounded LM).
+
+    Args:
+        rho_sss_bar: ``(N, 6)`` target albedos in [0, 1].
+        table: :class:`TotalsTable` on the calibration grid; channel_weights ``(6, L)``.
+        start: optional ``(N, 4)`` warm start (then ``starts`` is ignored).
+        starts: number of starting points from a fixed design (best kept per sample).
+        iterations: LM iterations.
+        channel_floor: residual weight ``1 / (rho + floor)``.
+        prior: optional ``(N, 4)`` prior parameters (with a warm ``start``); adds the residuals
+            ``prior_weight * (x - prior)`` (a Tikhonov pull, per parameter, dimensionless weights).
+
+    Returns:
+        ``(parameters (N, 4), cost (N,))`` with parameters inside ``PARAMETER_RANGES``.
+    """
+    target = as_float_tensor(rho_sss_bar, "rho_sss_bar")
+    dtype, device = target.dtype, target.device
+    low, high = _bounds(dtype, device)
+    n_samples = target.shape[0]
+    if start is not None:
+        x = torch.minimum(torch.maximum(start.to(dtype=dtype, device=device), low), high)
+        n_starts = 1
+    else:
+        design = _start_design(starts, dtype, device)
+        n_starts = design.shape[0]
+        x = design[:, None, :].expand(n_starts, n_samples, 4).reshape(-1, 4)
+    goal = target.repeat(n_starts, 1)
+    weight = 1.0 / (goal + channel_floor)
+    n = x.shape[0]
+    pull = torch.tensor(prior_weight, dtype=dtype, device=device)
+    anchor = x.clone() if prior is None else prior.to(dtype=dtype, device=device).repeat(n_starts, 1)
+    if prior is None:
+        pull = torch.zeros_like(pull)
+
+    def residual(xs: torch.Tensor, goals: torch.Tensor, weights: torch.Tensor, anchors: torch.Tensor):
+        data = (local_channel_albedo(xs, table, channel_weights) - goals) * weights
+        return torch.cat([data, pull * (xs - anchors)], dim=-1)
+
+    damping = torch.full((n,), 1e-2, dtype=dtype, device=device)
+    with torch.no_grad():
+        res = residual(x, goal, weight, anchor)
+        cost = (res**2).sum(-1)
+        active = torch.arange(n, device=device)
+        for _ in range(iterations):
+            if active.numel() == 0:
+                break
+            xa, ra, ca, da, ga, wa = (
+                x[active],
+                res[active],
+                cost[active],
+                damping[active],
+                goal[active],
+                weight[active],
+            )
+            _, jac = local_channel_albedo_with_jacobian(xa, table, channel_weights)
+            jac = torch.cat(
+                [jac * wa[..., None], torch.diag(pull).expand(len(xa), 4, 4)], dim=1
+            )  # (n, C+4, 4)
+            jtj = jac.transpose(1, 2) @ jac
+            grad = (jac.transpose(1, 2) @ ra[..., None])[..., 0]
+            at_bound = ((xa <= low + 1e-9) & (grad > 0)) | ((xa >= high - 1e-9) & (grad < 0))
+            free = (~at_bound).to(dtype)
+            jtj = jtj * free[:, :, None] * free[:, None, :] + torch.diag_embed(1.0 - free)
+            grad = grad * free
+            diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-12)
+            delta = torch.linalg.solve(jtj + da[:, None, None] * torch.diag_embed(diag), -grad[..., None])
+            trial = torch.minimum(torch.maximum(xa + delta[..., 0], low), high)
+            trial_res = residual(trial, ga, wa, anchor[active])
+            trial_cost = (trial_res**2).sum(-1)
+            better = trial_cost < ca
+            x[active] = torch.where(better[:, None], trial, xa)
+            res[active] = torch.where(better[:, None], trial_res, ra)
+            cost[active] = torch.where(better, trial_cost, ca)
+            damping[active] = torch.where(better, da * 0.3, da * 4.0).clamp(1e-9, 1e9)
+            # Converged: an accepted step that gained < 1e-6 relative, a tiny cost, or hopeless damping.
+            done = (better & (ca - trial_cost <= 1e-6 * ca)) | (torch.minimum(trial_cost, ca) < 1e-16)
+            done |= damping[active] >= 1e8
+            active = active[~done]
+    cost = cost.reshape(n_starts, n_samples)
+    best = cost.argmin(0)
+    x = x.reshape(n_starts, n_samples, 4)[best, torch.arange(n_samples, device=device)]
+    return x, cost[best, torch.arange(n_samples, device=device)]
+
+
+def median_shapes(
+    parameters: torch.Tensor, mask: torch.Tensor, table: TotalsTable
+) -> tuple[ProfileShapes, torch.Tensor]:
+    """SoG shapes ``(L, 9)`` of the five layer profiles at the median valid texel's parameters.
+
+    Returns ``(shapes, median (4,))``.
+    """
+    valid = parameters[mask.bool()].detach().double().cpu()
+    median = valid.median(dim=0).values if valid.shape[0] else torch.tensor([0.05, 0.1, 0.03, 0.05]).double()
+    grid = table.wavelengths_nm
+    optics = _layer_optics(*(median[i].reshape(1) for i in range(4)), grid, table.constants)
+    shapes = fit_layer_shapes(optics, table.constants, r_mm=default_radial_grid(count=801))
+    shapes = ProfileShapes(*(w[0] for w in shapes[:5]), relative_error=shapes.relative_error[:, 0])
+    return shapes, median
+
+
+def _downsample(maps: torch.Tensor, mask: torch.Tensor, factor: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mask-weighted area average ``(H, W, C)`` -> ``(H/f, W/f, C)`` and the coarse mask."""
+    weight = mask.to(maps.dtype)[None, None]
+    summed = nnf.avg_pool2d(
+        (maps * mask.to(maps.dtype)[..., None]).permute(2, 0, 1)[None], factor, ceil_mode=True
+    )
+    coverage = nnf.avg_pool2d(weight, factor, ceil_mode=True)
+    coarse = (summed / coverage.clamp_min(1e-12))[0].permute(1, 2, 0)
+    return coarse, coverage[0, 0] > 0.25
+
+
+def _upsample(
+    maps: torch.Tensor, mask: torch.Tensor, shape: tuple[int, int], fill: torch.Tensor
+) -> torch.Tensor:
+    """Mask-normalised bilinear upsampling ``(h, w, C)`` -> ``(H, W, C)``; holes take ``fill``."""
+    weight = mask.to(maps.dtype)[None, None]
+    values = (maps * weight[0, 0][..., None]).permute(2, 0, 1)[None]
+    up = nnf.interpolate(values, size=shape, mode="bilinear", align_corners=False)
+    up_weight = nnf.interpolate(weight, size=shape, mode="bilinear", align_corners=False)
+    out = (up / up_weight.clamp_min(1e-12))[0].permute(1, 2, 0)
+    return torch.where(up_weight[0, 0][..., None] > 1e-6, out, fill.to(out))
+
+
+def fit_biophysical(
+    rho_sss_bar: torch.Tensor,
+    mask: torch.Tensor,
+    table: TotalsTable,
+    channel_weights: torch.Tensor,
+    texel_size_mm: float,
+    config: BiophysicalConfig = BiophysicalConfig(),
+    *,
+    stretch: torch.Tensor | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> BiophysicalFit:
+    """Recover chromophore maps and SoG shapes from ``rho_sss_bar`` (module docstring).
+
+    Args:
+        rho_sss_bar: ``(H, W, 6)`` six-channel subsurface albedo in [0, 1] (channel order of the
+            calibration ``channel_weights`` rows).
+        mask: ``(H, W)`` bool valid texels.
+        table: :class:`TotalsTable` on the calibration's wavelength grid (nm).
+        channel_weights: ``(6, L)`` white-normalised channel weights.
+        texel_size_mm: median texel size in mm (> 0).
+        config: :class:`BiophysicalConfig`.
+        stretch: optional ``(H, W, 2)`` per-texel size / ``texel_size_mm`` (used if ``config.use_stretch``).
+        progress: optional callback receiving a stage name after each step.
+
+    Raises:
+        ValueError: bad shapes, values outside [0, 1], NaN/inf, no valid texel.
+    """
+    rho = as_float_tensor(rho_sss_bar, "rho_sss_bar", dtype=torch.float32)
+    if rho.ndim != 3 or rho.shape[-1] != channel_weights.shape[0]:
+        raise ValueError(
+            f"argument 'rho_sss_bar' must be (H, W, {channel_weights.shape[0]}); got {tuple(rho.shape)}"
+        )
+    mask_b = torch.as_tensor(mask).bool().to(rho.device)
+    if mask_b.shape != rho.shape[:2]:
+        raise ValueError(f"argument 'mask' must be {tuple(rho.shape[:2])}; got {tuple(mask_b.shape)}")
+    if not bool(mask_b.any()):
+        raise ValueError("argument 'mask' has no valid texel")
+    check_range(rho[mask_b], "rho_sss_bar", 0.0, 1.0)
+    if not (texel_size_mm > 0):
+        raise ValueError(f"argument 'texel_size_mm' must be > 0; got {texel_size_mm}")
+    timings: dict[str, float] = {}
+    notify = progress or (lambda _name: None)
+    weights = channel_weights.to(torch.float32)
+
+    started = time.perf_counter()
+    coarse_rho, coarse_mask = _downsample(rho, mask_b, config.coarse_factor)
+    coarse_params, _ = fit_local_parameters(
+        coarse_rho[coarse_mask],
+        table,
+        weights,
+        starts=config.starts,
+        iterations=config.coarse_iterations,
+        channel_floor=config.channel_floor,
+    )
+    coarse = torch.zeros(*coarse_mask.shape, 4, device=rho.device)
+    coarse[coarse_mask] = coarse_params
+    timings["coarse_s"] = time.perf_counter() - started
+    notify("coarse")
+
+    started = time.perf_counter()
+    median = coarse[coarse_mask].median(dim=0).values
+    start = _upsample(coarse, coarse_mask, tuple(rho.shape[:2]), median.float())
+    local_target = rho[mask_b].clamp(1e-4, 0.999)
+    params_valid, _ = fit_local_parameters(
+        local_target,
+        table,
+        weights,
+        start=start[mask_b],
+        iterations=config.fine_iterations,
+        channel_floor=config.channel_floor,
+        prior=start[mask_b],
+        prior_weight=config.prior_weight,
+    )
+    params = torch.zeros(*mask_b.shape, 4, device=rho.device)
+    params[mask_b] = params_valid
+    timings["fine_local_s"] = time.perf_counter() - started
+    notify("fine-local")
+
+    blur_stretch = stretch if config.use_stretch else None
+    started = time.perf_counter()
+    if config.albedo_model == "blurred":
+        target = local_target.clone()
+        for _ in range(config.shape_rounds):
+            shapes, median = median_shapes(params, mask_b, table)
+            for _ in range(config.correction_iterations):
+                with torch.no_grad():
+                    rendered = blurred_channel_albedo(
+                        params, table, weights, shapes, texel_size_mm, mask_b, stretch=blur_stretch
+                    )
+                target = (target + rho[mask_b] - rendered[mask_b]).clamp(1e-4, 0.999)
+                params_valid, _ = fit_local_parameters(
+                    target,
+                    table,
+                    weights,
+                    start=params[mask_b],
+                    iterations=config.correction_lm_iterations,
+                    channel_floor=config.channel_floor,
+                    prior=start[mask_b],
+                    prior_weight=config.prior_weight,
+                )
+                params[mask_b] = params_valid
+            notify("fine-blurred")
+    timings["fine_blurred_s"] = time.perf_counter() - started
+
+    started = time.perf_counter()
+    shapes, median = median_shapes(params, mask_b, table)  # the shapes of the final parameters
+    with torch.no_grad():
+        rendered, spectral = _render(
+            params, mask_b, table, weights, shapes, texel_size_mm, config, blur_stretch
+        )
+    diff = (rendered - rho)[mask_b]
+    residual = float(diff.pow(2).mean().sqrt() / rho[mask_b].pow(2).mean().sqrt().clamp_min(1e-12))
+    params = params * mask_b[..., None]
+    timings["shapes_render_s"] = time.perf_counter() - started
+    return BiophysicalFit(params, shapes, rendered * mask_b[..., None], spectral, residual, timings)
+
+
+def _render(params, mask_b, table, weights, shapes, texel_size_mm, config, stretch):
+    if config.albedo_model == "blurred":
+        return blurred_channel_albedo(
+            params, table, weights, shapes, texel_size_mm, mask_b, stretch=stretch, return_spectral=True
+        )
+    spectral = table.total_reflectance(params) * mask_b[..., None]
+    channels = spectral @ weights.T.to(spectral)
+    return channels, spectral.permute(2, 0, 1)

@@ -1,0 +1,402 @@
+"""The biophysical stage on a RESULT folder: read rho_sss_bar, fit, write maps, previews and metrics.
+
+Reads (layout in the task's "Reconstruction result folder"): ``maps/rho_sss_bar.exr`` (six channels
+named by the rig's spectral calibration), ``maps/mask.png``, ``mesh.obj`` (rest mesh with UVs, mm)
+and ``rig.json`` (spectral calibration required). Writes:
+
+* ``maps/c_m.exr``, ``maps/beta_m.exr``, ``maps/c_h_in.exr``, ``maps/c_h_out.exr`` (channel ``Y``,
+  volume fractions);
+* ``maps/sog.json``: per-layer normalised sum-of-Gaussians weights per wavelength (``(L, 9)`` each),
+  the variances (mm^2), wavelengths (nm) and the median parameters they were fitted at;
+* ``maps/subsurface_spectral.exr``: the rendered subsurface albedo at each of the L wavelengths
+  (channels ``nm420`` ...), ``maps/rho_sss_bar_rendered.exr``: its six-channel integration;
+* ``previews/c_m.png`` ... (colour maps with scale bars), ``previews/chromophores.png`` (the four maps
+  in one panel, like the paper's teaser), ``previews/subsurface_srgb.png`` (sRGB under D65);
+* ``result.json``: ``stages.biophysical`` with timings and the fit residual.
+
+Texel size and per-texel stretch come from the mesh (:func:`polarface.geometry.uv_raster.rasterize_uv`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from polarface.capture.rig import Rig
+from polarface.inverse.biophysical import BiophysicalConfig, BiophysicalFit, fit_biophysical
+from polarface.inverse.biophysical_model import PARAMETER_ORDER, TotalsTable, local_channel_albedo
+from polarface.io import colormap_png, read_exr, read_png, write_exr, write_json_atomic, write_png
+
+__all__ = [
+    "PARAMETER_LABELS",
+    "evaluate_biophysical",
+    "load_stage_inputs",
+    "report_section",
+    "run_biophysical_stage",
+    "write_previews",
+]
+
+LOGGER = logging.getLogger(__name__)
+
+#: Human-readable names and preview colour ranges of the four maps (volume fractions).
+PARAMETER_LABELS: dict[str, tuple[str, float, float, str]] = {
+    "c_m": ("Melanin C_m", 0.0, 0.15, "copper"),
+    "beta_m": ("Eumelanin fraction beta_m", 0.0, 0.3, "cividis"),
+    "c_h_in": ("Inner haemoglobin C_h,in", 0.0, 0.08, "Reds"),
+    "c_h_out": ("Outer haemoglobin C_h,out", 0.0, 0.2, "Reds"),
+}
+
+
+def _read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    if not path.is_file():
+        raise FileNotFoundError(f"mask '{path}' does not exist")
+    mask = read_png(path)
+    mask = mask[..., 0] if mask.ndim == 3 else mask
+    if mask.shape != shape:
+        raise ValueError(f"mask '{path}' is {mask.shape}, expected {shape}")
+    return mask > (0.5 if mask.dtype.kind == "f" else 127)
+
+
+def load_stage_inputs(result_dir: str | Path) -> dict[str, Any]:
+    """Read and validate the stage's inputs from ``result_dir``.
+
+    Returns:
+        dict with ``rho_sss_bar`` ``(H, W, 6)`` float32, ``mask`` ``(H, W)`` bool, ``calibration``
+        (``SpectralCalibration``), ``channel_names``, ``rig``, ``texel_size_mm`` (float, median, mm),
+        ``stretch`` ``(H, W, 2)`` float32.
+
+    Raises:
+        FileNotFoundError: a required file is missing. ValueError: no spectral calibration, channel
+        names that do not match it, NaN/inf or values outside [0, 1] in ``rho_sss_bar``.
+    """
+    from polarface.geometry.mesh import load_mesh
+    from polarface.geometry.uv_raster import rasterize_uv
+
+    root = Path(result_dir)
+    if not root.is_dir():
+        raise FileNotFoundError(f"result folder '{root}' does not exist")
+    rig = Rig.load(root / "rig.json")
+    if rig.spectral is None:
+        raise ValueError(
+            f"'{root / 'rig.json'}' has no spectral calibration; the biophysical stage needs the six "
+            "channels' responses (rig.spectral)"
+        )
+    calibration = rig.spectral.to_calibration()
+    rho_path = root / "maps" / "rho_sss_bar.exr"
+    if not rho_path.is_file():
+        raise FileNotFoundError(f"'{rho_path}' does not exist (run the polarimetric stage first)")
+    channels = read_exr(rho_path)
+    names = list(calibration.channel_names)
+    missing = [n for n in names if n not in channels]
+    if missing:
+        raise ValueError(f"'{rho_path}' lacks channel(s) {missing} of the rig's calibration {names}")
+    rho = np.stack([channels[n] for n in names], axis=-1).astype(np.float32)
+    mask = _read_mask(root / "maps" / "mask.png", rho.shape[:2])
+    values = rho[mask]
+    if not np.isfinite(values).all():
+        raise ValueError(f"'{rho_path}': rho_sss_bar contains NaN or infinite values inside the mask")
+    if values.size and (values.min() < 0.0 or values.max() > 1.0):
+        raise ValueError(
+            f"'{rho_path}': rho_sss_bar must lie in [0, 1] (a dimensionless albedo); "
+            f"got {values.min():.4g}..{values.max():.4g}"
+        )
+    mesh_path = root / "mesh.obj"
+    if not mesh_path.is_file():
+        raise FileNotFoundError(f"'{mesh_path}' does not exist")
+    raster = rasterize_uv(load_mesh(mesh_path), rho.shape[:2])
+    sizes = np.stack([raster.texel_size_u, raster.texel_size_v], axis=-1)
+    valid = raster.mask & mask
+    texel_size = float(np.median(sizes[valid])) if valid.any() else float(np.median(sizes[raster.mask]))
+    stretch = np.where(raster.mask[..., None], np.clip(sizes / texel_size, 0.05, 20.0), 1.0).astype(
+        np.float32
+    )
+    return {
+        "rho_sss_bar": rho,
+        "mask": mask,
+        "calibration": calibration,
+        "channel_names": names,
+        "rig": rig,
+        "texel_size_mm": texel_size,
+        "stretch": stretch,
+    }
+
+
+def _write_maps(root: Path, fit: BiophysicalFit, calibration, mask: np.ndarray) -> None:
+    maps = root / "maps"
+    params = fit.parameters.numpy()
+    for i, name in enumerate(PARAMETER_ORDER):
+        write_exr(maps / f"{name}.exr", {"Y": np.where(mask, params[..., i], 0.0)})
+    names = list(calibration.channel_names)
+    rendered = fit.rendered.numpy()
+    write_exr(maps / "rho_sss_bar_rendered.exr", {n: rendered[..., i] for i, n in enumerate(names)})
+    grid = calibration.wavelengths_nm.tolist()
+    spectral = fit.spectral.numpy()
+    write_exr(maps / "subsurface_spectral.exr", {f"nm{w:g}": spectral[i] for i, w in enumerate(grid)})
+    from polarface.skin.sog import sog_variances
+
+    sog = {
+        "format": "polarface-sog",
+        "version": 1,
+        "wavelengths_nm": grid,
+        "variances_mm2": sog_variances().tolist(),
+        "normalised": True,
+        "layers": {
+            name: getattr(fit.shapes, name).tolist()
+            for name in ("r_out_f", "t_out_f", "r_out_b", "t_out_b", "r_in_f")
+        },
+        "relative_fit_error": None
+        if fit.shapes.relative_error is None
+        else fit.shapes.relative_error.tolist(),
+    }
+    write_json_atomic(maps / "sog.json", sog)
+
+
+def load_sog(path: str | Path):
+    """Read ``sog.json`` back as a :class:`polarface.skin.heterogeneous.ProfileShapes` (float64)."""
+    from polarface.skin.heterogeneous import ProfileShapes
+
+    data = json.loads(Path(path).read_text(encoding="utf-8"))
+    layers = data["layers"]
+    return ProfileShapes(
+        *(
+            torch.tensor(layers[k], dtype=torch.float64)
+            for k in ("r_out_f", "t_out_f", "r_out_b", "t_out_b", "r_in_f")
+        )
+    )
+
+
+def write_previews(
+    root: str | Path,
+    parameters: np.ndarray,
+    mask: np.ndarray,
+    spectral: np.ndarray,
+    wavelengths_nm: np.ndarray,
+) -> list[Path]:
+    """Colour-mapped previews with scale bars and an sRGB preview of the spectral subsurface albedo.
+
+    Args:
+        root: RESULT folder (previews go to ``root/previews``).
+        parameters: ``(H, W, 4)`` maps in ``PARAMETER_ORDER``; mask ``(H, W)`` bool.
+        spectral: ``(L, H, W)`` subsurface albedo; wavelengths_nm ``(L,)``.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    from polarface.io.atomic import atomic_path
+    from polarface.skin.spectral import spectrum_to_srgb
+
+    out = Path(root) / "previews"
+    written = []
+    for i, name in enumerate(PARAMETER_ORDER):
+        label, low, high, cmap = PARAMETER_LABELS[name]
+        written.append(
+            colormap_png(
+                out / f"{name}.png",
+                parameters[..., i],
+                vmin=low,
+                vmax=high,
+                cmap=cmap,
+                mask=mask,
+                title=label,
+                colorbar=True,
+            )
+        )
+    fig, axes = plt.subplots(1, 4, figsize=(16, 4.4), dpi=100)
+    for ax, (i, name) in zip(axes, enumerate(PARAMETER_ORDER), strict=True):
+        label, low, high, cmap = PARAMETER_LABELS[name]
+        shown = np.ma.array(parameters[..., i], mask=~mask)
+        handle = ax.imshow(shown, cmap=cmap, vmin=low, vmax=high, interpolation="nearest")
+        ax.set_title(label)
+        ax.set_axis_off()
+        fig.colorbar(handle, ax=ax, fraction=0.046, pad=0.04)
+    fig.tight_layout()
+    with atomic_path(out / "chromophores.png") as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    written.append(out / "chromophores.png")
+    _, srgb = spectrum_to_srgb(np.moveaxis(spectral, 0, -1).astype(np.float64), wavelengths_nm)
+    srgb = np.where(mask[..., None], srgb, 0.0)
+    written.append(write_png(out / "subsurface_srgb.png", srgb, bit_depth=8))
+    return written
+
+
+def run_biophysical_stage(
+    result_dir: str | Path,
+    config: BiophysicalConfig = BiophysicalConfig(),  # noqa: B008 - frozen dataclass
+    device: str | torch.device | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run the biophysical stage on a RESULT folder (module docstring); returns its summary.
+
+    Args:
+        result_dir: the RESULT folder (``maps/rho_sss_bar.exr``, ``maps/mask.png``, ``mesh.obj``,
+            ``rig.json``).
+        config: :class:`BiophysicalConfig` (``albedo_model="local"`` for blur-free inputs).
+        device: torch device for the fit (default CPU; the stage is light enough for it).
+        progress: show a tqdm progress bar.
+
+    Returns:
+        The summary stored under ``result.json``'s ``stages.biophysical``: timings (s), fit residual,
+        texel size, median parameters, configuration.
+    """
+    started = time.perf_counter()
+    root = Path(result_dir)
+    inputs = load_stage_inputs(root)
+    calibration = inputs["calibration"]
+    table = TotalsTable(calibration.wavelengths_nm, config.constants)
+    read_s = time.perf_counter() - started
+    target = torch.device(device) if device is not None else torch.device("cpu")
+    steps = 2 + (config.shape_rounds if config.albedo_model == "blurred" else 0)
+    with tqdm(total=steps, desc="biophysical", disable=not progress, unit="step") as bar:
+        fit = fit_biophysical(
+            torch.from_numpy(inputs["rho_sss_bar"]).to(target),
+            torch.from_numpy(inputs["mask"]).to(target),
+            table,
+            calibration.weights.float().to(target),
+            inputs["texel_size_mm"],
+            config,
+            stretch=torch.from_numpy(inputs["stretch"]).to(target),
+            progress=lambda name: (bar.set_postfix_str(name), bar.update(1)),
+        )
+    fit = BiophysicalFit(
+        fit.parameters.cpu(),
+        fit.shapes,
+        fit.rendered.cpu(),
+        fit.spectral.cpu(),
+        fit.residual_rmse,
+        fit.timings_s,
+    )
+    write_started = time.perf_counter()
+    mask = inputs["mask"]
+    _write_maps(root, fit, calibration, mask)
+    write_previews(
+        root, fit.parameters.numpy(), mask, fit.spectral.numpy(), calibration.wavelengths_nm.numpy()
+    )
+    params = fit.parameters.numpy()[mask]
+    summary = {
+        "albedo_model": config.albedo_model,
+        "texel_size_mm": inputs["texel_size_mm"],
+        "rho_sss_bar_relative_rmse": fit.residual_rmse,
+        "median_parameters": {n: float(np.median(params[:, i])) for i, n in enumerate(PARAMETER_ORDER)},
+        "timings_s": {
+            "read_s": read_s,
+            **fit.timings_s,
+            "write_s": time.perf_counter() - write_started,
+            "total_s": time.perf_counter() - started,
+        },
+        "config": {k: v for k, v in vars(config).items() if k != "constants"},
+    }
+    _update_result_json(root, summary, inputs["channel_names"], mask.shape)
+    return summary
+
+
+def _update_result_json(root: Path, summary: dict, channel_names: list[str], shape: tuple[int, int]) -> None:
+    path = root / "result.json"
+    data: dict[str, Any] = {}
+    if path.is_file():
+        data = json.loads(path.read_text(encoding="utf-8"))
+    data.setdefault("format", "polarface-result")
+    data.setdefault("version", 1)
+    data.setdefault("channel_names", channel_names)
+    data.setdefault("texture_resolution", list(shape))
+    data.setdefault("texel_size_mm", summary["texel_size_mm"])
+    data.setdefault("stages", {})["biophysical"] = summary
+    write_json_atomic(path, data)
+
+
+def _relative_rmse(estimate: np.ndarray, reference: np.ndarray) -> float:
+    return float(np.sqrt(np.mean((estimate - reference) ** 2)) / max(np.sqrt(np.mean(reference**2)), 1e-12))
+
+
+def evaluate_biophysical(result_dir: str | Path, gt_dir: str | Path) -> dict[str, Any]:
+    """Chromophore errors of a RESULT against simulator ground truth, and re-render errors.
+
+    Args:
+        result_dir: RESULT folder after the biophysical stage.
+        gt_dir: the simulator's ``SIM/ground_truth`` folder (or ``SIM`` itself).
+
+    Returns:
+        ``{"c_m": {"median_abs": .., "mean_abs": ..}, ...,`` ``"rho_sss_bar_relative_rmse"`` (the
+        recovered maps rendered with the local model vs. the ground-truth local rho_sss_bar),
+        ``"fit_relative_rmse"`` (the stage's own re-render vs. its input), ``"texels"``}.
+    """
+    root, gt = Path(result_dir), Path(gt_dir)
+    if (gt / "ground_truth").is_dir():
+        gt = gt / "ground_truth"
+    inputs_rig = Rig.load(root / "rig.json")
+    if inputs_rig.spectral is None:
+        raise ValueError(f"'{root / 'rig.json'}' has no spectral calibration")
+    calibration = inputs_rig.spectral.to_calibration()
+    names = list(calibration.channel_names)
+    estimate = {n: read_exr(root / "maps" / f"{n}.exr")["Y"] for n in PARAMETER_ORDER}
+    truth = {n: read_exr(gt / "maps" / f"{n}.exr")["Y"] for n in PARAMETER_ORDER}
+    shape = estimate["c_m"].shape
+    if truth["c_m"].shape != shape:
+        raise ValueError(f"resolution mismatch: result {shape}, ground truth {truth['c_m'].shape}")
+    mask = _read_mask(root / "maps" / "mask.png", shape) & _read_mask(gt / "maps" / "mask.png", shape)
+    metrics: dict[str, Any] = {"texels": int(mask.sum())}
+    for name in PARAMETER_ORDER:
+        error = np.abs(estimate[name][mask] - truth[name][mask])
+        metrics[name] = {
+            "median_abs": float(np.median(error)),
+            "mean_abs": float(np.mean(error)),
+            "p95_abs": float(np.percentile(error, 95)),
+        }
+    table = TotalsTable(calibration.wavelengths_nm)
+    params = torch.from_numpy(np.stack([estimate[n][mask] for n in PARAMETER_ORDER], -1).astype(np.float64))
+    rendered = local_channel_albedo(params, table, calibration.weights).numpy()
+    gt_rho = read_exr(gt / "maps" / "rho_sss_bar.exr")
+    reference = np.stack([gt_rho[n][mask] for n in names], -1)
+    metrics["rho_sss_bar_relative_rmse"] = _relative_rmse(rendered, reference)
+    own = root / "maps" / "rho_sss_bar_rendered.exr"
+    if own.is_file():
+        fitted = read_exr(own)
+        observed = read_exr(root / "maps" / "rho_sss_bar.exr")
+        metrics["fit_relative_rmse"] = _relative_rmse(
+            np.stack([fitted[n][mask] for n in names], -1), np.stack([observed[n][mask] for n in names], -1)
+        )
+    return metrics
+
+
+def report_section(page, result_dir: str | Path, metrics: dict[str, Any] | None = None):
+    """Add the biophysical section to a :class:`polarface.report.html.HtmlPage` of ``result_dir``.
+
+    Image paths are relative to ``result_dir`` (the report lives at ``RESULT/report.html``).
+    Returns the section.
+    """
+    root = Path(result_dir)
+    summary = {}
+    if (root / "result.json").is_file():
+        summary = (
+            json.loads((root / "result.json").read_text(encoding="utf-8"))
+            .get("stages", {})
+            .get("biophysical", {})
+        )
+    section = page.section(
+        "Biophysical parameters",
+        "Chromophore maps recovered from the six-channel subsurface albedo (paper Sec. 5.3): melanin, "
+        "eumelanin fraction, inner and outer haemoglobin; and the re-rendered subsurface albedo (sRGB).",
+    )
+    items = [(f"previews/{n}.png", PARAMETER_LABELS[n][0]) for n in PARAMETER_ORDER]
+    items.append(("previews/subsurface_srgb.png", "Rendered subsurface albedo (sRGB, D65)"))
+    section.image_grid([i for i in items if (root / i[0]).is_file()], columns=5)
+    if summary:
+        rows = {f"median {k}": v for k, v in summary.get("median_parameters", {}).items()}
+        rows["re-render relative RMSE"] = summary.get("rho_sss_bar_relative_rmse")
+        rows["stage time (s)"] = summary.get("timings_s", {}).get("total_s")
+        section.table(rows)
+    if metrics:
+        section.table(
+            [(n, metrics[n]["median_abs"], metrics[n]["mean_abs"]) for n in PARAMETER_ORDER if n in metrics],
+            header=("parameter", "median |error|", "mean |error|"),
+        )
+    return section

@@ -1,0 +1,370 @@
+"""Render reconstructed appearance maps: polarimetric views, Mueller images, strip light, editing.
+
+Paper Figs. "Mueller", "strip" and "editing". The renderer is the simulator's
+(:mod:`polarface.simulate.render`, :mod:`polarface.simulate.texture_sss`): Embree ray casting of the
+(posed) rest mesh, entry flux per texel under the rig's polarized LEDs, heterogeneous two-layer
+texture-space diffusion with the RESULT's SoG shapes (``maps/sog.json``) and chromophore maps, exit
+Fresnel with polarization, GGX specular and single-scattering lobes through full Mueller matrices.
+
+* :func:`render_result_view` - analyzer images of all six channels at a camera of the rig.
+* :func:`mueller_images` - per-pixel 3x3 linear Mueller matrix of the surface under the rig's LEDs:
+  the lobes are evaluated for the incident states ``[1, +-1, 0]`` and ``[1, 0, 1]`` (each LED's own
+  frame) and combined column by column; the diffused subsurface term enters the first column only
+  (the entry polarization changes the entering flux by ``T-/T+``, a few percent at the rig's
+  near-normal incidence: neglected, documented).
+* strip light - the entering flux is kept only in a band of ``strip_width_mm`` around a plane through
+  the head (structured-light stripe); specular lobes are omitted so the image shows how far light
+  travels under the skin.
+* :func:`apply_edits` - scale chromophore maps (``C_h_out=2x,C_m=4x``), clipped to the physical ranges.
+
+Frames and units: world mm, OpenCV cameras; images are linear radiance (LED intensity unit per mm^2
+per sr), channels-last ``(h, w, C)``. Stokes in the camera frame (``docs/conventions.md``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from polarface.skin.layers import PARAMETER_RANGES
+
+__all__ = [
+    "ResultAppearance",
+    "apply_edits",
+    "encode_srgb",
+    "linear_rgb_from_channels",
+    "linear_srgb_to_lab",
+    "mueller_images",
+    "parse_edits",
+    "render_result_view",
+]
+
+_EDIT_NAMES = {"c_m": "c_m", "beta_m": "beta_m", "c_h_in": "c_h_in", "c_h_out": "c_h_out"}
+POLARIMETRIC_MAPS = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "displacement_mm")
+
+
+def parse_edits(text: str | None) -> dict[str, float]:
+    """Parse ``"C_h_out=2x,C_m=4x"`` into ``{"c_h_out": 2.0, "c_m": 4.0}`` (factors > 0; ``x`` optional).
+
+    Raises:
+        ValueError: unknown parameter or malformed factor (naming it).
+    """
+    edits: dict[str, float] = {}
+    if not text:
+        return edits
+    for item in text.split(","):
+        item = item.strip()
+        if not item:
+            continue
+        match = re.fullmatch(r"([A-Za-z_]+)\s*=\s*([0-9.eE+-]+)\s*[xX]?", item)
+        if match is None:
+            raise ValueError(f"argument 'edit': cannot parse {item!r}; use NAME=FACTORx, e.g. C_h_out=2x")
+        key = match.group(1).lower()
+        if key not in _EDIT_NAMES:
+            raise ValueError(
+                f"argument 'edit': unknown parameter {match.group(1)!r}; choose from C_m, beta_m, "
+                "C_h_in, C_h_out"
+            )
+        try:
+            factor = float(match.group(2))
+        except ValueError:
+            raise ValueError(f"argument 'edit': bad factor in {item!r}") from None
+        if not (np.isfinite(factor) and factor > 0):
+            raise ValueError(f"argument 'edit': factor of {key} must be finite and > 0; got {factor}")
+        edits[_EDIT_NAMES[key]] = factor
+    return edits
+
+
+def apply_edits(chromophores: dict[str, np.ndarray], edits: dict[str, float]) -> dict[str, np.ndarray]:
+    """Chromophore maps scaled by ``edits`` and clipped to ``PARAMETER_RANGES`` (``c_m + c_h_out <= 1``)."""
+    out = {k: np.asarray(v, dtype=np.float32).copy() for k, v in chromophores.items()}
+    for name, factor in edits.items():
+        low, high = PARAMETER_RANGES[name]
+        out[name] = np.clip(out[name] * factor, low, high).astype(np.float32)
+    return out
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ResultAppearance:
+    """Everything needed to render a RESULT folder.
+
+    Attributes:
+        maps: name -> ``(H, W)`` float32 maps (polarimetric parameters, displacement in mm, chromophores).
+        mask: ``(H, W)`` bool valid texels.
+        mesh: rest mesh (model frame, mm, UVs).
+        rig: the capture rig (cameras, lights, spectral calibration).
+        shapes: SoG shapes (:class:`polarface.skin.heterogeneous.ProfileShapes`, ``(L, 9)``) or None
+            (then fitted at the median texel).
+    """
+
+    maps: dict[str, np.ndarray]
+    mask: np.ndarray
+    mesh: Any
+    rig: Any
+    shapes: Any
+
+    @classmethod
+    def load(cls, result_dir: str | Path) -> ResultAppearance:
+        """Read maps, mask, ``mesh.obj``, ``rig.json`` and ``maps/sog.json`` of a RESULT folder."""
+        from polarface.capture.rig import Rig
+        from polarface.geometry.mesh import load_mesh
+        from polarface.inverse.biophysical_stage import load_sog
+        from polarface.io import read_exr, read_png
+
+        root = Path(result_dir)
+        if not root.is_dir():
+            raise FileNotFoundError(f"result folder '{root}' does not exist")
+        rig = Rig.load(root / "rig.json")
+        if rig.spectral is None:
+            raise ValueError(f"'{root / 'rig.json'}' has no spectral calibration (needed to render spectra)")
+        maps = {}
+        for name in (*POLARIMETRIC_MAPS, "c_m", "beta_m", "c_h_in", "c_h_out"):
+            path = root / "maps" / f"{name}.exr"
+            if not path.is_file():
+                raise FileNotFoundError(f"'{path}' does not exist (run the reconstruction stages first)")
+            maps[name] = read_exr(path)["Y"].astype(np.float32)
+        mask = read_png(root / "maps" / "mask.png")
+        mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
+        sog = root / "maps" / "sog.json"
+        shapes = load_sog(sog) if sog.is_file() else None
+        return cls(maps, mask, load_mesh(root / "mesh.obj"), rig, shapes)
+
+
+def _pinhole(camera):
+    from polarface.geometry.camera import PinholeCamera
+
+    return PinholeCamera(
+        K=np.asarray(camera.K, dtype=np.float64),
+        world_to_camera=np.asarray(camera.world_to_camera, dtype=np.float64),
+        width=camera.width,
+        height=camera.height,
+        distortion=np.asarray(camera.distortion, dtype=np.float64) if camera.distortion else np.zeros(5),
+    )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RenderedResult:
+    """One rendered view.
+
+    Attributes:
+        images: ``i0``, ``i45``, ``i90``, ``i135`` ``(h, w, 6)`` float32 analyzer images (all six channels).
+        mask, uv, face_id, depth: as :class:`polarface.simulate.render.ViewRender`.
+        textures: the :class:`polarface.simulate.render.FrameTextures` used (for Mueller images).
+        mesh_world, caster, camera, lights, intensity: the scene.
+        spectral_albedo: ``(L, Ht, Wt)`` float32 diffused subsurface exitance per unit flux (texture).
+    """
+
+    images: dict[str, np.ndarray]
+    mask: np.ndarray
+    uv: np.ndarray
+    face_id: np.ndarray
+    depth: np.ndarray
+    textures: Any
+    mesh_world: Any
+    caster: Any
+    camera: Any
+    lights: np.ndarray
+    intensity: float
+
+
+def render_result_view(
+    appearance: ResultAppearance,
+    camera_id: str | None = None,
+    pose: np.ndarray | None = None,
+    *,
+    edits: dict[str, float] | None = None,
+    strip_width_mm: float | None = None,
+    strip_offset_mm: float = 0.0,
+) -> RenderedResult:
+    """Render the RESULT at one camera of its rig.
+
+    Args:
+        appearance: :class:`ResultAppearance`.
+        camera_id: a camera of the rig (default: the first polarimetric camera).
+        pose: ``(4, 4)`` model -> rig-world transform (default: the simulator's rest placement facing
+            the polarimetric module, :func:`polarface.simulate.pipeline.head_placement`).
+        edits: chromophore scale factors (:func:`parse_edits`).
+        strip_width_mm: if given, light enters only within this band (mm) around the plane through the
+            head centre spanned by the camera's up and viewing axes (shifted by ``strip_offset_mm``
+            along the camera's right vector); specular lobes are switched off.
+
+    Returns:
+        :class:`RenderedResult` with six-channel analyzer images.
+    """
+    from polarface.geometry.heights import normals_from_heights
+    from polarface.geometry.raycast import RayCaster
+    from polarface.geometry.uv_raster import rasterize_uv, reposition
+    from polarface.simulate.pipeline import head_placement
+    from polarface.simulate.render import FrameTextures, render_view
+    from polarface.simulate.texture_sss import SubsurfaceModel, entering_flux, texture_space_exitance
+
+    rig = appearance.rig
+    camera = rig.camera(camera_id) if camera_id else rig.polarimetric_cameras()[0]
+    pinhole = _pinhole(camera)
+    transform = head_placement() if pose is None else np.asarray(pose, dtype=np.float64)
+    if transform.shape != (4, 4) or not np.isfinite(transform).all():
+        raise ValueError(f"argument 'pose' must be a finite 4x4 matrix; got shape {transform.shape}")
+    maps = appearance.maps
+    shape = appearance.mask.shape
+    mesh_world = appearance.mesh.transformed(transform)
+    caster = RayCaster(mesh_world)
+    raster = reposition(rasterize_uv(appearance.mesh, shape), mesh_world)
+    mask = raster.mask & appearance.mask
+    to_t = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float64))  # noqa: E731
+    shading = normals_from_heights(
+        to_t(maps["displacement_mm"]),
+        to_t(raster.tangent_u),
+        to_t(raster.tangent_v),
+        to_t(raster.normal),
+        to_t(raster.texel_size_u),
+        to_t(raster.texel_size_v),
+        torch.from_numpy(raster.mask),
+    ).numpy()
+    lights = np.array([light.position_mm for light in rig.lights], dtype=np.float64)
+    first = rig.lights[0].radiant_intensity
+    intensity = float(first if np.ndim(first) == 0 else first[0])
+    reference = _pinhole(rig.polarimetric_cameras()[0])
+    eta = np.where(mask, maps["eta"], 1.4).astype(np.float32)
+    flux = entering_flux(caster, raster, shading, eta, lights, intensity, reference.up_vector)
+    chromophores = apply_edits({k: maps[k] for k in ("c_m", "beta_m", "c_h_in", "c_h_out")}, edits or {})
+    calibration = rig.spectral.to_calibration()
+    params = {
+        k: np.where(mask, maps[k], 0.0).astype(np.float32) for k in ("alpha_s", "alpha_ss", "rho_s", "rho_ss")
+    }
+    params["eta"] = eta
+    if strip_width_mm is not None:
+        if not strip_width_mm > 0:
+            raise ValueError(f"argument 'strip_width_mm' must be > 0; got {strip_width_mm}")
+        centre = raster.position[mask].mean(axis=0)
+        offset = (raster.position - centre) @ pinhole.right_vector - strip_offset_mm
+        flux = np.where(np.abs(offset) <= 0.5 * strip_width_mm, flux, 0.0).astype(np.float32)
+        params["rho_s"] = np.zeros_like(params["rho_s"])
+        params["rho_ss"] = np.zeros_like(params["rho_ss"])
+    raster_masked = dataclasses.replace(raster, mask=mask) if dataclasses.is_dataclass(raster) else raster
+    model = SubsurfaceModel.build(
+        chromophores, raster_masked, calibration.wavelengths_nm, shapes=appearance.shapes
+    )
+    exitance = texture_space_exitance(flux, model, calibration, blur=True)
+    textures = FrameTextures.build(params, shading, exitance, mask)
+    view = render_view(
+        caster, mesh_world, pinhole, textures, lights, intensity, tuple(range(6)), polarization=True
+    )
+    return RenderedResult(
+        view.images,
+        view.mask,
+        view.uv,
+        view.face_id,
+        view.depth,
+        textures,
+        mesh_world,
+        caster,
+        pinhole,
+        lights,
+        intensity,
+    )
+
+
+def mueller_images(rendered: RenderedResult, chunk_pixels: int = 131072) -> np.ndarray:
+    """Per-pixel 3x3 linear Mueller matrices ``(h, w, 6, 3, 3)`` float32 of a rendered view.
+
+    Columns from the lobes under incident states ``[1, 1, 0]``, ``[1, -1, 0]``, ``[1, 0, 1]`` (camera
+    frame convention of each LED, see module docstring); the diffused subsurface term (depolarised on
+    entry) adds ``exit_stokes * exitance`` to the first column. Zero where no surface.
+    """
+    from polarface.geometry.uv_raster import sample_texture
+    from polarface.optics.image_formation import render_polarimetric, subsurface_exit_stokes
+
+    camera, mesh = rendered.camera, rendered.mesh_world
+    height, width = rendered.mask.shape
+    out = np.zeros((height * width, 6, 3, 3), np.float32)
+    origins, directions = camera.pixel_rays()
+    origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+    hit_index = np.nonzero(rendered.mask.reshape(-1))[0]
+    centre = torch.from_numpy(camera.center.astype(np.float64))
+    up = torch.from_numpy(camera.up_vector.astype(np.float64))
+    states = torch.tensor(
+        [[1.0, 1.0, 0.0, 0.0], [1.0, -1.0, 0.0, 0.0], [1.0, 0.0, 1.0, 0.0]], dtype=torch.float64
+    )
+    face_normals = mesh.face_normals()
+    for start in range(0, hit_index.size, chunk_pixels):
+        index = hit_index[start : start + chunk_pixels]
+        points = origins[index] + directions[index] * rendered.depth.reshape(-1)[index, None].astype(
+            np.float64
+        )
+        uv = torch.from_numpy(rendered.uv.reshape(-1, 2)[index])
+        sampled = sample_texture(rendered.textures.stack, uv).double()
+        position = torch.from_numpy(points)
+        to_camera = centre - position
+        to_camera = to_camera / to_camera.norm(dim=-1, keepdim=True)
+        normal = sampled[:, 5:8] / sampled[:, 5:8].norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        geometric = torch.from_numpy(face_normals[rendered.face_id.reshape(-1)[index]].astype(np.float64))
+        geometric = geometric * torch.where((geometric * to_camera).sum(-1, keepdim=True) < 0, -1.0, 1.0)
+        normal = torch.where((normal * to_camera).sum(-1, keepdim=True) > 1e-3, normal, geometric)
+        eta = sampled[:, 0:1].clamp_min(1.0 + 1e-6)
+        exitance = sampled[:, 8:14]
+        visible = rendered.caster.shadow_rays(points, geometric.numpy(), rendered.lights)
+        columns = []
+        for state in states:
+            total = torch.zeros(len(index), 6, 4, dtype=torch.float64)
+            for k in range(rendered.lights.shape[0]):
+                lit = torch.from_numpy(visible[:, k].astype(np.float64))[:, None, None]
+                images = render_polarimetric(
+                    normal,
+                    position,
+                    centre,
+                    up,
+                    torch.from_numpy(rendered.lights[k : k + 1]),
+                    torch.full((1, 6), rendered.intensity, dtype=torch.float64),
+                    eta,
+                    sampled[:, 1:2].clamp_min(1e-3),
+                    sampled[:, 2:3].clamp_min(1e-3),
+                    sampled[:, 3:4].clamp_min(0.0),
+                    sampled[:, 4:5].clamp_min(0.0),
+                    0.0,
+                    light_stokes=state,
+                    diffused_exitance=torch.zeros_like(exitance),
+                )
+                total = total + lit * images.stokes
+            columns.append(total[..., :3])
+        m0 = 0.5 * (columns[0] + columns[1])
+        m1 = 0.5 * (columns[0] - columns[1])
+        m2 = columns[2] - m0
+        sss = exitance[..., None] * subsurface_exit_stokes(normal, position, centre, up, eta)[..., :3]
+        m0 = m0 + sss
+        out[index] = torch.stack([m0, m1, m2], dim=-1).float().numpy()
+    return out.reshape(height, width, 6, 3, 3)
+
+
+def linear_rgb_from_channels(six: np.ndarray, rig) -> np.ndarray:
+    """Linear RGB ``(..., 3)`` of six-channel images: per colour the mean of its two half bands.
+
+    The colour of an unfiltered camera of the rig (as the simulator's stereo cameras); channel indices
+    come from the two polarimetric cameras' ``colour_channels``.
+    """
+    cams = rig.polarimetric_cameras()[:2]
+    if len(cams) < 2:
+        raise ValueError("the rig needs two polarimetric cameras (upper and lower half bands)")
+    return np.stack(
+        [0.5 * (six[..., cams[0].colour_channels[c]] + six[..., cams[1].colour_channels[c]]) for c in "RGB"],
+        -1,
+    )
+
+
+def encode_srgb(linear: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 transfer curve on values clipped to [0, 1]."""
+    x = np.clip(linear, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 1e-12), 1 / 2.4) - 0.055)
+
+
+def linear_srgb_to_lab(linear: np.ndarray) -> np.ndarray:
+    """CIE L*a*b* ``(..., 3)`` (D65 white) of linear sRGB ``(..., 3)`` (IEC 61966-2-1 matrix, CIE 1976)."""
+    matrix = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
+    xyz = np.asarray(linear, dtype=np.float64) @ matrix.T / np.array([0.95047, 1.0, 1.08883])
+    delta = 6.0 / 29.0
+    f = np.where(xyz > delta**3, np.cbrt(np.maximum(xyz, 0.0)), xyz / (3 * delta**2) + 4.0 / 29.0)
+    return np.stack([116 * f[..., 1] - 16, 500 * (f[..., 0] - f[..., 1]), 200 * (f[..., 1] - f[..., 2])], -1)
