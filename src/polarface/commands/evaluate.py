@@ -158,10 +158,23 @@ def rerender_metrics(result_dir: Path, gt_dir: Path) -> dict:
     }
 
 
+def biophysical_metrics(result_dir: Path, gt_dir: Path) -> dict:
+    """Chromophore errors and rho_sss_bar re-render error (:mod:`polarface.inverse.biophysical_stage`)."""
+    if not (Path(result_dir) / "maps" / "c_m.exr").is_file():
+        return {"skipped": "the RESULT has no biophysical maps (stage not run)"}
+    gt = Path(gt_dir)
+    if not any((root / "maps" / "c_m.exr").is_file() for root in (gt, gt / "ground_truth")):
+        return {"skipped": "the ground truth has no chromophore maps"}
+    from polarface.inverse.biophysical_stage import evaluate_biophysical
+
+    return evaluate_biophysical(result_dir, gt_dir)
+
+
 #: Metric groups: name -> function(result_dir, gt_dir) -> dict.
 METRIC_GROUPS: dict[str, Callable[[Path, Path], dict]] = {
     "polarimetric": polarimetric_metrics,
     "rerender": rerender_metrics,
+    "biophysical": biophysical_metrics,
 }
 
 

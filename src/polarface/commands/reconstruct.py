@@ -278,19 +278,29 @@ def write_maps(out: Path, maps: dict[str, np.ndarray], mask: np.ndarray) -> None
     )
 
 
+def stage_biophysical(ctx: ReconstructContext) -> dict:
+    """Chromophore maps and diffusion profiles from ``maps/rho_sss_bar.exr`` (paper Sec. 5.3)."""
+    from polarface.inverse.biophysical_stage import run_biophysical_stage
+
+    return run_biophysical_stage(ctx.out, device=ctx.device, progress=ctx.progress)
+
+
 def stage_report(ctx: ReconstructContext) -> dict:
-    """Write ``report.html`` (see :mod:`polarface.inverse.polarimetric_report`)."""
+    """Write ``report.html`` (:mod:`polarface.inverse.polarimetric_report`, plus the biophysical section)."""
+    from polarface.inverse.biophysical_stage import report_section
     from polarface.inverse.polarimetric_report import write_report
 
     started = time.perf_counter()
-    write_report(ctx.out)
+    extra = [lambda page: report_section(page, ctx.out)] if (ctx.out / "maps" / "c_m.exr").is_file() else []
+    write_report(ctx.out, extra_sections=extra)
     return {"timings": {"report_s": time.perf_counter() - started}}
 
 
-#: The stages in order: (name, function). Downstream stages (e.g. biophysical) insert themselves here.
+#: The stages in order: (name, function).
 STAGES: list[tuple[str, Callable[[ReconstructContext], dict]]] = [
     ("prepare", stage_prepare),
     ("polarimetric", stage_polarimetric),
+    ("biophysical", stage_biophysical),
     ("report", stage_report),
 ]
 

@@ -30,6 +30,7 @@ import torch
 from tqdm import tqdm
 
 from polarface.capture.rig import Rig
+from polarface.device import resolve_device
 from polarface.inverse.biophysical import BiophysicalConfig, BiophysicalFit, fit_biophysical
 from polarface.inverse.biophysical_model import PARAMETER_ORDER, TotalsTable, local_channel_albedo
 from polarface.io import colormap_png, read_exr, read_png, write_exr, write_json_atomic, write_png
@@ -254,7 +255,7 @@ def run_biophysical_stage(
     calibration = inputs["calibration"]
     table = TotalsTable(calibration.wavelengths_nm, config.constants)
     read_s = time.perf_counter() - started
-    target = torch.device(device) if device is not None else torch.device("cpu")
+    target = resolve_device(device) if device is not None else torch.device("cpu")
     steps = 2 + (config.shape_rounds if config.albedo_model == "blurred" else 0)
     with tqdm(total=steps, desc="biophysical", disable=not progress, unit="step") as bar:
         fit = fit_biophysical(

@@ -9,6 +9,7 @@ vs the re-render (texture space, channel G of the view). Images go to ``RESULT/p
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ def _dop_aolp(values: np.ndarray, specular_s1: np.ndarray | None = None) -> tupl
     return dop, aolp
 
 
-def write_report(result_dir: str | Path) -> Path:
+def write_report(result_dir: str | Path, extra_sections: Sequence[Callable] = ()) -> Path:
     """Write ``RESULT/report.html`` from the maps, checkpoints and unwrap store of a RESULT folder."""
     from polarface.commands.evaluate import read_maps
     from polarface.inverse.polarimetric import render_view_texture, shading_normals
@@ -130,4 +131,6 @@ def write_report(result_dir: str | Path) -> Path:
             "the re-render (paper Fig. 'DoP validation').",
         ).image_grid(dop_items, columns=4)
     page.section("Stage summary").table({k: v for k, v in stage.items() if not isinstance(v, dict)})
+    for add_section in extra_sections:  # later stages (e.g. biophysical) append their own sections
+        add_section(page)
     return page.write(out / "report.html")

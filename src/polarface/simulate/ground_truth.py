@@ -185,11 +185,11 @@ def chromophore_multipliers_from_albedo(
     grid = torch.linspace(-log_range, log_range, lut_steps, dtype=torch.float64)
     aa, bb = torch.meshgrid(grid, grid, indexing="ij")
     c_m, beta_m, c_h_in, c_h_out = (torch.tensor(float(v), dtype=torch.float64) for v in base)
+    # Keep every table entry physical: C_m <= 0.5 and C_m + C_h_out < 1 (volume fractions).
+    lut_c_m = (c_m * torch.exp(aa.reshape(-1))).clamp(max=0.5)
+    lut_c_h_out = torch.minimum((c_h_out * torch.exp(bb.reshape(-1))).clamp(max=0.32), 0.999 - lut_c_m)
     rgb = _srgb_linear_of_chromophores(
-        c_m * torch.exp(aa.reshape(-1)),
-        beta_m.expand(aa.numel()),
-        c_h_in.expand(aa.numel()),
-        c_h_out * torch.exp(bb.reshape(-1)),
+        lut_c_m, beta_m.expand(aa.numel()), c_h_in.expand(aa.numel()), lut_c_h_out
     )
     table = torch.log(rgb.clamp_min(1e-8)).reshape(lut_steps, lut_steps, 3)
     centre = lut_steps // 2
@@ -287,6 +287,7 @@ def build_appearance_maps(
     c_h_out = np.clip(base_c_h_out * np.exp(log_h), 1e-3, 0.3)
     # Lips are redder than the albedo texture alone explains (no melanin change).
     c_h_out = np.clip(c_h_out * (1.0 + 0.6 * regions["lips"]), 1e-3, 0.3)
+    c_h_out = np.minimum(c_h_out, 0.999 - c_m)  # volume fractions: C_m + C_h_out < 1
 
     spec = np.clip(specular.astype(np.float64), 0.0, 1.0)
     spec_norm = spec / max(float(np.percentile(spec[mask], 95)), 1e-6)
