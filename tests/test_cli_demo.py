@@ -13,7 +13,7 @@ from polarface.render.demo import DemoParameters, render_demo
 @pytest.mark.slow
 def test_demo_command_writes_everything(tmp_path):
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--size", "96"]) == 0
+    assert main(["demo", "--sphere", "--out", str(out), "--size", "96"]) == 0
     names = ["I0", "I45", "I90", "I135", "I_sss", "I_zeta", "I_s", "DoP", "AoLP"]
     images = {}
     for name in names:
@@ -48,7 +48,21 @@ def test_demo_command_writes_everything(tmp_path):
 
 
 def test_demo_command_bad_arguments(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path / "x"), "--eta", "0.9"]) == 2
+    assert main(["demo", "--sphere", "--out", str(tmp_path / "x"), "--eta", "0.9"]) == 2
     assert "--eta" in capsys.readouterr().err
-    assert main(["demo", "--out", str(tmp_path / "x"), "--size", "2"]) == 2
+    assert main(["demo", "--sphere", "--out", str(tmp_path / "x"), "--size", "2"]) == 2
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.slow
+def test_demo_pipeline_tiny_end_to_end(tmp_path):
+    """The README's main job in miniature: simulate -> reconstruct -> evaluate -> index.html."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--preset", "tiny", "--out", str(out)]) == 0
+    page = (out / "index.html").read_text(encoding="utf-8")
+    assert "result/report.html" in page
+    assert (out / "result" / "report.html").is_file()
+    metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+    assert {"polarimetric", "rerender", "biophysical"} <= set(metrics)
+    assert metrics["polarimetric"]["eta"]["median_abs_error"] < 0.1
+    assert metrics["biophysical"]["c_m"]["median_abs"] < 0.02

@@ -76,6 +76,12 @@ class Section:
         self.blocks.append(f"<p>{html.escape(paragraph)}</p>")
         return self
 
+    def link(self, path: str, label: str) -> Section:
+        """Append a paragraph holding a link to ``path`` (relative to the page)."""
+        href = html.escape(_check_relative(path), quote=True)
+        self.blocks.append(f'<p><a href="{href}">{html.escape(label)}</a></p>')
+        return self
+
     def image_grid(self, items: Iterable[ImageItem | tuple[str, str]], columns: int = 4) -> Section:
         """Append a grid of images with captions (``columns`` per row)."""
         if columns < 1:
