@@ -28,6 +28,7 @@ oracle tests for the measured agreement.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 
@@ -97,6 +98,51 @@ def _prepare(
     )
 
 
+class _Slab(NamedTuple):
+    """Diffusion quantities shared by the profiles and the closed-form totals (all ``(...)``)."""
+
+    albedo: torch.Tensor  # reduced albedo alpha' = sigma_s' / sigma_t'
+    sigma_tr: torch.Tensor  # effective transport coefficient sqrt(3 sigma_a sigma_t'), mm^-1
+    mean_free_path: torch.Tensor  # l = 1 / sigma_t', mm
+    z_b_top: torch.Tensor  # extrapolation distance at z = 0, mm
+    d: torch.Tensor  # thickness (1 where infinite, masked by ``finite``), mm
+    finite: torch.Tensor  # bool, finite thickness
+    period: torch.Tensor  # pole period 2 (d + z_b(0) + z_b(d)), mm
+
+
+def _slab(
+    sigma_a: torch.Tensor,
+    sigma_s_prime: torch.Tensor,
+    thickness: torch.Tensor,
+    eta_top: torch.Tensor,
+    eta_bottom: torch.Tensor,
+) -> _Slab:
+    """Reduced albedo, transport coefficient, extrapolation distances and pole period of a slab."""
+    sigma_t = sigma_a + sigma_s_prime
+    mean_free_path = 1.0 / sigma_t
+    diffusion = mean_free_path / 3.0
+    f_top = fresnel_diffuse_reflectance(eta_top)
+    f_bottom = fresnel_diffuse_reflectance(eta_bottom)
+    z_b_top = 2.0 * (1.0 + f_top) / (1.0 - f_top) * diffusion
+    z_b_bottom = 2.0 * (1.0 + f_bottom) / (1.0 - f_bottom) * diffusion
+    finite = torch.isfinite(thickness)
+    d = torch.where(finite, thickness, torch.ones_like(thickness))
+    return _Slab(
+        albedo=sigma_s_prime / sigma_t,
+        sigma_tr=torch.sqrt(3.0 * sigma_a * sigma_t),
+        mean_free_path=mean_free_path,
+        z_b_top=z_b_top,
+        d=d,
+        finite=finite,
+        period=2.0 * (d + z_b_top + z_b_bottom),
+    )
+
+
+def _check_poles(n_poles: int) -> None:
+    if int(n_poles) != n_poles or n_poles < 0:
+        raise ValueError(f"argument 'n_poles' must be a non-negative integer; got {n_poles}")
+
+
 def _poles(
     sigma_a: torch.Tensor,
     sigma_s_prime: torch.Tensor,
@@ -106,23 +152,12 @@ def _poles(
     n_poles: int,
 ) -> dict[str, torch.Tensor]:
     """Pole positions ``(..., 2n+1)`` and per-pole inclusion weights; infinite thickness keeps k = 0 only."""
-    if int(n_poles) != n_poles or n_poles < 0:
-        raise ValueError(f"argument 'n_poles' must be a non-negative integer; got {n_poles}")
-    sigma_t = sigma_a + sigma_s_prime
-    albedo = sigma_s_prime / sigma_t
-    sigma_tr = torch.sqrt(3.0 * sigma_a * sigma_t)
-    mean_free_path = 1.0 / sigma_t
-    diffusion = mean_free_path / 3.0
-    f_top = fresnel_diffuse_reflectance(eta_top)
-    f_bottom = fresnel_diffuse_reflectance(eta_bottom)
-    z_b_top = 2.0 * (1.0 + f_top) / (1.0 - f_top) * diffusion
-    z_b_bottom = 2.0 * (1.0 + f_bottom) / (1.0 - f_bottom) * diffusion
-    finite = torch.isfinite(thickness)
-    d = torch.where(finite, thickness, torch.ones_like(thickness))
+    _check_poles(n_poles)
+    slab = _slab(sigma_a, sigma_s_prime, thickness, eta_top, eta_bottom)
+    albedo, sigma_tr, d, finite = slab.albedo, slab.sigma_tr, slab.d, slab.finite
     k = torch.arange(-n_poles, n_poles + 1, dtype=sigma_a.dtype, device=sigma_a.device)
-    period = 2.0 * (d + z_b_top + z_b_bottom)
-    z_r = period[..., None] * k + mean_free_path[..., None]
-    z_v = period[..., None] * k - mean_free_path[..., None] - 2.0 * z_b_top[..., None]
+    z_r = slab.period[..., None] * k + slab.mean_free_path[..., None]
+    z_v = slab.period[..., None] * k - slab.mean_free_path[..., None] - 2.0 * slab.z_b_top[..., None]
     keep = (finite[..., None] | (k == 0)).to(sigma_a.dtype)
     return {
         "albedo": albedo,
@@ -179,20 +214,17 @@ def _closed_form_totals(
     exceeds ``l + 2 z_b(0)``, and ``l - d - 2 z_b(d) < 0``), so
     ``sum_{k=1}^{n} exp(-sigma_tr (k P + c)) = exp(-sigma_tr (P + c)) H(sigma_tr P, n)``.
     """
-    if int(n_poles) != n_poles or n_poles < 0:
-        raise ValueError(f"argument 'n_poles' must be a non-negative integer; got {n_poles}")
-    sigma_t = sigma_a + sigma_s_prime
-    half_albedo = 0.5 * sigma_s_prime / sigma_t
-    s = torch.sqrt(3.0 * sigma_a * sigma_t)
-    l = 1.0 / sigma_t
-    diffusion = l / 3.0
-    f_top = fresnel_diffuse_reflectance(eta_top)
-    f_bottom = fresnel_diffuse_reflectance(eta_bottom)
-    zb0 = 2.0 * (1.0 + f_top) / (1.0 - f_top) * diffusion
-    zbd = 2.0 * (1.0 + f_bottom) / (1.0 - f_bottom) * diffusion
-    finite = torch.isfinite(thickness)
-    d = torch.where(finite, thickness, torch.ones_like(thickness))
-    period = 2.0 * (d + zb0 + zbd)
+    _check_poles(n_poles)
+    slab = _slab(sigma_a, sigma_s_prime, thickness, eta_top, eta_bottom)
+    half_albedo = 0.5 * slab.albedo
+    s, l, zb0, d, finite, period = (
+        slab.sigma_tr,
+        slab.mean_free_path,
+        slab.z_b_top,
+        slab.d,
+        slab.finite,
+        slab.period,
+    )
     series = _pole_series(s * period, int(n_poles)) * finite.to(s.dtype)
 
     def tail(c: torch.Tensor) -> torch.Tensor:  # sum_{k=1}^{n} exp(-s (k P + c))
