@@ -91,29 +91,20 @@ def reflectance_model(
     constants: SkinLayerConstants = SkinLayerConstants(),  # noqa: B008
 ) -> torch.Tensor:
     """``s + (1 - R0) R_bar`` for ``(..., 5)`` parameters (``FIT_PARAMETER_NAMES``) -> ``(..., L)``."""
+    return _surface_plus_diffusion(parameters, wavelengths_nm, constants, subsurface_albedo)
+
+
+def _surface_plus_diffusion(
+    parameters: torch.Tensor, wavelengths_nm: torch.Tensor, constants, albedo
+) -> torch.Tensor:
+    """Surface-reflection offset plus the diffusion total behind the normal-incidence Fresnel loss."""
     r0 = ((constants.eta_skin - 1.0) / (constants.eta_skin + 1.0)) ** 2
-    r_bar = subsurface_albedo(
-        parameters[..., 0],
-        parameters[..., 1],
-        parameters[..., 2],
-        parameters[..., 3],
-        wavelengths_nm,
-        constants,
-    )
+    r_bar = albedo(*(parameters[..., i] for i in range(4)), wavelengths_nm, constants)
     return parameters[..., 4:5] + (1.0 - r0) * r_bar
 
 
 def _model_unchecked(parameters: torch.Tensor, wavelengths_nm: torch.Tensor, constants) -> torch.Tensor:
-    r0 = ((constants.eta_skin - 1.0) / (constants.eta_skin + 1.0)) ** 2
-    r_bar = _subsurface_albedo(
-        parameters[..., 0],
-        parameters[..., 1],
-        parameters[..., 2],
-        parameters[..., 3],
-        wavelengths_nm,
-        constants,
-    )
-    return parameters[..., 4:5] + (1.0 - r0) * r_bar
+    return _surface_plus_diffusion(parameters, wavelengths_nm, constants, _subsurface_albedo)
 
 
 def _start_design(starts: int, dtype: torch.dtype) -> torch.Tensor:
