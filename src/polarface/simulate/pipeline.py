@@ -134,7 +134,9 @@ class SimulationScene:
     @classmethod
     def build(cls, config: SimulationConfig) -> SimulationScene:
         preset = get_preset(config.preset)
-        rig = paper_rig(width=preset.width, height=preset.height)
+        rig = _with_stereo_resolution(
+            paper_rig(width=preset.width, height=preset.height), preset.stereo_width, preset.stereo_height
+        )
         if rig.spectral is None:  # pragma: no cover - the skin module is part of the package
             raise ValueError("the rig has no spectral calibration")
         calibration = rig.spectral.to_calibration()
@@ -171,6 +173,7 @@ class RenderedFrame:
     """The per-camera renders and the geometry of one frame (internal to the pipeline)."""
 
     mesh: TriangleMesh
+    caster: RayCaster  # Embree scene of ``mesh``, reused for the texel visibility
     views: dict  # camera id -> ViewRender
     raster: UVRaster
     shading_normal: np.ndarray
@@ -238,7 +241,7 @@ def render_frame(
                 tuple(range(6)),
                 polarization=False,
             )
-    return RenderedFrame(mesh_world, views, raster, shading)
+    return RenderedFrame(mesh_world, caster, views, raster, shading)
 
 
 def _with_stereo_resolution(rig: Rig, width: int, height: int) -> Rig:
@@ -382,8 +385,7 @@ class _ObservationWriter:
                 self._array(f"{prefix}/{name}", (count, h, w, 3), "float32", 0.0)[index] = image
             self._array(f"{prefix}/mask", (count, h, w), "bool", False)[index] = view.mask
             self._array(f"{prefix}/uv", (count, h, w, 2), "float32", 0.0)[index] = view.uv
-            caster = RayCaster(frame.mesh)
-            visible, pixel = _texel_visibility(caster, frame.raster, camera_from_rig(camera))
+            visible, pixel = _texel_visibility(frame.caster, frame.raster, camera_from_rig(camera))
             self._array(f"{prefix}/texel_visible", (count, height, width), "bool", False)[index] = visible
             self._array(f"{prefix}/texel_pixel", (count, height, width, 2), "float32", -1.0)[index] = pixel
         self.root.attrs[f"{sequence}/{index}"] = True
@@ -479,7 +481,6 @@ def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = 
             )
     out.mkdir(parents=True, exist_ok=True)
     scene = SimulationScene.build(config)
-    scene.rig = _with_stereo_resolution(scene.rig, scene.preset.stereo_width, scene.preset.stereo_height)
     setup_s = time.perf_counter() - started
     poses = static_poses(scene)
     gt = out / "ground_truth"
