@@ -17,6 +17,7 @@ from polarface.inverse.polarimetric_fit import (
     optimise_patch,
     raw_from_maps,
 )
+from polarface.inverse.polarimetric_fused import build_fused_samples
 from polarface.inverse.polarimetric_model import precompute_samples, render_samples
 from polarface.texture.unwrap import TexelGeometry, build_views
 
@@ -129,14 +130,31 @@ def _single_texel_problem(dtype=torch.float64):
         )
     observed = torch.stack([p.i_sss, p.i_zeta, p.i_s], dim=1)
     batch = dataclasses.replace(batch, observed=observed)
-    return batch, geometry, float(observed[:, 0].mean())
+    fused = build_fused_samples(
+        np.zeros((1, 3)),
+        np.zeros(count),
+        np.arange(count),
+        np.ones((count, 8), bool),
+        observed.numpy(),
+        pick("camera_center"),
+        pick("camera_up"),
+        pick("reference_up"),
+        pick("light_positions"),
+        pick("light_intensity"),
+        pick("channels"),
+        dtype=np.float64 if dtype == torch.float64 else np.float32,
+    )
+    return batch, geometry, float(observed[:, 0].mean()), fused
 
 
 @pytest.mark.slow
-def test_noise_free_single_texel_recovers_exact_parameters():
-    batch, geometry, scale = _single_texel_problem()
+@pytest.mark.parametrize("engine", ["torch", "fused"])
+def test_noise_free_single_texel_recovers_exact_parameters(engine):
+    batch, geometry, scale, fused = _single_texel_problem()
     config = PolarimetricConfig(optimizer="adam", lr=0.05, iterations=3000, warmup=1, lr_final_fraction=0.01)
-    problem = _PatchProblem(batch, geometry, config, scale, torch.float64, torch.device("cpu"))
+    problem = _PatchProblem(
+        batch, geometry, config, scale, torch.float64, torch.device("cpu"), fused if engine == "fused" else None
+    )
     start = {
         "eta": 1.5,
         "alpha_s": 0.5,
@@ -158,10 +176,13 @@ def test_noise_free_single_texel_recovers_exact_parameters():
     np.testing.assert_allclose(result["rho_sss_bar"].numpy()[0, 0], TRUTH["rho_sss_bar"], rtol=1e-3)
 
 
-def test_loss_decreases_and_is_deterministic():
-    batch, geometry, scale = _single_texel_problem(torch.float32)
+@pytest.mark.parametrize("engine", ["torch", "fused"])
+def test_loss_decreases_and_is_deterministic(engine):
+    batch, geometry, scale, fused = _single_texel_problem(torch.float32)
     config = PolarimetricConfig(iterations=30)
-    problem = _PatchProblem(batch, geometry, config, scale, torch.float32, torch.device("cpu"))
+    problem = _PatchProblem(
+        batch, geometry, config, scale, torch.float32, torch.device("cpu"), fused if engine == "fused" else None
+    )
     maps = {
         k: np.full((1, 1, 1), v)
         for k, v in {
@@ -186,7 +207,7 @@ def test_loss_decreases_and_is_deterministic():
 def test_closed_form_starts_on_a_noise_free_texel():
     from polarface.inverse.polarimetric_init import init_albedos, init_eta, nan_median_filter
 
-    batch, _, _ = _single_texel_problem()
+    batch, _, _, _ = _single_texel_problem()
     normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
     params = {
         "eta": torch.tensor([[1.5]], dtype=torch.float64),

@@ -1,17 +1,19 @@
-"""Throughput benchmark of the polarimetric stage: fused patch kernel vs an eager per-texel baseline.
+"""Throughput benchmark of the polarimetric stage: fused kernel, vectorised torch, eager per-texel baseline.
 
 :func:`benchmark_problem` builds one demo-sized patch problem without any file: a spherical-cap
 texture patch (``side x side`` texels, head-sized, 1 m in front of :func:`polarface.capture.rig.paper_rig`)
 seen by both polarimetric cameras over ``frames`` chair yaws (the demo preset: 24 frames = 48 views),
 with observations rendered by the model itself. :func:`run_benchmark` times
 
-* the fused path: one optimiser iteration (forward, backward, RMSprop step) of
-  :func:`polarface.inverse.polarimetric_fit.optimise_patch` on the whole patch;
+* the fused kernel (:mod:`polarface.inverse.polarimetric_kernel`, numba, analytic gradients) and the
+  vectorised torch autograd reference: one optimiser iteration (forward, backward, RMSprop step) of
+  :func:`polarface.inverse.polarimetric_fit.optimise_patch` on the whole patch each;
 * the baseline: the same losses written the straightforward way (the style of the authors' release):
   a Python loop over texels, each evaluating :func:`polarface.optics.render_polarimetric` for its views
   one light at a time, its own backward and optimiser step;
 
-and reports texel-view iterations per second for both, their ratio and the peak RSS.
+and reports texel-view iterations per second for each, the speed-up of the fastest over the baseline
+and the peak RSS.
 """
 
 from __future__ import annotations
@@ -20,10 +22,12 @@ import math
 import resource
 import time
 
+import numba
 import numpy as np
 import torch
 
 from polarface.inverse.polarimetric_fit import PolarimetricConfig, _PatchProblem, initial_raw, optimise_patch
+from polarface.inverse.polarimetric_fused import build_fused_samples
 from polarface.inverse.polarimetric_losses import data_losses
 from polarface.inverse.polarimetric_model import SamplePrediction, precompute_samples, render_samples
 from polarface.texture.unwrap import TexelGeometry, build_views, texel_geometry
@@ -34,7 +38,9 @@ __all__ = ["benchmark_problem", "run_benchmark"]
 def benchmark_problem(
     side: int = 48, frames: int = 24, dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu"
 ):
-    """``(problem, raw, views)``: a patch of ``side^2`` texels and ``2 frames`` views (module docstring)."""
+    """``(problem, fused_problem, raw, views)``: a patch of ``side^2`` texels and ``2 frames`` views
+    (module docstring); ``problem`` evaluates the data loss with the vectorised torch reference,
+    ``fused_problem`` with the fused numba kernel (same samples)."""
     from polarface.capture.rig import paper_rig
     from polarface.geometry.uv_raster import rasterize_uv
     from polarface.texture.synthetic import _placement, sphere_cap_mesh
@@ -58,6 +64,7 @@ def benchmark_problem(
     t_idx = np.concatenate([s[1] for s in samples])
     p = np.concatenate([s[2] for s in samples])
     pick = lambda attr: np.array([getattr(v, attr) for v in views])[v_idx]  # noqa: E731
+    lit = np.ones((len(v_idx), len(rig.lights)), bool)
     batch = precompute_samples(
         p,
         t_idx,
@@ -68,7 +75,7 @@ def benchmark_problem(
         pick("light_positions"),
         pick("light_intensity"),
         pick("channels"),
-        np.ones((len(v_idx), len(rig.lights)), bool),
+        lit,
         np.zeros((len(v_idx), 3, 3)),
         dtype=dtype,
         device=device,
@@ -97,8 +104,24 @@ def benchmark_problem(
     batch = type(batch)(
         *(observed if f == "observed" else getattr(batch, f) for f in batch.__dataclass_fields__)
     )
+    table = lambda attr: np.array([getattr(v, attr) for v in views])  # noqa: E731
+    fused = build_fused_samples(
+        geometry.position.reshape(-1, 3),
+        t_idx,
+        v_idx,
+        lit,
+        observed.cpu().numpy(),
+        table("camera_center"),
+        table("camera_up"),
+        table("reference_up"),
+        table("light_positions"),
+        table("light_intensity"),
+        table("channels"),
+        dtype=np.float64 if dtype == torch.float64 else np.float32,
+    )
     problem = _PatchProblem(batch, geometry, config, scale, dtype, torch.device(device))
-    return problem, raw, views
+    fused_problem = _PatchProblem(batch, geometry, config, scale, dtype, torch.device(device), fused)
+    return problem, fused_problem, raw, views
 
 
 def _eager_texel_step(samples: list[dict], params: dict[str, torch.Tensor], optimizer, scale: float) -> None:
@@ -150,18 +173,30 @@ def run_benchmark(
 ) -> dict:
     """Time both implementations (module docstring); returns a JSON-able dict."""
     started = time.perf_counter()
-    problem, raw, views = benchmark_problem(side, frames, device=device)
+    problem, fused_problem, raw, views = benchmark_problem(side, frames, device=device)
     setup_s = time.perf_counter() - started
     batch = problem.batch
-    config = PolarimetricConfig(iterations=1)
-    optimise_patch(problem, raw, config)  # warm-up
-    config = PolarimetricConfig(iterations=int(iterations), warmup=1)
-    tick = time.perf_counter()
-    optimise_patch(problem, raw, config)
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize()
-    fused_s = time.perf_counter() - tick
-    fused_rate = batch.count * iterations / fused_s
+
+    def rate(candidate: _PatchProblem) -> tuple[float, float]:
+        optimise_patch(candidate, raw, PolarimetricConfig(iterations=1))  # warm-up (and JIT compile)
+        tick = time.perf_counter()
+        optimise_patch(candidate, raw, PolarimetricConfig(iterations=int(iterations), warmup=1))
+        if torch.device(device).type == "cuda":
+            torch.cuda.synchronize()
+        seconds = time.perf_counter() - tick
+        return batch.count * iterations / seconds, seconds
+
+    torch_rate, torch_s = rate(problem)
+    fused_rate, fused_s = (math.nan, math.nan)
+    if torch.device(device).type == "cpu":
+        # as in the fit: the kernel's threads are numba's; torch's per-texel glue runs on one thread
+        previous = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            fused_rate, fused_s = rate(fused_problem)
+        finally:
+            torch.set_num_threads(previous)
+    best_rate = fused_rate if fused_rate == fused_rate else torch_rate
     # baseline on a few texels (the rate does not depend on how many)
     texels = batch.texel.unique()[: int(baseline_texels)]
     work, eager_s = 0, 0.0
@@ -207,12 +242,15 @@ def run_benchmark(
         "views": len(views),
         "samples": batch.count,
         "iterations": int(iterations),
-        "fused_texel_view_iterations_per_s": fused_rate,
+        "numba_threads": numba.get_num_threads(),
+        "fused_kernel_texel_view_iterations_per_s": fused_rate,
+        "torch_vectorised_texel_view_iterations_per_s": torch_rate,
         "eager_baseline_texel_view_iterations_per_s": eager_rate,
-        "speedup": fused_rate / eager_rate if eager_rate > 0 else math.nan,
+        "speedup": best_rate / eager_rate if eager_rate > 0 else math.nan,
         "paper_a100_rate": 150 * 2048 * 2048 * 200 / (180 * 60),
         "setup_s": setup_s,
         "fused_s": fused_s,
+        "torch_s": torch_s,
         "eager_s": eager_s,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }

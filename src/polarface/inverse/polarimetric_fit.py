@@ -38,6 +38,7 @@ import torch
 from tqdm import tqdm
 
 from polarface.geometry.heights import normals_from_heights
+from polarface.inverse.polarimetric_fused import FusedSamples, build_fused_samples, fused_data_loss, pack_parameters
 from polarface.inverse.polarimetric_config import (
     PARAMETER_NAMES,
     PolarimetricConfig,
@@ -63,6 +64,19 @@ __all__ = [
 LOGGER = logging.getLogger(__name__)
 
 
+def _patch_arrays(unwrap: UnwrapStore, rows: slice, cols: slice, view_indices: list[int]):
+    """Geometry and the visible samples ``(v, r, c)`` of a texture region with their obs and lit masks."""
+    geometry = unwrap.geometry(rows, cols)
+    obs, valid, lit = unwrap.read(rows, cols, view_indices)
+    valid = valid & geometry.mask[None]
+    v_idx, r_idx, c_idx = np.nonzero(valid)
+    return geometry, v_idx, r_idx, c_idx, obs[v_idx, r_idx, c_idx], lit[v_idx, r_idx, c_idx]
+
+
+def _view_table(views: list[ViewSpec], attribute: str) -> np.ndarray:
+    return np.array([getattr(v, attribute) for v in views])
+
+
 def build_patch_samples(
     unwrap: UnwrapStore,
     rows: slice,
@@ -72,38 +86,53 @@ def build_patch_samples(
     *,
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
-) -> tuple[SampleBatch | None, TexelGeometry]:
-    """The samples of a texture region for the given views (None when nothing is visible)."""
-    geometry = unwrap.geometry(rows, cols)
-    obs, valid, lit = unwrap.read(rows, cols, view_indices)
-    valid = valid & geometry.mask[None]
-    v_idx, r_idx, c_idx = np.nonzero(valid)
+    fused: bool = False,
+) -> tuple[SampleBatch | None, TexelGeometry] | tuple[SampleBatch | None, TexelGeometry, FusedSamples | None]:
+    """The samples of a texture region for the given views (None when nothing is visible).
+
+    With ``fused=True`` also the compact :class:`~polarface.inverse.polarimetric_fused.FusedSamples`
+    of the same samples (third element), for the fused CPU kernel.
+    """
+    geometry, v_idx, r_idx, c_idx, obs, lit = _patch_arrays(unwrap, rows, cols, view_indices)
     if v_idx.size == 0:
-        return None, geometry
+        return (None, geometry, None) if fused else (None, geometry)
     width = geometry.mask.shape[1]
     chosen = [views[i] for i in view_indices]
-    centre = np.array([v.camera_center for v in chosen])[v_idx]
-    up = np.array([v.camera_up for v in chosen])[v_idx]
-    ref = np.array([v.reference_up for v in chosen])[v_idx]
-    lights = np.array([v.light_positions for v in chosen])[v_idx]
-    intensity = np.array([v.light_intensity for v in chosen])[v_idx]
-    channels = np.array([v.channels for v in chosen])[v_idx]
+    table = {name: _view_table(chosen, name) for name in (
+        "camera_center", "camera_up", "reference_up", "light_positions", "light_intensity", "channels"
+    )}  # fmt: skip
     batch = precompute_samples(
         geometry.position[r_idx, c_idx],
         r_idx * width + c_idx,
         np.asarray(view_indices)[v_idx],
-        centre,
-        up,
-        ref,
-        lights,
-        intensity,
-        channels,
-        lit[v_idx, r_idx, c_idx],
-        obs[v_idx, r_idx, c_idx],
+        table["camera_center"][v_idx],
+        table["camera_up"][v_idx],
+        table["reference_up"][v_idx],
+        table["light_positions"][v_idx],
+        table["light_intensity"][v_idx],
+        table["channels"][v_idx],
+        lit,
+        obs,
         dtype=dtype,
         device=device,
     )
-    return batch, geometry
+    if not fused:
+        return batch, geometry
+    packed = build_fused_samples(
+        geometry.position.reshape(-1, 3),
+        r_idx * width + c_idx,
+        v_idx,
+        lit,
+        obs,
+        table["camera_center"],
+        table["camera_up"],
+        table["reference_up"],
+        table["light_positions"],
+        table["light_intensity"],
+        table["channels"],
+        dtype=np.float64 if dtype == torch.float64 else np.float32,
+    )
+    return batch, geometry, packed
 
 
 @dataclasses.dataclass
@@ -149,8 +178,10 @@ class _PatchProblem:
         scale: float,
         dtype: torch.dtype,
         device: torch.device,
+        fused: FusedSamples | None = None,
     ) -> None:
         self.batch = batch
+        self.fused = fused
         self.config = config
         self.scale = scale
         t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
@@ -175,20 +206,28 @@ class _PatchProblem:
         h, w = self.shape
         flat = {k: v.reshape(h * w, -1) for k, v in maps.items()}
         normal = self.normals(maps["displacement_mm"][..., 0])
-        b = self.batch
-        texel = b.texel
-        prediction = render_samples(
-            b,
-            normal[texel],
-            flat["eta"][texel, 0],
-            flat["alpha_s"][texel, 0],
-            flat["alpha_ss"][texel, 0],
-            flat["rho_s"][texel, 0],
-            flat["rho_ss"][texel, 0],
-            torch.gather(flat["rho_sss_bar"][texel], 1, b.channels),
-        )
-        terms = data_losses(prediction, b.observed, self.scale)
         wts = self.config.weights
+        if self.fused is not None:
+            params = pack_parameters(
+                normal, flat["eta"], flat["alpha_s"], flat["alpha_ss"], flat["rho_s"], flat["rho_ss"],
+                flat["rho_sss_bar"],
+            )  # fmt: skip
+            data = fused_data_loss(params, self.fused, wts, self.scale)
+        else:
+            b = self.batch
+            texel = b.texel
+            prediction = render_samples(
+                b,
+                normal[texel],
+                flat["eta"][texel, 0],
+                flat["alpha_s"][texel, 0],
+                flat["alpha_ss"][texel, 0],
+                flat["rho_s"][texel, 0],
+                flat["rho_ss"][texel, 0],
+                torch.gather(flat["rho_sss_bar"][texel], 1, b.channels),
+            )
+            terms = data_losses(prediction, b.observed, self.scale)
+            data = wts.sss * terms["sss"] + wts.s * terms["s"] + wts.phi * terms["phi"] + wts.psi * terms["psi"]
         height = maps["displacement_mm"][..., 0]
         mask = self.mask
         reg = {
@@ -199,10 +238,7 @@ class _PatchProblem:
             "alpha_ss_smooth": smoothness_penalty(maps["alpha_ss"][..., 0], mask),
         }
         total = (
-            wts.sss * terms["sss"]
-            + wts.s * terms["s"]
-            + wts.phi * terms["phi"]
-            + wts.psi * terms["psi"]
+            data
             + wts.h_temporal * reg["h_temporal"]
             + wts.h_laplacian * reg["h_laplacian"]
             + wts.eta * reg["eta_smooth"]
@@ -258,6 +294,7 @@ def fit_polarimetric(
     stop_after_patches: int | None = None,
     on_patch: Callable[[int, int], None] | None = None,
     threads: int | None = None,
+    engine: str = "auto",
 ) -> PolarimetricFit:
     """Fit the static polarimetric maps to the fitting (not held-out) views of ``unwrap``.
 
@@ -272,11 +309,19 @@ def fit_polarimetric(
         on_patch: callback ``(done, total)``.
         threads: torch intra-op threads during the fit (None: unchanged). Patch tensors hold ~1e5
             elements, where OpenMP threads gain little and, on a busy machine, spin against other
-            processes (measured 10-50x slower with 2 threads under load): 1 is a safe choice.
+            processes (measured 10-50x slower with 2 threads under load): 1 is a safe choice. The fused
+            kernel's threads are numba's (``NUMBA_NUM_THREADS``, default: all cores).
+        engine: data-loss implementation: ``fused`` (numba kernel with analytic gradients, CPU),
+            ``torch`` (vectorised autograd reference, any device) or ``auto`` (fused on CPU, torch
+            otherwise). Both give the same loss and gradient (tests).
 
     Raises:
         ValueError: incomplete unwrap store, no fitting view, or no texel visible in any fitting view.
     """
+    if engine not in ("auto", "fused", "torch"):
+        raise ValueError(f"argument 'engine' must be 'auto', 'fused' or 'torch'; got {engine!r}")
+    device = torch.device(device)
+    use_fused = engine == "fused" or (engine == "auto" and device.type == "cpu")
     previous_threads = torch.get_num_threads()
     if threads is not None:
         if int(threads) < 1:
@@ -286,17 +331,20 @@ def fit_polarimetric(
         return _fit(
             unwrap,
             config or PolarimetricConfig(),
-            torch.device(device),
+            device,
             checkpoint,
             progress,
             stop_after_patches,
             on_patch,
+            use_fused,
         )
     finally:
         torch.set_num_threads(previous_threads)
 
 
-def _fit(unwrap, config, device, checkpoint, progress, stop_after_patches, on_patch) -> PolarimetricFit:
+def _fit(
+    unwrap, config, device, checkpoint, progress, stop_after_patches, on_patch, use_fused
+) -> PolarimetricFit:
     from polarface.io import atomic_path
 
     torch.manual_seed(config.seed)
@@ -343,11 +391,13 @@ def _fit(unwrap, config, device, checkpoint, progress, stop_after_patches, on_pa
         r0, r1 = max(rows.start - halo, 0), min(rows.stop + halo, height)
         c0, c1 = max(cols.start - halo, 0), min(cols.stop + halo, width)
         hrows, hcols = slice(r0, r1), slice(c0, c1)
-        batch, geometry = build_patch_samples(
-            unwrap, hrows, hcols, fitting, views, dtype=dtype, device=device
+        batch, geometry, packed = build_patch_samples(
+            unwrap, hrows, hcols, fitting, views, dtype=dtype, device=device, fused=True
         )
         if batch is not None:
-            problem = _PatchProblem(batch, geometry, config, scale, dtype, device)
+            problem = _PatchProblem(
+                batch, geometry, config, scale, dtype, device, packed if use_fused else None
+            )
             patch_raw = {
                 k: torch.as_tensor(v[hrows, hcols], dtype=dtype, device=device) for k, v in raw.items()
             }
