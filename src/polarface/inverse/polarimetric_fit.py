@@ -323,6 +323,8 @@ def fit_polarimetric(
     device = torch.device(device)
     use_fused = engine == "fused" or (engine == "auto" and device.type == "cpu")
     previous_threads = torch.get_num_threads()
+    # RMSprop's running averages of tiny gradients reach denormal floats, whose arithmetic is ~20x slower
+    flushing = torch.set_flush_denormal(True)
     if threads is not None:
         if int(threads) < 1:
             raise ValueError(f"argument 'threads' must be >= 1; got {threads}")
@@ -340,6 +342,8 @@ def fit_polarimetric(
         )
     finally:
         torch.set_num_threads(previous_threads)
+        if flushing:
+            torch.set_flush_denormal(False)
 
 
 def _fit(
@@ -429,11 +433,15 @@ def _fit(
                 new_s = torch.logit((rho_s / config.rho_max).reshape(h, w, 1).to(dtype))
                 patch_raw["rho_sss_bar"] = torch.where(todo_t[..., None], new_sss, patch_raw["rho_sss_bar"])
                 patch_raw["rho_s"] = torch.where(todo_t[..., None], new_s, patch_raw["rho_s"])
+            sample_count = batch.count
+            seen_texels = batch.texel.cpu().numpy()
+            if use_fused:  # the reference batch served the closed-form starts only: free it
+                problem.batch = batch = None
             tick = time.perf_counter()
             result = optimise_patch(problem, patch_raw, config, curve)
             opt_seconds += time.perf_counter() - tick
-            opt_work += batch.count * int(config.iterations)
-            samples_total += batch.count
+            opt_work += sample_count * int(config.iterations)
+            samples_total += sample_count
             ir = slice(rows.start - r0, rows.stop - r0)
             ic = slice(cols.start - c0, cols.stop - c0)
             for k, v in result.items():
@@ -447,7 +455,7 @@ def _fit(
                     raw[k][rows, cols] = result[k][ir, ic].cpu().numpy()
                 initialised[hrows, hcols] = True
             seen = np.zeros(geometry.mask.shape, bool)
-            seen.reshape(-1)[batch.texel.cpu().numpy()] = True
+            seen.reshape(-1)[seen_texels] = True
             mask_seen[rows, cols] |= seen[ir, ic]
         done.add(index)
         newly += 1
