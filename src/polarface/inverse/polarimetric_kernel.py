@@ -283,8 +283,8 @@ def _kernel(
                 )  # fmt: skip
                 exit_terms = (F(front), F(gs_o), F(gs_o_dc), F(gs_o_da), F(gss_o), F(gss_o_dc), F(gss_o_da))
                 # ---- forward over lights (vectorised loop; reductions into spec and flux)
-                spec00 = spec01 = spec02 = spec10 = spec11 = spec12 = spec20 = spec21 = spec22 = 0.0
-                flux0 = flux1 = flux2 = 0.0
+                spec00 = spec01 = spec02 = spec10 = spec11 = spec12 = spec20 = spec21 = spec22 = F(0.0)
+                flux0 = flux1 = flux2 = F(0.0)
                 for k in range(light_count):
                     (wl, sp0, sp1, sp2, _, _, _, lobe, _, _, _, _, _, _, _, _, entry, _, _, _, _) = _light(
                         v, k, light_pos, lit_bits, geometry, texel_terms, exit_terms, light_tiny
@@ -370,10 +370,11 @@ def _kernel(
                 g_ao = g_xi * dxi_da + g_zeta * dzeta_da
                 g_bo = g_xi * dxi_db + g_zeta * dzeta_db
                 # ---- reverse over lights (vectorised loop; reductions into the texel's gradient)
-                gs00, gs01, gs02 = g_spec[0, 0], g_spec[0, 1], g_spec[0, 2]
-                gs10, gs11, gs12 = g_spec[1, 0], g_spec[1, 1], g_spec[1, 2]
-                gs20, gs21, gs22 = g_spec[2, 0], g_spec[2, 1], g_spec[2, 2]
-                gf0, gf1, gf2 = g_flux[0], g_flux[1], g_flux[2]
+                gs00, gs01, gs02 = F(g_spec[0, 0]), F(g_spec[0, 1]), F(g_spec[0, 2])
+                gs10, gs11, gs12 = F(g_spec[1, 0]), F(g_spec[1, 1]), F(g_spec[1, 2])
+                gs20, gs21, gs22 = F(g_spec[2, 0]), F(g_spec[2, 1]), F(g_spec[2, 2])
+                gf0, gf1, gf2 = F(g_flux[0]), F(g_flux[1]), F(g_flux[2])
+                l_eta = l_nx = l_ny = l_nz = l_co = l_as = l_ass = l_rs = l_rss = F(0.0)
                 for k in range(light_count):
                     (
                         wl, sp0, sp1, sp2, dsp0, dsp1, dsp2, lobe, dl_nx, dl_ny, dl_nz, dl_co, dl_as, dl_ass,
@@ -389,16 +390,25 @@ def _kernel(
                     big2 = i0 * gs02 + i1 * gs12 + i2 * gs22
                     g_lobe = big0 * sp0 + big1 * sp1 + big2 * sp2
                     g_entry = i0 * gf0 + i1 * gf1 + i2 * gf2
-                    g_eta += lobe * (big0 * dsp0 + big1 * dsp1 + big2 * dsp2)
-                    g_eta += g_entry * de_eta
-                    g_nx += g_lobe * dl_nx + g_entry * de_nx
-                    g_ny += g_lobe * dl_ny + g_entry * de_ny
-                    g_nz += g_lobe * dl_nz + g_entry * de_nz
-                    g_cos_o += g_lobe * dl_co
-                    g_as += g_lobe * dl_as
-                    g_ass += g_lobe * dl_ass
-                    g_rs += g_lobe * dl_rs
-                    g_rss += g_lobe * dl_rss
+                    l_eta += lobe * (big0 * dsp0 + big1 * dsp1 + big2 * dsp2) + g_entry * de_eta
+                    l_nx += g_lobe * dl_nx + g_entry * de_nx
+                    l_ny += g_lobe * dl_ny + g_entry * de_ny
+                    l_nz += g_lobe * dl_nz + g_entry * de_nz
+                    l_co += g_lobe * dl_co
+                    l_as += g_lobe * dl_as
+                    l_ass += g_lobe * dl_ass
+                    l_rs += g_lobe * dl_rs
+                    l_rss += g_lobe * dl_rss
+                # per-sample sums (light arithmetic type) into the texel's float64 accumulators
+                g_eta += l_eta
+                g_nx += l_nx
+                g_ny += l_ny
+                g_nz += l_nz
+                g_cos_o += l_co
+                g_as += l_as
+                g_ass += l_ass
+                g_rs += l_rs
+                g_rss += l_rss
                 if cos_o_raw < -1.0 or cos_o_raw > 1.0:
                     g_cos_o = 0.0
                 g_nx += g_cos_o * ox + g_ao * aox + g_bo * pox
