@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 import torch
+import torch.nn.functional as nnf
 
 from polarface.inverse.biophysical import (
     BiophysicalConfig,
     fit_biophysical,
     fit_local_parameters,
+    gamut_distance,
     median_shapes,
 )
 from polarface.inverse.biophysical_model import TotalsTable, blurred_channel_albedo, local_channel_albedo
@@ -39,6 +44,90 @@ def test_config_defaults_and_errors():
         BiophysicalConfig(coarse_factor=0)
     with pytest.raises(ValueError, match="channel_floor"):
         BiophysicalConfig(channel_floor=0.0)
+    assert config.gamut_tolerance == 0.05
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="gamut_tolerance"):
+            BiophysicalConfig(gamut_tolerance=bad)
+    BiophysicalConfig(gamut_tolerance=math.inf)  # disables the screen
+
+
+def test_gamut_distance_values_shapes_and_gradient(setup):
+    table, weights = setup
+    params = torch.tensor([[0.05, 0.1, 0.03, 0.05], [0.2, 0.6, 0.1, 0.1]], dtype=torch.float64)
+    model = local_channel_albedo(params, table, weights.double())
+    assert gamut_distance(model, model).shape == (2,)
+    assert float(gamut_distance(model, model).abs().max()) == 0.0
+    brighter = model * 1.1  # 10 % brighter than the model in every channel
+    expected = ((model - brighter) / (brighter + 0.02)).pow(2).mean(-1).sqrt()
+    assert torch.allclose(gamut_distance(brighter, model), expected)
+    assert bool((gamut_distance(brighter, model) > 0.05).all())  # beyond the default tolerance
+    assert bool((gamut_distance(brighter, model) < 0.1).all())
+    rho = brighter.clone().requires_grad_(True)
+    model_leaf = model.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b: gamut_distance(a, b), (rho, model_leaf))
+    as_numpy = gamut_distance(brighter.numpy(), model.numpy())  # numpy in, numpy out
+    assert isinstance(as_numpy, np.ndarray) and np.allclose(as_numpy, expected.numpy())
+    assert gamut_distance(brighter.float(), model.float()).dtype == torch.float32
+    assert gamut_distance(brighter, model[:1]).shape == (2,)  # broadcasting
+    with pytest.raises(ValueError, match="broadcast"):
+        gamut_distance(brighter, model[:, :3])
+    with pytest.raises(ValueError, match="rho_sss_bar"):
+        gamut_distance(-brighter, model)
+    with pytest.raises(ValueError, match="model"):
+        gamut_distance(brighter, model * float("nan"))
+    with pytest.raises(ValueError, match="channel_floor"):
+        gamut_distance(brighter, model, channel_floor=0.0)
+
+
+@pytest.fixture(scope="module")
+def blurred_with_outliers(setup):
+    """Blurred (Eq. simple_sss) smooth skin with five out-of-gamut texels: a saturated 2x2 block
+    (rho = 0.98, a polarimetric fit stuck at its bound) and one texel with reversed channel ratios."""
+    table, weights = setup
+    params, mask = smooth_maps()
+    shapes, _ = median_shapes(params, mask, table)
+    observed = blurred_channel_albedo(params, table, weights, shapes, 0.4, mask).clone()
+    bad = torch.zeros(mask.shape, dtype=torch.bool)
+    bad[15:17, 15:17] = True
+    observed[15:17, 15:17] = 0.98
+    bad[24, 8] = True
+    observed[24, 8] = observed[24, 8].flip(-1)
+    near = (nnf.max_pool2d(bad.float()[None, None], 9, 1, 4)[0, 0] > 0) & ~bad & mask
+    fits = {
+        tolerance: fit_biophysical(
+            observed, mask, table, weights, 0.4, BiophysicalConfig(coarse_factor=4, gamut_tolerance=tolerance)
+        )
+        for tolerance in (0.05, math.inf)
+    }
+    return params, mask, bad, near, fits
+
+
+def test_gamut_screen_flags_exactly_the_out_of_gamut_texels(blurred_with_outliers):
+    _, mask, bad, _, fits = blurred_with_outliers
+    screened, unscreened = fits[0.05], fits[math.inf]
+    assert screened.in_gamut.shape == mask.shape and screened.in_gamut.dtype == torch.bool
+    assert bool(((~screened.in_gamut & mask) == bad).all())
+    assert not bool(screened.in_gamut[~mask].any())
+    assert bool(unscreened.in_gamut[mask].all())  # inf disables the screen
+    assert float(screened.gamut_distance[bad].min()) > 0.2
+    assert float(screened.gamut_distance[mask & ~bad].max()) < 0.02
+    # Reported numbers: all texels count; the floor is the inputs' own distance to the gamut.
+    assert screened.residual_rmse_in_gamut < 0.01
+    assert 0.1 < screened.gamut_floor_rmse < screened.residual_rmse
+    assert unscreened.residual_rmse_in_gamut == pytest.approx(unscreened.residual_rmse)
+
+
+def test_gamut_screen_keeps_outliers_out_of_their_neighbours_prior(blurred_with_outliers):
+    """Without the screen the saturated texels bias the coarse maps that warm-start and regularise
+    their neighbours (the default prior pulls beta_m and C_h_in towards them)."""
+    params, mask, bad, near, fits = blurred_with_outliers
+    errors = {k: (fit.parameters - params)[near].abs().median(0).values for k, fit in fits.items()}
+    far = (fits[0.05].parameters - params)[mask & ~near & ~bad].abs().median(0).values
+    assert float(errors[0.05][1]) < 0.5 * float(errors[math.inf][1])  # beta_m
+    assert float(errors[0.05][2]) < 0.5 * float(errors[math.inf][2])  # C_h_in
+    assert float(errors[0.05][0]) < 0.5 * float(errors[math.inf][0])  # C_m
+    assert float(errors[0.05][1]) < 1.5 * float(far[1]) + 1e-3  # neighbours as good as the rest
+    assert float(errors[0.05][2]) < 1.5 * float(far[2]) + 1e-3
 
 
 def test_fit_local_parameters_recovers_random_skin(setup):
@@ -89,7 +178,9 @@ def test_fit_biophysical_local_model(setup):
     assert fit.residual_rmse < 1e-4
     assert fit.rendered.shape == (32, 32, 6) and fit.spectral.shape == (15, 32, 32)
     assert float(fit.parameters[~mask].abs().max()) == 0.0
-    assert set(fit.timings_s) >= {"coarse_s", "fine_local_s"}
+    assert set(fit.timings_s) >= {"coarse_s", "fine_local_s", "gamut_s"}
+    assert bool(fit.in_gamut[mask].all()) and fit.gamut_floor_rmse < 1e-4  # skin is in its own gamut
+    assert fit.residual_rmse_in_gamut == pytest.approx(fit.residual_rmse)
 
 
 @pytest.mark.slow

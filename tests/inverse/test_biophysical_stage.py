@@ -17,10 +17,11 @@ from polarface.inverse.biophysical_model import TotalsTable, local_channel_albed
 from polarface.inverse.biophysical_stage import (
     evaluate_biophysical,
     load_sog,
+    per_texel_relative_residual,
     report_section,
     run_biophysical_stage,
 )
-from polarface.io import read_exr, write_exr, write_png
+from polarface.io import read_exr, read_png, write_exr, write_png
 from polarface.report.html import HtmlPage
 
 RESOLUTION = 32
@@ -105,10 +106,32 @@ def test_stage_writes_outputs(fitted_result):
     result, summary = fitted_result
     for name in ("c_m", "beta_m", "c_h_in", "c_h_out", "rho_sss_bar_rendered", "subsurface_spectral"):
         assert (result / "maps" / f"{name}.exr").is_file()
-    for name in ("c_m", "chromophores", "subsurface_srgb"):
+    for name in ("c_m", "chromophores", "subsurface_srgb", "rho_sss_bar_residual", "in_gamut"):
         assert (result / "previews" / f"{name}.png").is_file()
+    residual = read_exr(result / "maps" / "rho_sss_bar_residual.exr")
+    assert set(residual) == {"relative", "gamut_distance"} and residual["relative"].shape == (32, 32)
+    assert float(residual["gamut_distance"].max()) < 1e-3
+    assert bool((read_png(result / "maps" / "in_gamut.png") > 127).all())
     data = json.loads((result / "result.json").read_text())
     assert data["stages"]["biophysical"]["albedo_model"] == "local"
+    assert summary["out_of_gamut_texels"] == 0 and summary["texels"] == RESOLUTION * RESOLUTION
+    assert summary["gamut_floor_relative_rmse"] < 1e-4
+    assert summary["torch_threads"] == 1  # the default for CPU fits
+
+
+def test_stage_threads_checked_and_restored(tmp_path):
+    result = make_result(tmp_path)
+    with pytest.raises(ValueError, match="threads"):
+        run_biophysical_stage(result, threads=0, progress=False)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        summary = run_biophysical_stage(
+            result, BiophysicalConfig(albedo_model="local", coarse_factor=4), progress=False
+        )
+        assert summary["torch_threads"] == 1 and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
     assert summary["timings_s"]["total_s"] > 0
     assert summary["texel_size_mm"] == pytest.approx(60.0 / RESOLUTION, rel=0.05)  # from the mesh
     spectral = read_exr(result / "maps" / "subsurface_spectral.exr")
@@ -127,7 +150,58 @@ def test_stage_recovers_truth(fitted_result):
     assert metrics["c_h_in"]["median_abs"] < 1e-4
     assert metrics["beta_m"]["median_abs"] < 1e-3
     assert metrics["rho_sss_bar_relative_rmse"] < 1e-3
-    assert metrics["fit_relative_rmse"] < 1e-3
+    assert metrics["fit_relative_rmse"] == metrics["rho_sss_bar_relative_rmse"]
+    assert metrics["rerender_vs_gt_relative_rmse"] < 1e-3
+    assert metrics["input_vs_gt_relative_rmse"] == 0.0  # the input is the ground truth
+    assert metrics["out_of_gamut_texels"] == 0
+
+
+def test_per_texel_relative_residual():
+    observed = np.full((2, 3, 6), 0.2, np.float32)
+    rendered = observed * np.array([1.0, 1.1, 0.5], np.float32)[None, :, None]
+    mask = np.array([[True, True, True], [True, True, False]])
+    residual = per_texel_relative_residual(rendered, observed, mask)
+    assert residual.shape == (2, 3) and residual.dtype == np.float32
+    assert np.allclose(residual[0], [0.0, 0.1, 0.5], atol=1e-6) and residual[1, 2] == 0.0
+
+
+@pytest.mark.slow
+def test_stage_with_saturated_texels_reports_them_and_counts_them(tmp_path):
+    """A 3x3 block of the input stuck at rho = 0.99 (a failed polarimetric fit): the stage flags exactly
+    it as out of gamut, keeps it in the all-texel metric and reports the in-gamut one beside it."""
+    result = make_result(tmp_path)
+    path = result / "maps" / "rho_sss_bar.exr"
+    channels = read_exr(path)
+    for values in channels.values():
+        values[10:13, 20:23] = 0.99
+    write_exr(path, channels)
+    summary = run_biophysical_stage(
+        result, BiophysicalConfig(albedo_model="local", coarse_factor=4), progress=False
+    )
+    in_gamut = read_png(result / "maps" / "in_gamut.png") > 127
+    expected = np.ones((RESOLUTION, RESOLUTION), bool)
+    expected[10:13, 20:23] = False
+    assert np.array_equal(in_gamut, expected)
+    assert summary["out_of_gamut_texels"] == 9
+    metrics = evaluate_biophysical(result, result.parent / "gt")
+    names = list(paper_rig(width=96, height=80).spectral.to_calibration().channel_names)
+    rendered = np.stack([read_exr(result / "maps" / "rho_sss_bar_rendered.exr")[n] for n in names], -1)
+    observed = np.stack([channels[n] for n in names], -1)
+    by_hand = np.sqrt(np.mean((rendered - observed) ** 2)) / np.sqrt(np.mean(observed**2))
+    assert metrics["rho_sss_bar_relative_rmse"] == pytest.approx(by_hand, rel=1e-5)  # over all texels
+    assert metrics["rho_sss_bar_relative_rmse"] > 0.1
+    assert metrics["rho_sss_bar_relative_rmse_in_gamut"] < 1e-3
+    assert 0.1 < metrics["gamut_floor_relative_rmse"] <= metrics["rho_sss_bar_relative_rmse"] + 1e-6
+    assert metrics["input_vs_gt_relative_rmse"] > 0.1 and metrics["out_of_gamut_texels"] == 9
+    # The chromophores around the block are not pulled towards the saturated values.
+    truth = truth_maps()
+    around = ~expected.copy()
+    around[8:15, 18:25] = True
+    around &= expected
+    c_m = read_exr(result / "maps" / "c_m.exr")["Y"]
+    assert np.abs(c_m[around] - truth["c_m"][around]).max() < 2e-3
+    residual = read_exr(result / "maps" / "rho_sss_bar_residual.exr")["relative"]
+    assert residual[~expected].min() > 0.3 and residual[expected].max() < 0.01
 
 
 def test_report_section(fitted_result, tmp_path):
@@ -136,6 +210,8 @@ def test_report_section(fitted_result, tmp_path):
     report_section(page, result, evaluate_biophysical(result, result.parent / "gt"))
     html = page.render()
     assert "previews/c_m.png" in html and "Biophysical" in html and "median |error|" in html
+    assert "skin gamut" in html and "rerender_vs_gt_relative_rmse" in html
+    assert "previews/rho_sss_bar_residual.png" in html
 
 
 def test_missing_spectral_calibration(tmp_path):

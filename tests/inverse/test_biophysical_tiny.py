@@ -48,7 +48,9 @@ def test_noise_free_recovery_on_tiny(tiny):
     assert metrics["c_h_in"]["median_abs"] < 1e-4
     assert metrics["beta_m"]["median_abs"] < 1e-3
     assert metrics["rho_sss_bar_relative_rmse"] < 1e-3
+    assert metrics["rerender_vs_gt_relative_rmse"] < 1e-3
     assert summary["rho_sss_bar_relative_rmse"] < 1e-3
+    assert summary["out_of_gamut_texels"] == 0  # the simulator's skin is inside the model's gamut
 
 
 @pytest.mark.slow

@@ -37,6 +37,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--no-prior", action="store_true", help="no pull of beta_m/C_h_in towards the coarse maps (paper)"
     )
+    parser.add_argument(
+        "--gamut-tolerance",
+        type=float,
+        default=BiophysicalConfig.gamut_tolerance,
+        help="texels whose best skin fit stays further than this from the input are marked out of the skin "
+        "model's gamut and fitted to their closest skin albedo (default %(default)s; inf disables)",
+    )
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument("--gt", type=Path, default=None, help="simulator folder to evaluate against")
     parser.add_argument("--device", default=None, help="torch device (default cpu)")
     parser.add_argument("--no-progress", action="store_true")
@@ -49,10 +57,13 @@ def run(args: argparse.Namespace) -> int:
         coarse_factor=args.coarse_factor,
         shape_rounds=args.shape_rounds,
         use_stretch=args.use_stretch,
+        gamut_tolerance=args.gamut_tolerance,
         **({"prior_weight": (0.0, 0.0, 0.0, 0.0)} if args.no_prior else {}),
     )
     device = torch.device(args.device) if args.device else None
-    summary = run_biophysical_stage(args.result, config, device=device, progress=not args.no_progress)
+    summary = run_biophysical_stage(
+        args.result, config, device=device, progress=not args.no_progress, threads=args.threads
+    )
     output = {"biophysical": summary}
     if args.gt is not None:
         output["metrics"] = evaluate_biophysical(args.result, args.gt)

@@ -25,6 +25,17 @@ Stages (:func:`fit_biophysical`):
    normalised blur by the identity; it converges where the blur's transfer is in (0, 1], i.e. it is
    a regularised deconvolution whose iteration count bounds the noise gain). Shapes and parameters
    then alternate (coordinate descent, ``shape_rounds``).
+4. **Gamut screen** (between the local refinement and the blurred stage) - the distance of each
+   texel's input to the skin model's gamut (:func:`gamut_distance` at the best local fit; texels the
+   warm start leaves far get a multi-start fit, which also repairs non-converged warm starts). Texels
+   beyond ``gamut_tolerance`` are *out of gamut*: a polarimetric fit stuck at ``rho ~ 1`` or channel
+   ratios no chromophore mix produces. They are input errors the model cannot and should not
+   reproduce, so (a) the coarse maps that warm-start and regularise the fine stage are re-fitted from
+   the in-gamut texels only, and (b) the blurred stage matches their projection onto the gamut
+   instead of the raw value (an unreachable residual would otherwise grow the correction targets
+   without bound and light their neighbours through the blur). They keep their projected chromophores
+   and stay in every metric: ``residual_rmse`` is over all valid texels, ``residual_rmse_in_gamut``
+   and ``gamut_floor_rmse`` (the input's own distance to the gamut) say how much of it is the input's.
 
 All tensors channels-last: ``rho_sss_bar`` ``(H, W, 6)`` in [0, 1]; parameters ``(H, W, 4)`` in
 :data:`~polarface.inverse.biophysical_model.PARAMETER_ORDER` (volume fractions); mask ``(H, W)`` bool.
@@ -40,7 +51,7 @@ from typing import Literal
 import torch
 import torch.nn.functional as nnf
 
-from polarface._validation import as_float_tensor, check_range
+from polarface._validation import array_api, as_float_tensor, broadcast_named, check_range
 from polarface.inverse.biophysical_model import (
     PARAMETER_ORDER,
     TotalsTable,
@@ -57,6 +68,7 @@ __all__ = [
     "BiophysicalFit",
     "fit_biophysical",
     "fit_local_parameters",
+    "gamut_distance",
     "median_shapes",
 ]
 
@@ -82,6 +94,16 @@ class BiophysicalConfig:
             coarse maps (``PARAMETER_ORDER``; zeros = none, the paper's behaviour). Noisy inputs leave
             ``beta_m`` and ``C_h_in`` weakly determined; the default ``(0, 1, 1, 0)`` trades a little
             sharpness of those two maps for much less noise (measured in docs/biophysical.md).
+        gamut_tolerance: largest per-texel distance of the input to the skin model's gamut that is
+            treated as measurement noise: the channel-RMS of ``(model - rho) / (rho + channel_floor)``
+            at the best local fit (multi-start). Texels beyond it are *out of gamut* - no chromophore
+            combination produces them (e.g. a polarimetric fit saturated at ``rho ~ 1`` or with
+            channel ratios no skin has); the fine stage then uses their projection onto the gamut
+            (the best local fit) instead of the raw value, so their unreachable residual neither
+            drives the blurred residual correction nor biases the coarse prior of their neighbours.
+            They stay in every reported metric; ``inf`` disables the screen. Default 0.05: an ideal
+            polarimetric input (the simulator's diffused albedo) lies within 0.008 of the gamut at
+            every texel of the demo preset, 1 % channel noise within ~0.02 (docs/biophysical.md).
         constants: skin layer constants of the forward model.
     """
 
@@ -96,6 +118,7 @@ class BiophysicalConfig:
     use_stretch: bool = False
     channel_floor: float = 0.02
     prior_weight: tuple[float, float, float, float] = (0.0, 1.0, 1.0, 0.0)
+    gamut_tolerance: float = 0.05
     constants: SkinLayerConstants = dataclasses.field(default_factory=SkinLayerConstants)
 
     def __post_init__(self) -> None:
@@ -111,6 +134,8 @@ class BiophysicalConfig:
             raise ValueError(f"prior_weight must be 4 values >= 0; got {self.prior_weight}")
         if not self.channel_floor > 0:
             raise ValueError(f"channel_floor must be > 0; got {self.channel_floor}")
+        if not self.gamut_tolerance > 0:  # also rejects NaN; inf disables the screen
+            raise ValueError(f"gamut_tolerance must be > 0; got {self.gamut_tolerance}")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -122,8 +147,17 @@ class BiophysicalFit:
         shapes: :class:`ProfileShapes` with ``(L, 9)`` normalised SoG weights per layer.
         rendered: ``(H, W, 6)`` float32 re-rendered ``rho_sss_bar`` under the configured model.
         spectral: ``(L, H, W)`` float32 rendered subsurface albedo per wavelength (same model).
-        residual_rmse: relative RMSE of ``rendered`` against the input over valid texels.
+        residual_rmse: relative RMSE of ``rendered`` against the input over **all** valid texels
+            (``||rendered - rho|| / ||rho||`` over texels and channels).
         timings_s: seconds per stage.
+        in_gamut: ``(H, W)`` bool, valid texels whose input lies within ``gamut_tolerance`` of the
+            skin model's gamut (False outside the mask).
+        gamut_distance: ``(H, W)`` float32 distance of the input to the gamut (channel-RMS of
+            ``(model - rho) / (rho + channel_floor)`` at the best local fit), 0 outside the mask.
+        residual_rmse_in_gamut: as ``residual_rmse`` over the in-gamut texels only.
+        gamut_floor_rmse: relative RMSE of the best per-texel local fit (the projection onto the gamut)
+            against the input over all valid texels: what no chromophore map can beat under the
+            local model; the part of ``residual_rmse`` that belongs to the input.
     """
 
     parameters: torch.Tensor
@@ -132,6 +166,10 @@ class BiophysicalFit:
     spectral: torch.Tensor
     residual_rmse: float
     timings_s: dict[str, float]
+    in_gamut: torch.Tensor | None = None
+    gamut_distance: torch.Tensor | None = None
+    residual_rmse_in_gamut: float = float("nan")
+    gamut_floor_rmse: float = float("nan")
 
 
 def _bounds(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -357,36 +395,75 @@ def fit_biophysical(
     notify("coarse")
 
     started = time.perf_counter()
-    median = coarse[coarse_mask].median(dim=0).values
-    start = _upsample(coarse, coarse_mask, tuple(rho.shape[:2]), median.float())
     local_target = rho[mask_b].clamp(1e-4, 0.999)
-    params_valid, _ = fit_local_parameters(
-        local_target,
-        table,
-        weights,
-        start=start[mask_b],
-        iterations=config.fine_iterations,
-        channel_floor=config.channel_floor,
-        prior=start[mask_b],
-        prior_weight=config.prior_weight,
-    )
-    params = torch.zeros(*mask_b.shape, 4, device=rho.device)
-    params[mask_b] = params_valid
+    start, params_valid = _fine_local(local_target, coarse, coarse_mask, mask_b, table, weights, config)
     timings["fine_local_s"] = time.perf_counter() - started
     notify("fine-local")
+
+    # Gamut screen: texels the warm-started fit leaves far from the input get a multi-start fit; those
+    # still beyond the tolerance are out of gamut and are replaced by their projection (config doc).
+    started = time.perf_counter()
+    params_valid, distance, projection, refitted = _gamut_screen(
+        local_target, params_valid, table, weights, config
+    )
+    out_of_gamut = distance > config.gamut_tolerance
+    observed = rho[mask_b]
+    prior = start
+    if bool(out_of_gamut.any()):
+        observed = torch.where(out_of_gamut[:, None], projection, observed)
+        local_target = observed.clamp(1e-4, 0.999)
+        # The coarse maps (warm start and prior) come from the in-gamut texels only: an out-of-gamut
+        # value is no measurement of the region's skin, not even after projection (which sits on the
+        # gamut's edge, e.g. the whitest skin for a saturated fit). With no in-gamut texel at all the
+        # first coarse maps are kept.
+        reliable = mask_b.clone()
+        reliable[mask_b] = ~out_of_gamut
+        coarse_rho, coarse_mask = _downsample(rho, reliable, config.coarse_factor)
+    if bool(out_of_gamut.any()) and bool(coarse_mask.any()):
+        coarse_params, _ = fit_local_parameters(
+            coarse_rho[coarse_mask],
+            table,
+            weights,
+            start=coarse[coarse_mask],
+            iterations=config.coarse_iterations,
+            channel_floor=config.channel_floor,
+        )
+        coarse = torch.zeros_like(coarse)
+        coarse[coarse_mask] = coarse_params
+        median = coarse[coarse_mask].median(dim=0).values
+        start = _upsample(coarse, coarse_mask, tuple(mask_b.shape), median.float())[mask_b]
+    # Refine (with the prior) the texels whose target, prior or parameters changed; the others would
+    # solve the same problem again.
+    todo = refitted | out_of_gamut | ((start - prior).abs().amax(-1) > 1e-7)
+    if bool(todo.any()):
+        params_valid = params_valid.clone()
+        params_valid[todo], _ = fit_local_parameters(
+            local_target[todo],
+            table,
+            weights,
+            start=params_valid[todo],
+            iterations=config.fine_iterations,
+            channel_floor=config.channel_floor,
+            prior=start[todo],
+            prior_weight=config.prior_weight,
+        )
+    params = torch.zeros(*mask_b.shape, 4, device=rho.device)
+    params[mask_b] = params_valid
+    timings["gamut_s"] = time.perf_counter() - started
+    notify("gamut")
 
     blur_stretch = stretch if config.use_stretch else None
     started = time.perf_counter()
     if config.albedo_model == "blurred":
         target = local_target.clone()
         for _ in range(config.shape_rounds):
-            shapes, median = median_shapes(params, mask_b, table)
+            shapes, _ = median_shapes(params, mask_b, table)
             for _ in range(config.correction_iterations):
                 with torch.no_grad():
                     rendered = blurred_channel_albedo(
                         params, table, weights, shapes, texel_size_mm, mask_b, stretch=blur_stretch
                     )
-                target = (target + rho[mask_b] - rendered[mask_b]).clamp(1e-4, 0.999)
+                target = (target + observed - rendered[mask_b]).clamp(1e-4, 0.999)
                 params_valid, _ = fit_local_parameters(
                     target,
                     table,
@@ -394,7 +471,7 @@ def fit_biophysical(
                     start=params[mask_b],
                     iterations=config.correction_lm_iterations,
                     channel_floor=config.channel_floor,
-                    prior=start[mask_b],
+                    prior=start,
                     prior_weight=config.prior_weight,
                 )
                 params[mask_b] = params_valid
@@ -402,16 +479,111 @@ def fit_biophysical(
     timings["fine_blurred_s"] = time.perf_counter() - started
 
     started = time.perf_counter()
-    shapes, median = median_shapes(params, mask_b, table)  # the shapes of the final parameters
+    shapes, _ = median_shapes(params, mask_b, table)  # the shapes of the final parameters
     with torch.no_grad():
         rendered, spectral = _render(
             params, mask_b, table, weights, shapes, texel_size_mm, config, blur_stretch
         )
-    diff = (rendered - rho)[mask_b]
-    residual = float(diff.pow(2).mean().sqrt() / rho[mask_b].pow(2).mean().sqrt().clamp_min(1e-12))
+    in_gamut = torch.zeros_like(mask_b)
+    in_gamut[mask_b] = ~out_of_gamut
+    distance_map = torch.zeros(mask_b.shape, dtype=torch.float32, device=rho.device)
+    distance_map[mask_b] = distance.float()
+    floor = _relative_rmse(projection, rho[mask_b])
+    residual = _relative_rmse(rendered[mask_b], rho[mask_b])
+    residual_in = _relative_rmse(rendered[in_gamut], rho[in_gamut]) if bool(in_gamut.any()) else float("nan")
     params = params * mask_b[..., None]
     timings["shapes_render_s"] = time.perf_counter() - started
-    return BiophysicalFit(params, shapes, rendered * mask_b[..., None], spectral, residual, timings)
+    return BiophysicalFit(
+        params,
+        shapes,
+        rendered * mask_b[..., None],
+        spectral,
+        residual,
+        timings,
+        in_gamut=in_gamut,
+        gamut_distance=distance_map,
+        residual_rmse_in_gamut=residual_in,
+        gamut_floor_rmse=floor,
+    )
+
+
+def _relative_rmse(estimate: torch.Tensor, reference: torch.Tensor) -> float:
+    """``||estimate - reference|| / ||reference||`` over all entries (float)."""
+    diff = (estimate - reference).double()
+    return float(diff.pow(2).mean().sqrt() / reference.double().pow(2).mean().sqrt().clamp_min(1e-12))
+
+
+def _fine_local(target, coarse, coarse_mask, mask_b, table, weights, config):
+    """Full-resolution local refinement warm-started from the upsampled coarse maps.
+
+    Returns ``(prior (N, 4), parameters (N, 4))`` over the valid texels."""
+    median = coarse[coarse_mask].median(dim=0).values
+    start = _upsample(coarse, coarse_mask, tuple(mask_b.shape), median.float())[mask_b]
+    params, _ = fit_local_parameters(
+        target,
+        table,
+        weights,
+        start=start,
+        iterations=config.fine_iterations,
+        channel_floor=config.channel_floor,
+        prior=start,
+        prior_weight=config.prior_weight,
+    )
+    return start, params
+
+
+@array_api("rho_sss_bar", "model")
+def gamut_distance(
+    rho_sss_bar: torch.Tensor, model: torch.Tensor, channel_floor: float = 0.02
+) -> torch.Tensor:
+    """Relative distance ``(...)`` of albedos ``rho_sss_bar`` ``(..., C)`` to model albedos ``(..., C)``.
+
+    The channel-RMS of ``(model - rho_sss_bar) / (rho_sss_bar + channel_floor)``, the fit's own
+    weighting (dimensionless; 0.05 = 5 % relative). With ``model`` the best local fit of
+    ``rho_sss_bar`` it is the distance of the input to the skin model's gamut. Differentiable;
+    torch / numpy / float in, same kind out.
+
+    Raises:
+        ValueError: NaN/inf, shapes that do not broadcast, ``rho_sss_bar < 0`` or ``channel_floor <= 0``.
+    """
+    if not channel_floor > 0:
+        raise ValueError(f"argument 'channel_floor' must be > 0; got {channel_floor}")
+    rho, fitted = broadcast_named(("rho_sss_bar", rho_sss_bar), ("model", model))
+    check_range(rho, "rho_sss_bar", 0.0, None)
+    return (((fitted - rho) / (rho + channel_floor)) ** 2).mean(-1).sqrt()
+
+
+def _gamut_screen(target, params, table, weights, config):
+    """Distance of each texel's input to the skin model's gamut and its projection (best local fit).
+
+    Texels the warm-started fit leaves beyond ``gamut_tolerance`` get a multi-start fit (no prior);
+    the better of the two is kept (this also repairs warm starts that did not converge).
+    Returns ``(parameters (N, 4), distance (N,), projection (N, C), refitted (N,) bool)``.
+    """
+    with torch.no_grad():
+        projection = local_channel_albedo(params, table, weights)
+        distance = gamut_distance(target, projection, config.channel_floor)
+        refitted = distance > config.gamut_tolerance
+        suspect = torch.nonzero(refitted)[:, 0]
+        if suspect.numel():
+            refit, _ = fit_local_parameters(
+                target[suspect],
+                table,
+                weights,
+                starts=config.starts,
+                iterations=config.coarse_iterations,
+                channel_floor=config.channel_floor,
+            )
+            refit_projection = local_channel_albedo(refit, table, weights)
+            refit_distance = gamut_distance(target[suspect], refit_projection, config.channel_floor)
+            better = refit_distance < distance[suspect]
+            chosen = suspect[better]
+            params = params.clone()
+            params[chosen] = refit[better]
+            projection[chosen] = refit_projection[better]
+            distance[chosen] = refit_distance[better]
+            refitted[suspect] = better
+    return params, distance, projection, refitted
 
 
 def _render(params, mask_b, table, weights, shapes, texel_size_mm, config, stretch):

@@ -10,15 +10,22 @@ and ``rig.json`` (spectral calibration required). Writes:
   the variances (mm^2), wavelengths (nm) and the median parameters they were fitted at;
 * ``maps/subsurface_spectral.exr``: the rendered subsurface albedo at each of the L wavelengths
   (channels ``nm420`` ...), ``maps/rho_sss_bar_rendered.exr``: its six-channel integration;
+* ``maps/rho_sss_bar_residual.exr``: per texel ``relative`` (``||rendered - input|| / ||input||``) and
+  ``gamut_distance`` (the input's distance to the skin model's gamut), ``maps/in_gamut.png`` (255 where
+  the input is inside the gamut, :class:`~polarface.inverse.biophysical.BiophysicalConfig`
+  ``gamut_tolerance``) and their previews ``previews/rho_sss_bar_residual.png``, ``previews/in_gamut.png``;
 * ``previews/c_m.png`` ... (colour maps with scale bars), ``previews/chromophores.png`` (the four maps
   in one panel, like the paper's teaser), ``previews/subsurface_srgb.png`` (sRGB under D65);
-* ``result.json``: ``stages.biophysical`` with timings and the fit residual.
+* ``result.json``: ``stages.biophysical`` with timings, the re-render relative RMSE against the input
+  over all valid texels (``rho_sss_bar_relative_rmse``) and over the in-gamut ones, the gamut floor
+  and the number of out-of-gamut texels.
 
 Texel size and per-texel stretch come from the mesh (:func:`polarface.geometry.uv_raster.rasterize_uv`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -129,7 +136,15 @@ def load_stage_inputs(result_dir: str | Path) -> dict[str, Any]:
     }
 
 
-def _write_maps(root: Path, fit: BiophysicalFit, calibration, mask: np.ndarray) -> None:
+def per_texel_relative_residual(rendered: np.ndarray, observed: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float32 per-texel relative residual ``||rendered - observed|| / ||observed||`` (over
+    the channels of ``(H, W, C)`` maps), 0 outside ``mask``."""
+    norm = np.sqrt((observed.astype(np.float64) ** 2).sum(-1))
+    error = np.sqrt(((rendered.astype(np.float64) - observed) ** 2).sum(-1))
+    return np.where(mask, error / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+
+
+def _write_maps(root: Path, fit: BiophysicalFit, calibration, mask: np.ndarray, observed: np.ndarray) -> None:
     maps = root / "maps"
     params = fit.parameters.numpy()
     for i, name in enumerate(PARAMETER_ORDER):
@@ -137,6 +152,14 @@ def _write_maps(root: Path, fit: BiophysicalFit, calibration, mask: np.ndarray) 
     names = list(calibration.channel_names)
     rendered = fit.rendered.numpy()
     write_exr(maps / "rho_sss_bar_rendered.exr", {n: rendered[..., i] for i, n in enumerate(names)})
+    write_exr(
+        maps / "rho_sss_bar_residual.exr",
+        {
+            "relative": per_texel_relative_residual(rendered, observed, mask),
+            "gamut_distance": np.where(mask, fit.gamut_distance.numpy(), 0.0).astype(np.float32),
+        },
+    )
+    write_png(maps / "in_gamut.png", (fit.in_gamut.numpy() & mask).astype(np.uint8) * 255)
     grid = calibration.wavelengths_nm.tolist()
     spectral = fit.spectral.numpy()
     write_exr(maps / "subsurface_spectral.exr", {f"nm{w:g}": spectral[i] for i, w in enumerate(grid)})
@@ -230,11 +253,32 @@ def write_previews(
     return written
 
 
+def _write_residual_previews(root: Path, fit: BiophysicalFit, mask: np.ndarray, observed: np.ndarray) -> None:
+    residual = per_texel_relative_residual(fit.rendered.numpy(), observed, mask)
+    colormap_png(
+        root / "previews" / "rho_sss_bar_residual.png",
+        residual,
+        vmin=0.0,
+        vmax=0.1,
+        cmap="magma",
+        mask=mask,
+        title="re-render relative residual (clipped at 10 %)",
+        colorbar=True,
+    )
+    # Pixel-exact: grey = input inside the skin gamut, red = outside it, black = not a valid texel.
+    in_gamut = fit.in_gamut.numpy() & mask
+    preview = np.zeros((*mask.shape, 3), np.uint8)
+    preview[in_gamut] = (150, 150, 150)
+    preview[mask & ~in_gamut] = (230, 30, 30)
+    write_png(root / "previews" / "in_gamut.png", preview)
+
+
 def run_biophysical_stage(
     result_dir: str | Path,
     config: BiophysicalConfig = BiophysicalConfig(),  # noqa: B008 - frozen dataclass
     device: str | torch.device | None = None,
     progress: bool = True,
+    threads: int | None = 1,
 ) -> dict[str, Any]:
     """Run the biophysical stage on a RESULT folder (module docstring); returns its summary.
 
@@ -244,11 +288,20 @@ def run_biophysical_stage(
         config: :class:`BiophysicalConfig` (``albedo_model="local"`` for blur-free inputs).
         device: torch device for the fit (default CPU; the stage is light enough for it).
         progress: show a tqdm progress bar.
+        threads: torch intra-op threads during a CPU fit (restored afterwards; ``None`` leaves them).
+            Default 1: the fit is many small batched kernels, where a second OpenMP thread costs more
+            than it gains on a busy machine - demo preset on the shared 2-core machine (load ~6):
+            1 thread 23 s CPU / 35 s wall, 2 threads 101 s CPU / 139 s wall (docs/biophysical.md).
+
+    Raises:
+        ValueError: ``threads < 1`` and the input errors of :func:`load_stage_inputs`.
 
     Returns:
         The summary stored under ``result.json``'s ``stages.biophysical``: timings (s), fit residual,
         texel size, median parameters, configuration.
     """
+    if threads is not None and int(threads) < 1:
+        raise ValueError(f"argument 'threads' must be >= 1; got {threads}")
     started = time.perf_counter()
     root = Path(result_dir)
     inputs = load_stage_inputs(root)
@@ -256,37 +309,50 @@ def run_biophysical_stage(
     table = TotalsTable(calibration.wavelengths_nm, config.constants)
     read_s = time.perf_counter() - started
     target = resolve_device(device) if device is not None else torch.device("cpu")
-    steps = 2 + (config.shape_rounds if config.albedo_model == "blurred" else 0)
-    with tqdm(total=steps, desc="biophysical", disable=not progress, unit="step") as bar:
-        fit = fit_biophysical(
-            torch.from_numpy(inputs["rho_sss_bar"]).to(target),
-            torch.from_numpy(inputs["mask"]).to(target),
-            table,
-            calibration.weights.float().to(target),
-            inputs["texel_size_mm"],
-            config,
-            stretch=torch.from_numpy(inputs["stretch"]).to(target),
-            progress=lambda name: (bar.set_postfix_str(name), bar.update(1)),
-        )
-    fit = BiophysicalFit(
-        fit.parameters.cpu(),
-        fit.shapes,
-        fit.rendered.cpu(),
-        fit.spectral.cpu(),
-        fit.residual_rmse,
-        fit.timings_s,
+    steps = 3 + (config.shape_rounds if config.albedo_model == "blurred" else 0)
+    previous_threads = torch.get_num_threads()
+    if threads is not None and target.type == "cpu":
+        torch.set_num_threads(int(threads))
+    try:
+        with tqdm(total=steps, desc="biophysical", disable=not progress, unit="step") as bar:
+            fit = fit_biophysical(
+                torch.from_numpy(inputs["rho_sss_bar"]).to(target),
+                torch.from_numpy(inputs["mask"]).to(target),
+                table,
+                calibration.weights.float().to(target),
+                inputs["texel_size_mm"],
+                config,
+                stretch=torch.from_numpy(inputs["stretch"]).to(target),
+                progress=lambda name: (bar.set_postfix_str(name), bar.update(1)),
+            )
+    finally:
+        torch.set_num_threads(previous_threads)
+    fit = dataclasses.replace(
+        fit,
+        parameters=fit.parameters.cpu(),
+        rendered=fit.rendered.cpu(),
+        spectral=fit.spectral.cpu(),
+        in_gamut=fit.in_gamut.cpu(),
+        gamut_distance=fit.gamut_distance.cpu(),
     )
     write_started = time.perf_counter()
     mask = inputs["mask"]
-    _write_maps(root, fit, calibration, mask)
+    _write_maps(root, fit, calibration, mask, inputs["rho_sss_bar"])
     write_previews(
         root, fit.parameters.numpy(), mask, fit.spectral.numpy(), calibration.wavelengths_nm.numpy()
     )
+    _write_residual_previews(root, fit, mask, inputs["rho_sss_bar"])
     params = fit.parameters.numpy()[mask]
+    out_of_gamut = int(mask.sum() - fit.in_gamut.numpy().sum())
     summary = {
         "albedo_model": config.albedo_model,
         "texel_size_mm": inputs["texel_size_mm"],
+        "texels": int(mask.sum()),
         "rho_sss_bar_relative_rmse": fit.residual_rmse,
+        "rho_sss_bar_relative_rmse_in_gamut": fit.residual_rmse_in_gamut,
+        "gamut_floor_relative_rmse": fit.gamut_floor_rmse,
+        "out_of_gamut_texels": out_of_gamut,
+        "out_of_gamut_fraction": out_of_gamut / max(int(mask.sum()), 1),
         "median_parameters": {n: float(np.median(params[:, i])) for i, n in enumerate(PARAMETER_ORDER)},
         "timings_s": {
             "read_s": read_s,
@@ -294,6 +360,7 @@ def run_biophysical_stage(
             "write_s": time.perf_counter() - write_started,
             "total_s": time.perf_counter() - started,
         },
+        "torch_threads": int(threads) if threads is not None and target.type == "cpu" else previous_threads,
         "config": {k: v for k, v in vars(config).items() if k != "constants"},
     }
     _update_result_json(root, summary, inputs["channel_names"], mask.shape)
@@ -325,10 +392,25 @@ def evaluate_biophysical(result_dir: str | Path, gt_dir: str | Path) -> dict[str
         result_dir: RESULT folder after the biophysical stage.
         gt_dir: the simulator's ``SIM/ground_truth`` folder (or ``SIM`` itself).
 
+    All relative RMSEs are ``||a - b|| / ||b||`` over texels and channels, over **all** texels valid in
+    both masks (``texels``) unless the key says otherwise.
+
     Returns:
-        ``{"c_m": {"median_abs": .., "mean_abs": ..}, ...,`` ``"rho_sss_bar_relative_rmse"`` (the
-        recovered maps rendered with the local model vs. the ground-truth local rho_sss_bar),
-        ``"fit_relative_rmse"`` (the stage's own re-render vs. its input), ``"texels"``}.
+        ``{"texels": N, "c_m": {"median_abs", "mean_abs", "p95_abs"}, ... (the four maps),``
+
+        * ``"rho_sss_bar_relative_rmse"`` - the issue's "re-rendered rho_sss_bar relative RMSE": the
+          stage's own re-render (``maps/rho_sss_bar_rendered.exr``, the model it fitted) against
+          the albedo it was given (``maps/rho_sss_bar.exr``): its ability to reproduce its input.
+          (Before issue 7's follow-up this key held ``rerender_vs_gt_relative_rmse``.)
+        * ``"rho_sss_bar_relative_rmse_in_gamut"`` - the same over the texels whose input lies inside
+          the skin model's gamut (``maps/in_gamut.png``), and ``"out_of_gamut_texels"``;
+        * ``"gamut_floor_relative_rmse"`` (from ``result.json``): the input's own distance to the
+          gamut, a floor no chromophore map can beat under the local model;
+        * ``"rerender_vs_gt_relative_rmse"`` - the recovered maps rendered with the **local** model
+          against the ground-truth local ``rho_sss_bar`` (both stages' errors together), and
+          ``"input_vs_gt_relative_rmse"`` - the input itself against it (the polarimetric stage's
+          error; with ground-truth input it is 0);
+        * ``"fit_relative_rmse"`` - alias of ``rho_sss_bar_relative_rmse`` (older name).}
     """
     root, gt = Path(result_dir), Path(gt_dir)
     if (gt / "ground_truth").is_dir():
@@ -357,14 +439,30 @@ def evaluate_biophysical(result_dir: str | Path, gt_dir: str | Path) -> dict[str
     rendered = local_channel_albedo(params, table, calibration.weights).numpy()
     gt_rho = read_exr(gt / "maps" / "rho_sss_bar.exr")
     reference = np.stack([gt_rho[n][mask] for n in names], -1)
-    metrics["rho_sss_bar_relative_rmse"] = _relative_rmse(rendered, reference)
+    observed_maps = read_exr(root / "maps" / "rho_sss_bar.exr")
+    observed = np.stack([observed_maps[n][mask] for n in names], -1)
     own = root / "maps" / "rho_sss_bar_rendered.exr"
-    if own.is_file():
-        fitted = read_exr(own)
-        observed = read_exr(root / "maps" / "rho_sss_bar.exr")
-        metrics["fit_relative_rmse"] = _relative_rmse(
-            np.stack([fitted[n][mask] for n in names], -1), np.stack([observed[n][mask] for n in names], -1)
+    if not own.is_file():
+        raise FileNotFoundError(f"'{own}' does not exist (run the biophysical stage first)")
+    fitted_maps = read_exr(own)
+    fitted = np.stack([fitted_maps[n][mask] for n in names], -1)
+    metrics["rho_sss_bar_relative_rmse"] = _relative_rmse(fitted, observed)
+    metrics["fit_relative_rmse"] = metrics["rho_sss_bar_relative_rmse"]
+    gamut_path = root / "maps" / "in_gamut.png"
+    if gamut_path.is_file():
+        in_gamut = _read_mask(gamut_path, shape)[mask]
+        metrics["out_of_gamut_texels"] = int((~in_gamut).sum())
+        metrics["rho_sss_bar_relative_rmse_in_gamut"] = (
+            _relative_rmse(fitted[in_gamut], observed[in_gamut]) if in_gamut.any() else float("nan")
         )
+    summary = {}
+    if (root / "result.json").is_file():
+        summary = json.loads((root / "result.json").read_text(encoding="utf-8"))
+        summary = summary.get("stages", {}).get("biophysical", {})
+    if "gamut_floor_relative_rmse" in summary:
+        metrics["gamut_floor_relative_rmse"] = summary["gamut_floor_relative_rmse"]
+    metrics["rerender_vs_gt_relative_rmse"] = _relative_rmse(rendered, reference)
+    metrics["input_vs_gt_relative_rmse"] = _relative_rmse(observed, reference)
     return metrics
 
 
@@ -389,15 +487,24 @@ def report_section(page, result_dir: str | Path, metrics: dict[str, Any] | None 
     )
     items = [(f"previews/{n}.png", PARAMETER_LABELS[n][0]) for n in PARAMETER_ORDER]
     items.append(("previews/subsurface_srgb.png", "Rendered subsurface albedo (sRGB, D65)"))
+    items.append(("previews/rho_sss_bar_residual.png", "Re-render residual vs input (relative)"))
+    items.append(("previews/in_gamut.png", "Input outside the skin model's gamut (red)"))
     section.image_grid([i for i in items if (root / i[0]).is_file()], columns=5)
     if summary:
         rows = {f"median {k}": v for k, v in summary.get("median_parameters", {}).items()}
-        rows["re-render relative RMSE"] = summary.get("rho_sss_bar_relative_rmse")
+        rows["re-render relative RMSE vs input (all valid texels)"] = summary.get("rho_sss_bar_relative_rmse")
+        rows["same, texels inside the skin gamut"] = summary.get("rho_sss_bar_relative_rmse_in_gamut")
+        rows["gamut floor (input's distance to the skin model)"] = summary.get("gamut_floor_relative_rmse")
+        rows["texels outside the skin gamut"] = summary.get("out_of_gamut_texels")
         rows["stage time (s)"] = summary.get("timings_s", {}).get("total_s")
         section.table(rows)
     if metrics:
         section.table(
             [(n, metrics[n]["median_abs"], metrics[n]["mean_abs"]) for n in PARAMETER_ORDER if n in metrics],
             header=("parameter", "median |error|", "mean |error|"),
+        )
+        keys = ("rerender_vs_gt_relative_rmse", "input_vs_gt_relative_rmse")
+        section.table(
+            [(k, metrics[k]) for k in keys if k in metrics], header=("relative RMSE vs ground truth", "value")
         )
     return section
