@@ -177,7 +177,10 @@ def test_bench_smoke(capsys):
         == 0
     )
     result = json.loads(capsys.readouterr().out)
-    assert result["fused_kernel_texel_view_iterations_per_s"] > result["eager_baseline_texel_view_iterations_per_s"]
+    assert (
+        result["fused_kernel_texel_view_iterations_per_s"]
+        > result["eager_baseline_texel_view_iterations_per_s"]
+    )
     assert result["torch_vectorised_texel_view_iterations_per_s"] > 0 and result["speedup"] > 1
     assert main(["bench", "--side", "2"]) == 2
 

@@ -153,7 +153,13 @@ def test_noise_free_single_texel_recovers_exact_parameters(engine):
     batch, geometry, scale, fused = _single_texel_problem()
     config = PolarimetricConfig(optimizer="adam", lr=0.05, iterations=3000, warmup=1, lr_final_fraction=0.01)
     problem = _PatchProblem(
-        batch, geometry, config, scale, torch.float64, torch.device("cpu"), fused if engine == "fused" else None
+        batch,
+        geometry,
+        config,
+        scale,
+        torch.float64,
+        torch.device("cpu"),
+        fused if engine == "fused" else None,
     )
     start = {
         "eta": 1.5,
@@ -181,7 +187,13 @@ def test_loss_decreases_and_is_deterministic(engine):
     batch, geometry, scale, fused = _single_texel_problem(torch.float32)
     config = PolarimetricConfig(iterations=30)
     problem = _PatchProblem(
-        batch, geometry, config, scale, torch.float32, torch.device("cpu"), fused if engine == "fused" else None
+        batch,
+        geometry,
+        config,
+        scale,
+        torch.float32,
+        torch.device("cpu"),
+        fused if engine == "fused" else None,
     )
     maps = {
         k: np.full((1, 1, 1), v)
@@ -215,7 +227,7 @@ def test_closed_form_starts_on_a_noise_free_texel():
         "alpha_ss": torch.tensor([[0.9]], dtype=torch.float64),
         "rho_ss": torch.tensor([[0.25]], dtype=torch.float64),
     }
-    eta = init_eta(batch, normal, params, 1, (1.05, 2.5))
+    eta = init_eta(batch, normal, 1, (1.05, 2.5))
     assert float(eta[0]) == pytest.approx(TRUTH["eta"], abs=0.03)  # grid step 0.04
     params["eta"] = torch.tensor([[TRUTH["eta"]]], dtype=torch.float64)
     rho_sss, rho_s, alpha_s = init_albedos(batch, normal, params, 1, alpha_grid=(0.25, 0.35, 0.45))

@@ -74,7 +74,9 @@ def _problem(seed: int = 0, texels: int = 30, frames: int = 5, empty_texels: int
         clean = _predict(batch, leaves)
         observed = torch.stack([clean.i_sss, clean.i_zeta, clean.i_s], dim=1)
         generator = torch.Generator().manual_seed(seed)
-        observed = observed * (1 + 0.2 * torch.randn(observed.shape, generator=generator, dtype=torch.float64))
+        observed = observed * (
+            1 + 0.2 * torch.randn(observed.shape, generator=generator, dtype=torch.float64)
+        )
     batch = dataclasses.replace(batch, observed=observed)
     fused = build_fused_samples(
         position, texel, view, lit, observed.numpy(), table["camera_center"], table["camera_up"],
@@ -88,13 +90,25 @@ def _predict(batch, leaves):
     normal, eta, alpha_s, alpha_ss, rho_s, rho_ss, rho = leaves
     t = batch.texel
     return render_samples(
-        batch, normal[t], eta[t], alpha_s[t], alpha_ss[t], rho_s[t], rho_ss[t], torch.gather(rho[t], 1, batch.channels)
+        batch,
+        normal[t],
+        eta[t],
+        alpha_s[t],
+        alpha_ss[t],
+        rho_s[t],
+        rho_ss[t],
+        torch.gather(rho[t], 1, batch.channels),
     )
 
 
 def _reference_loss(problem: Problem, weights: LossWeights, leaves=None) -> torch.Tensor:
     terms = data_losses(_predict(problem.batch, leaves or problem.leaves), problem.observed, problem.scale)
-    return weights.sss * terms["sss"] + weights.s * terms["s"] + weights.phi * terms["phi"] + weights.psi * terms["psi"]
+    return (
+        weights.sss * terms["sss"]
+        + weights.s * terms["s"]
+        + weights.phi * terms["phi"]
+        + weights.psi * terms["psi"]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +140,9 @@ def test_value_and_gradient_match_autograd_reference(problem, weights):
     got = torch.autograd.grad(value, problem.leaves)
     assert float(value.detach()) == pytest.approx(float(reference.detach()), rel=1e-12)
     for name, a, b in zip(NAMES, expected, got):
-        np.testing.assert_allclose(b.numpy(), a.numpy(), rtol=1e-9, atol=1e-11 * float(a.abs().max()), err_msg=name)
+        np.testing.assert_allclose(
+            b.numpy(), a.numpy(), rtol=1e-9, atol=1e-11 * float(a.abs().max()), err_msg=name
+        )
 
 
 def test_specular_only_and_subsurface_only_paths(problem):
@@ -137,7 +153,9 @@ def test_specular_only_and_subsurface_only_paths(problem):
         expected = torch.autograd.grad(reference, problem.leaves[0])[0]
         value = fused_data_loss(pack_parameters(*leaves), problem.fused, LossWeights(), problem.scale)
         got = torch.autograd.grad(value, problem.leaves[0])[0]
-        np.testing.assert_allclose(got.numpy(), expected.numpy(), rtol=1e-9, atol=1e-11 * float(expected.abs().max()))
+        np.testing.assert_allclose(
+            got.numpy(), expected.numpy(), rtol=1e-9, atol=1e-11 * float(expected.abs().max())
+        )
 
 
 def test_float32_kernel_agrees_with_float64(problem):
@@ -149,7 +167,9 @@ def test_float32_kernel_agrees_with_float64(problem):
     value32 = fused_data_loss(leaf32, problem.fused.astype(np.float32), LossWeights(), problem.scale)
     (g32,) = torch.autograd.grad(value32, leaf32)
     assert float(value32.detach()) == pytest.approx(float(value64.detach()), rel=1e-4)
-    np.testing.assert_allclose(g32.double().numpy(), g64.numpy(), rtol=2e-3, atol=2e-4 * float(g64.abs().max()))
+    np.testing.assert_allclose(
+        g32.double().numpy(), g64.numpy(), rtol=2e-3, atol=2e-4 * float(g64.abs().max())
+    )
 
 
 def test_result_does_not_depend_on_thread_count(problem):
@@ -191,9 +211,10 @@ def test_bad_input(problem):
     count = f.count
     views = f.view_center.shape[0]
     base = dict(
-        position=f.position, texel=np.zeros(count, int), view=np.zeros(count, int), lit=np.ones((count, 8), bool),
-        observed=np.ones((count, 3, 3)), view_center=f.view_center, view_up=f.view_up, view_ref_up=f.view_ref_up,
-        light_pos=np.ones((views, 8, 3)), light_intensity=np.ones((views, 8, 3)), view_channels=f.view_channels,
+        position=f.position, texel=np.zeros(count, int), view=np.zeros(count, int),
+        lit=np.ones((count, 8), bool), observed=np.ones((count, 3, 3)), view_center=f.view_center,
+        view_up=f.view_up, view_ref_up=f.view_ref_up, light_pos=np.ones((views, 8, 3)),
+        light_intensity=np.ones((views, 8, 3)), view_channels=f.view_channels,
     )  # fmt: skip
     observed = base["observed"].copy()
     observed[0, 1, 2] = np.nan

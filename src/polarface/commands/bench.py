@@ -61,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
         f"{result['views']} views = {result['samples']} texel-view samples"
     )
     print(
-        f"  fused kernel     {result['fused_kernel_texel_view_iterations_per_s']:.3e} texel-view iterations/s "
+        f"  fused kernel     {result['fused_kernel_texel_view_iterations_per_s']:.3e} "
+        "texel-view iterations/s "
         f"(numba, {result['numba_threads']} threads; CPU only)"
     )
     print(

@@ -224,7 +224,7 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict:
     )
     if not fit.complete:
         raise InterruptedError("polarimetric stage interrupted (checkpoint written; rerun with --resume)")
-    write_maps(ctx.out, fit.maps, fit.mask)
+    write_maps(ctx.out, fit.maps, fit.mask, fit.view_count)
     np.save(ctx.out / "checkpoints" / "loss_curve.npy", np.asarray(fit.loss_curve))
     masked = {k: float(np.median(v[fit.mask])) for k, v in fit.maps.items() if v.ndim == 2}
     return {
@@ -233,6 +233,7 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict:
         "patches": fit.patches,
         "samples": fit.sample_count,
         "texels": int(fit.mask.sum()),
+        "texels_below_min_views": int(((fit.view_count > 0) & ~fit.mask).sum()),
         "throughput_texel_view_iterations_per_s": fit.throughput,
         "final_loss": fit.loss_curve[-1] if fit.loss_curve else None,
         "median": masked,
@@ -248,8 +249,11 @@ def _jsonable(value):
     return value
 
 
-def write_maps(out: Path, maps: dict[str, np.ndarray], mask: np.ndarray) -> None:
-    """Write ``maps/<name>.exr`` (GT conventions), ``maps/mask.png`` and ``previews/<name>.png``."""
+def write_maps(
+    out: Path, maps: dict[str, np.ndarray], mask: np.ndarray, view_count: np.ndarray | None = None
+) -> None:
+    """Write ``maps/<name>.exr`` (GT conventions), ``maps/mask.png``, ``previews/<name>.png`` and, when
+    given, ``maps/view_count.exr`` (fitting views per texel; the mask needs ``min_views`` of them)."""
     from polarface.io import colormap_png, write_exr, write_png
 
     names = _read_result(out).get("channel_names") or [f"channel{i}" for i in range(6)]
@@ -271,6 +275,8 @@ def write_maps(out: Path, maps: dict[str, np.ndarray], mask: np.ndarray) -> None
     rho = maps["rho_sss_bar"].astype(np.float32)
     write_exr(out / "maps" / "rho_sss_bar.exr", {n: rho[..., i] for i, n in enumerate(names)})
     write_png(out / "maps" / "mask.png", mask.astype(np.uint8) * 255)
+    if view_count is not None:
+        write_exr(out / "maps" / "view_count.exr", {"Y": view_count.astype(np.float32)})
     upper = rho[..., :3] if rho.shape[-1] >= 3 else np.repeat(rho[..., :1], 3, -1)
     preview = np.clip(upper / max(float(np.percentile(upper[mask], 99.5)) if mask.any() else 1.0, 1e-6), 0, 1)
     write_png(

@@ -38,13 +38,18 @@ import torch
 from tqdm import tqdm
 
 from polarface.geometry.heights import normals_from_heights
-from polarface.inverse.polarimetric_fused import FusedSamples, build_fused_samples, fused_data_loss, pack_parameters
 from polarface.inverse.polarimetric_config import (
     PARAMETER_NAMES,
     PolarimetricConfig,
     initial_raw,
     maps_from_raw,
     raw_from_maps,
+)
+from polarface.inverse.polarimetric_fused import (
+    FusedSamples,
+    build_fused_samples,
+    fused_data_loss,
+    pack_parameters,
 )
 from polarface.inverse.polarimetric_init import init_albedos, init_eta, nan_median_filter
 from polarface.inverse.polarimetric_losses import data_losses, laplacian_penalty, smoothness_penalty
@@ -141,10 +146,11 @@ class PolarimetricFit:
 
     Attributes:
         maps: name -> ``(Ht, Wt)`` float32 (``rho_sss_bar``: ``(Ht, Wt, 6)``).
-        mask: ``(Ht, Wt)`` bool texels seen by at least one fitting view.
+        mask: ``(Ht, Wt)`` bool texels seen by at least ``config.min_views`` fitting views.
         loss_curve: mean total loss per iteration (averaged over patches).
         timings: seconds per phase; throughput: texel-view iterations per second of the optimisation.
         sample_count: samples (texel x view) fitted; patches: number of patches.
+        view_count: ``(Ht, Wt)`` int32 fitting views that see each texel (a reliability map).
     """
 
     maps: dict[str, np.ndarray]
@@ -155,6 +161,7 @@ class PolarimetricFit:
     sample_count: int
     patches: int
     complete: bool = True
+    view_count: np.ndarray | None = None
 
 
 def _patch_side(unwrap: UnwrapStore, config: PolarimetricConfig, fitting: list[int]) -> int:
@@ -227,7 +234,9 @@ class _PatchProblem:
                 torch.gather(flat["rho_sss_bar"][texel], 1, b.channels),
             )
             terms = data_losses(prediction, b.observed, self.scale)
-            data = wts.sss * terms["sss"] + wts.s * terms["s"] + wts.phi * terms["phi"] + wts.psi * terms["psi"]
+            data = (
+                wts.sss * terms["sss"] + wts.s * terms["s"] + wts.phi * terms["phi"] + wts.psi * terms["psi"]
+            )
         height = maps["displacement_mm"][..., 0]
         mask = self.mask
         reg = {
@@ -413,7 +422,7 @@ def _fit(
                 normal0 = problem.normals(maps0["displacement_mm"][..., 0])
                 todo_t = torch.as_tensor(todo, device=device)
                 if config.init_eta_search:
-                    eta0 = init_eta(batch, normal0, flat0, h * w, config.eta_range).reshape(h, w)
+                    eta0 = init_eta(batch, normal0, h * w, config.eta_range).reshape(h, w)
                     eta0 = nan_median_filter(eta0, 5)[..., None]
                     e_lo, e_hi = config.eta_range
                     new_eta = torch.logit(((eta0 - e_lo) / (e_hi - e_lo)).to(dtype))
@@ -475,17 +484,28 @@ def _fit(
         if on_patch is not None:
             on_patch(len(done), len(patches))
     bar.close()
-    # texels seen in patches fitted before a resume: recompute the coverage from the store
-    mask_seen = unwrap.visible_count() > 0
-    mask_seen &= np.asarray(unwrap.root["texel/mask"][...])
-    if not mask_seen.any():
+    # coverage from the store (also counts texels of patches fitted before a resume)
+    view_count = unwrap.visible_count() * np.asarray(unwrap.root["texel/mask"][...])
+    if not view_count.any():
         raise ValueError("no texel is visible in any fitting view (all-invisible texels)")
+    mask_seen = view_count >= int(config.min_views)
+    if not mask_seen.any():
+        raise ValueError(
+            f"no texel is seen by min_views={config.min_views} fitting views (most: {int(view_count.max())})"
+        )
     patches_fitted = max(len(patches), 1)
     curve_mean = [v / patches_fitted for v in curve]
     timings = {"fit_s": time.perf_counter() - started, "optimise_s": opt_seconds}
     throughput = opt_work / opt_seconds if opt_seconds > 0 else 0.0
     return PolarimetricFit(
-        _to_maps(raw, config), mask_seen, curve_mean, timings, throughput, samples_total, len(patches)
+        _to_maps(raw, config),
+        mask_seen,
+        curve_mean,
+        timings,
+        throughput,
+        samples_total,
+        len(patches),
+        view_count=view_count.astype(np.int32),
     )
 
 

@@ -111,7 +111,9 @@ def build_fused_samples(
         if tuple(got) != tuple(want):
             raise ValueError(f"argument '{name}' must have shape {want}; got {tuple(got)}")
     if not 1 <= light_count <= _MAX_LIGHTS:
-        raise ValueError(f"argument 'light_pos' must hold 1..{_MAX_LIGHTS} lights per view; got {light_count}")
+        raise ValueError(
+            f"argument 'light_pos' must hold 1..{_MAX_LIGHTS} lights per view; got {light_count}"
+        )
     for name, value in (("observed", observed), ("position", position), ("light_pos", light_pos)):
         if not np.isfinite(value).all():
             raise ValueError(f"argument '{name}' contains NaN/inf values")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from polarface.inverse.polarimetric_model import SampleBatch, render_samples
+from polarface.inverse.polarimetric_model import SampleBatch, _cos2_sin2, _transmission, render_samples
 
 __all__ = ["init_albedos", "init_eta", "nan_median_filter"]
 
@@ -103,7 +103,6 @@ def init_albedos(
 def init_eta(
     batch: SampleBatch,
     normal: torch.Tensor,
-    params: dict[str, torch.Tensor],
     texel_count: int,
     eta_range: tuple[float, float],
     steps: int = 36,
@@ -121,25 +120,23 @@ def init_eta(
     floor = 0.05 * float(obs[:, 0].mean())
     ratio_obs = obs[:, 1] / obs[:, 0].clamp_min(floor)
     weight = obs[:, 0].clamp_min(0.0)
-    zero = torch.zeros_like(params["eta"][texel, 0])
-    ones3 = torch.ones((batch.count, 3), dtype=normal.dtype, device=normal.device)
     lo, hi = eta_range
     grid = torch.linspace(lo + 0.02, hi - 0.02, steps, dtype=normal.dtype, device=normal.device)
     costs = torch.zeros((steps, texel_count), dtype=normal.dtype, device=normal.device)
     with torch.no_grad():
+        # With rho_s = rho_ss = 0 the model's I_zeta / I_sss is that of the exit Fresnel alone (the entry
+        # flux and the albedo cancel): zeta_o T-_o / (T+_o + xi_o T-_o) where some unshadowed light is in
+        # front of the texel and the camera sees it, 0 elsewhere (as render_samples gives).
+        n = normal[texel]
+        cos_o, a_o, b_o = torch.einsum("sjc,sc->sj", batch.view_vectors, n).unbind(-1)
+        cos_i = torch.einsum("skc,sc->sk", batch.light_vectors[:, :, 0], n)
+        lit = ((cos_i > 0.0) & (batch.light_weight.sum(-1) > 0.0)).any(-1) & (cos_o > 0.0)
+        xi_o, zeta_o = _cos2_sin2(a_o, b_o)
+        cos_o = cos_o.clamp(-1.0, 1.0)
         for g, value in enumerate(grid):
-            pred = render_samples(
-                batch,
-                normal[texel],
-                torch.full_like(zero, float(value)),
-                params["alpha_s"][texel, 0],
-                params["alpha_ss"][texel, 0],
-                zero,
-                zero,
-                ones3,
-            )
-            ratio = pred.i_zeta / pred.i_sss.clamp_min(1e-30)
-            costs[g].index_add_(0, texel, (weight * (ratio - ratio_obs) ** 2).sum(-1))
+            t_plus, t_minus = _transmission(cos_o, value)
+            ratio = torch.where(lit, zeta_o * t_minus / (t_plus + xi_o * t_minus).clamp_min(1e-30), 0.0)
+            costs[g].index_add_(0, texel, (weight * (ratio[:, None] - ratio_obs) ** 2).sum(-1))
         best = grid[costs.argmin(dim=0)]
         seen = torch.zeros(texel_count, dtype=torch.bool, device=normal.device)
         seen[texel] = True

@@ -40,7 +40,7 @@ import numpy as np
 if "NUMBA_THREADING_LAYER" not in os.environ:
     numba.config.THREADING_LAYER = "workqueue"
 
-__all__ = ["fused_loss_and_grad", "PARAM_COUNT", "GRAD_LAYOUT"]
+__all__ = ["GRAD_LAYOUT", "PARAM_COUNT", "fused_loss_and_grad"]
 
 #: Columns of the per-texel parameter/gradient arrays.
 GRAD_LAYOUT = (
@@ -52,7 +52,12 @@ _N, _ETA, _AS, _ASS, _RS, _RSS, _RHO = 0, 3, 4, 5, 6, 7, 8
 _INV_PI = 1.0 / math.pi
 # fast-math without nnan/ninf (inputs are validated finite; min/max and the masks keep their meaning):
 # reassociation lets the light loops vectorise their reductions
-_JIT = {"nogil": True, "fastmath": {"nsz", "arcp", "contract", "reassoc", "afn"}, "cache": True, "error_model": "numpy"}
+_JIT = {
+    "nogil": True,
+    "fastmath": {"nsz", "arcp", "contract", "reassoc", "afn"},
+    "cache": True,
+    "error_model": "numpy",
+}
 #: Float type of the per-light arithmetic: every literal of the per-light functions is wrapped in ``F``
 #: so that the float32 variant computes its light loops in float32 (twice the SIMD lanes); rebound per
 #: variant by :func:`_compile`.
@@ -112,8 +117,11 @@ def _cos2_sin2(a, b, tiny):
     regular = F(1.0) if r2 > tiny else F(0.0)
     inv = regular / (r2 if r2 > tiny else F(1.0))
     inv2 = inv * inv
-    return (a * a - b * b) * inv + (F(1.0) - regular), F(2.0) * a * b * inv, F(4.0) * a * b * b * inv2, \
-        -F(4.0) * b * a * a * inv2, F(2.0) * b * (b * b - a * a) * inv2, F(2.0) * a * (a * a - b * b) * inv2  # fmt: skip
+    return (
+        (a * a - b * b) * inv + (F(1.0) - regular), F(2.0) * a * b * inv,
+        F(4.0) * a * b * b * inv2, -F(4.0) * b * a * a * inv2,
+        F(2.0) * b * (b * b - a * a) * inv2, F(2.0) * a * (a * a - b * b) * inv2,
+    )  # fmt: skip
 
 
 def _double_angle(hx, hy, hz, dx, dy, dz, px, py, pz, tiny):
@@ -215,10 +223,11 @@ def _light(v, k, light_pos, lit_bits, geometry, texel, exit_terms, tiny):
         scaled * rho_ss * (d_ss_da * gss_i * gss_o + d_ss * gss_i_da * gss_o + d_ss * gss_i * gss_o_da),
         scaled * lobe_s, scaled * lobe_ss,
         entry,
-        de_ci * ix + de_a * ax + de_b * bx, de_ci * iy + de_a * ay + de_b * by, de_ci * iz + de_a * az + de_b * bz,
+        de_ci * ix + de_a * ax + de_b * bx,
+        de_ci * iy + de_a * ay + de_b * by,
+        de_ci * iz + de_a * az + de_b * bz,
         de_eta,
     )  # fmt: skip
-
 
 
 def _kernel(
@@ -468,7 +477,8 @@ def fused_loss_and_grad(
             :data:`GRAD_LAYOUT` order (unit normal, eta > 1, alphas > 0, albedos).
         sample_view: ``(S,)`` int32 view index; sample_lit: ``(S,)`` int64 bitmask of unshadowed
             lights (bit k = light k); observed: ``(S, 3, 3)`` ``[I_sss, I_zeta, I_s]`` x channel.
-        view_center, view_up, view_ref_up: ``(V, 3)``; light_pos, light_intensity: ``(V, 3, K)`` (lights on the last axis; K <= 63);
+        view_center, view_up, view_ref_up: ``(V, 3)``; light_pos, light_intensity: ``(V, 3, K)``
+            (lights on the last axis; K <= 63);
         view_channels: ``(V, 3)`` int64 channel indices.
         weights: ``(w_sss, w_s, w_phi, w_psi)``; scale: observation scale (> 0).
         chunk: texels per parallel work item.
