@@ -19,7 +19,10 @@ texel (samples sorted by texel, CSR offsets), view index, shadow bitmask and the
 (44 bytes), and the directions to lights and camera, half vectors and Stokes-frame rotations are
 recomputed from per-view tables (camera centre and up, LED positions and intensities) and the texel's
 base-mesh position. A patch's samples then stay in cache across optimiser iterations, which matters
-more on a CPU than the ~100 extra flops per light.
+more on a CPU than the ~100 extra flops per light. Per sample, a first loop over the lights accumulates
+the predictions; after the per-channel losses and their derivatives, a second loop recomputes each
+light's terms with their partial derivatives and accumulates the gradient. Both loops only load and
+reduce, so LLVM vectorises them across the lights (in float32 for a float32 fit).
 
 Threads: ``numba.prange`` over chunks of texels (each texel's samples are summed by one thread, so
 gradients need no atomics); results do not depend on the thread count. Importing this module selects
@@ -48,7 +51,7 @@ GRAD_LAYOUT = (
     "rho_sss_0", "rho_sss_1", "rho_sss_2", "rho_sss_3", "rho_sss_4", "rho_sss_5",
 )  # fmt: skip
 PARAM_COUNT = len(GRAD_LAYOUT)
-_N, _ETA, _AS, _ASS, _RS, _RSS, _RHO = 0, 3, 4, 5, 6, 7, 8
+_ETA, _AS, _ASS, _RS, _RSS, _RHO = 3, 4, 5, 6, 7, 8  # columns of GRAD_LAYOUT (normal: 0-2)
 _INV_PI = 1.0 / math.pi
 # fast-math without nnan/ninf (inputs are validated finite; min/max and the masks keep their meaning):
 # reassociation lets the light loops vectorise their reductions
