@@ -182,9 +182,9 @@ def test_result_does_not_depend_on_thread_count(problem):
     previous = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
-        one = fused_loss_and_grad(*args, chunk=4)
+        one = fused_loss_and_grad(*args, chunks=7)
         numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
-        two = fused_loss_and_grad(*args, chunk=4)
+        two = fused_loss_and_grad(*args, chunks=7)
     finally:
         numba.set_num_threads(previous)
     for a, b in zip(one, two):

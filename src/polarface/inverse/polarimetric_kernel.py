@@ -24,11 +24,12 @@ the predictions; after the per-channel losses and their derivatives, a second lo
 light's terms with their partial derivatives and accumulates the gradient. Both loops only load and
 reduce, so LLVM vectorises them across the lights (in float32 for a float32 fit).
 
-Threads: ``numba.prange`` over chunks of texels (each texel's samples are summed by one thread, so
-gradients need no atomics); results do not depend on the thread count. Importing this module selects
-numba's ``workqueue`` threading layer unless ``NUMBA_THREADING_LAYER`` is set: with the OpenMP layer,
-numba's worker threads left spinning after each kernel call made every following torch operation of
-the optimiser step 100-1000x slower (measured: a 31k-element ``sqrt`` went from 13 us to 5-16 ms).
+Threads: ``numba.prange`` over runs of texels with about equal sample counts (each texel's samples
+are summed by one thread, so gradients need no atomics); results do not depend on the thread count.
+Importing this module selects numba's ``workqueue`` threading layer unless ``NUMBA_THREADING_LAYER``
+is set: with the OpenMP layer, numba's worker threads left spinning after each kernel call made every
+following torch operation of the optimiser step 100-1000x slower (measured: a 31k-element ``sqrt``
+went from 13 us to 5-16 ms).
 """
 
 from __future__ import annotations
@@ -236,11 +237,10 @@ def _light(v, k, light_pos, lit_bits, geometry, texel, exit_terms, tiny):
 def _kernel(
     offsets, position, params, sample_view, sample_lit, observed,
     view_center, view_up, view_ref_up, light_pos, light_intensity, view_channels,
-    weights, scale, tiny, chunk, grad, texel_loss, term_sums,
+    weights, scale, tiny, bounds, grad, texel_loss, term_sums,
 ):  # fmt: skip
-    texel_count = offsets.shape[0] - 1
     light_count = light_pos.shape[2]
-    chunks = (texel_count + chunk - 1) // chunk
+    chunks = bounds.shape[0] - 1
     w_sss, w_s, w_phi, w_psi = weights[0], weights[1], weights[2], weights[3]
     inv_scale = 1.0 / scale
     floor = 0.05 * scale
@@ -249,7 +249,7 @@ def _kernel(
         g_spec = np.empty((3, 3))
         g_flux = np.empty(3)
         g_rho = np.empty(6)
-        for t in range(block * chunk, min((block + 1) * chunk, texel_count)):
+        for t in range(bounds[block], bounds[block + 1]):
             for q in range(PARAM_COUNT):
                 grad[t, q] = 0.0
             texel_loss[t] = 0.0
@@ -470,7 +470,7 @@ def fused_loss_and_grad(
     view_channels: np.ndarray,
     weights: tuple[float, float, float, float],
     scale: float,
-    chunk: int = 64,
+    chunks: int = 64,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-texel data loss and its gradient (module docstring). Unchecked: callers validate.
 
@@ -484,7 +484,9 @@ def fused_loss_and_grad(
             (lights on the last axis; K <= 63);
         view_channels: ``(V, 3)`` int64 channel indices.
         weights: ``(w_sss, w_s, w_phi, w_psi)``; scale: observation scale (> 0).
-        chunk: texels per parallel work item.
+        chunks: parallel work items: runs of consecutive texels holding about equal numbers of samples
+            (numba hands each thread an equal share of them, so threads get equal work); the result
+            does not depend on it or on the thread count, except the rounding of ``term_sums``.
 
     Returns:
         ``(loss (T,), grad (T, 14), term_sums (4,))`` with term sums ``(L_sss, L_s, L_phi, L_psi)``
@@ -496,13 +498,16 @@ def fused_loss_and_grad(
     texel_count = offsets.shape[0] - 1
     grad = np.empty((texel_count, PARAM_COUNT), dtype=dtype)
     loss = np.empty(texel_count, dtype=dtype)
-    chunks = max((texel_count + chunk - 1) // chunk, 1)
-    term_sums = np.zeros((chunks, 4), dtype=np.float64)
+    count = int(offsets[-1])
+    targets = np.linspace(0, count, max(int(chunks), 1) + 1)
+    bounds = np.searchsorted(offsets, targets, side="left").astype(np.int64)
+    bounds[0], bounds[-1] = 0, texel_count
+    term_sums = np.zeros((bounds.shape[0] - 1, 4), dtype=np.float64)
     tiny = float(np.finfo(dtype).eps) ** 4
     _KERNELS[dtype](
         offsets, position, params, sample_view, sample_lit, observed,
         view_center, view_up, view_ref_up, light_pos, light_intensity, view_channels,
-        np.asarray(weights, dtype=dtype), dtype.type(scale), dtype.type(tiny), int(chunk),
+        np.asarray(weights, dtype=dtype), dtype.type(scale), dtype.type(tiny), bounds,
         grad, loss, term_sums,
     )  # fmt: skip
     return loss, grad, term_sums.sum(0)
