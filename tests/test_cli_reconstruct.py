@@ -11,7 +11,7 @@ import pytest
 from polarface.cli import main
 from polarface.commands.reconstruct import ReconstructContext, run_stages
 from polarface.geometry.mesh import TriangleMesh, load_mesh, save_obj
-from polarface.io import read_exr
+from polarface.io import read_exr, read_png
 from polarface.texture.synthetic import SphereCaptureConfig, make_sphere_capture
 
 RES = 16
@@ -49,6 +49,11 @@ def test_reconstruct_evaluate_end_to_end(sim, tmp_path, capsys):
     for name in ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "displacement_mm", "rho_sss_bar"):
         assert (out / "maps" / f"{name}.exr").exists()
     assert set(read_exr(out / "maps" / "rho_sss_bar.exr")) == set(result["channel_names"])
+    view_count = read_exr(out / "maps" / "view_count.exr")["Y"]
+    mask = read_png(out / "maps" / "mask.png") > 0
+    mask = mask if mask.ndim == 2 else mask[..., 0]
+    assert np.array_equal(mask, view_count >= 4) and (out / "previews" / "view_count.png").exists()
+    assert "view_count.png" in (out / "report.html").read_text()
     assert (out / "report.html").exists() and (out / "rig.json").exists() and (out / "mesh.obj").exists()
     capsys.readouterr()
     assert main(["evaluate", str(out), "--gt", str(sim)]) == 0

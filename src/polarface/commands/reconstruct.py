@@ -277,6 +277,16 @@ def write_maps(
     write_png(out / "maps" / "mask.png", mask.astype(np.uint8) * 255)
     if view_count is not None:
         write_exr(out / "maps" / "view_count.exr", {"Y": view_count.astype(np.float32)})
+        seen = view_count > 0
+        colormap_png(
+            out / "previews" / "view_count.png",
+            np.where(seen, view_count, np.nan).astype(np.float64),
+            vmin=0.0,
+            vmax=float(max(view_count.max(), 1)),
+            mask=seen,
+            title="fitting views per texel",
+            colorbar=True,
+        )
     upper = rho[..., :3] if rho.shape[-1] >= 3 else np.repeat(rho[..., :1], 3, -1)
     preview = np.clip(upper / max(float(np.percentile(upper[mask], 99.5)) if mask.any() else 1.0, 1e-6), 0, 1)
     write_png(

@@ -51,6 +51,11 @@ def write_report(result_dir: str | Path, extra_sections: Sequence[Callable] = ()
         for n in ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "displacement_mm")
     ]
     items.append(ImageItem("previews/rho_sss_bar_rgb.png", "rho_sss_bar (upper-half R, G, B)"))
+    if (out / "previews" / "view_count.png").exists():
+        min_views = stage.get("config", {}).get("min_views", "?")
+        items.append(
+            ImageItem("previews/view_count.png", f"fitting views per texel (mask: >= {min_views})")
+        )
     page.section("Parameter maps", "Texture-space maps (EXR in maps/).").image_grid(items, columns=4)
     curve_path = out / "checkpoints" / "loss_curve.npy"
     if curve_path.exists():
