@@ -218,29 +218,17 @@ def render_frame(
     )
     views = {}
     for camera in scene.rig.cameras:
-        view_camera = camera_from_rig(camera)
-        if camera.role == "polarimetric":
-            views[camera.id] = render_view(
-                caster,
-                mesh_world,
-                view_camera,
-                textures,
-                lights,
-                intensity,
-                _camera_channels(camera),
-                polarization=True,
-            )
-        else:
-            views[camera.id] = render_view(
-                caster,
-                mesh_world,
-                view_camera,
-                textures,
-                lights,
-                intensity,
-                tuple(range(6)),
-                polarization=False,
-            )
+        polarimetric = camera.role == "polarimetric"
+        views[camera.id] = render_view(
+            caster,
+            mesh_world,
+            camera_from_rig(camera),
+            textures,
+            lights,
+            intensity,
+            _camera_channels(camera) if polarimetric else tuple(range(6)),
+            polarization=polarimetric,
+        )
     return RenderedFrame(mesh_world, caster, views, raster, shading)
 
 
