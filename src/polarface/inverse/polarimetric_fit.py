@@ -404,12 +404,13 @@ def _fit(
         r0, r1 = max(rows.start - halo, 0), min(rows.stop + halo, height)
         c0, c1 = max(cols.start - halo, 0), min(cols.stop + halo, width)
         hrows, hcols = slice(r0, r1), slice(c0, c1)
-        batch, geometry, packed = build_patch_samples(
-            unwrap, hrows, hcols, fitting, views, dtype=dtype, device=device, fused=True
+        built = build_patch_samples(
+            unwrap, hrows, hcols, fitting, views, dtype=dtype, device=device, fused=use_fused
         )
+        batch, geometry = built[0], built[1]
         if batch is not None:
             problem = _PatchProblem(
-                batch, geometry, config, scale, dtype, device, packed if use_fused else None
+                batch, geometry, config, scale, dtype, device, built[2] if use_fused else None
             )
             patch_raw = {
                 k: torch.as_tensor(v[hrows, hcols], dtype=dtype, device=device) for k, v in raw.items()
