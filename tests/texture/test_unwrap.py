@@ -6,11 +6,14 @@ import numpy as np
 import pytest
 
 from polarface.capture.store import CaptureStore
-from polarface.geometry.mesh import load_mesh
+from polarface.geometry.camera import PinholeCamera
+from polarface.geometry.mesh import TriangleMesh, load_mesh
 from polarface.geometry.poses import load_poses
+from polarface.geometry.raycast import RayCaster
 from polarface.inverse.polarimetric import render_view_texture
 from polarface.texture import UnwrapConfig, UnwrapStore, unwrap_capture
 from polarface.texture.synthetic import SphereCaptureConfig, make_sphere_capture
+from polarface.texture.unwrap import footprint_sees_surface
 
 
 @pytest.fixture(scope="module")
@@ -84,6 +87,8 @@ def test_unwrap_resumes_a_partial_store(capture):
         ("cos_view_min", 1.5),
         ("holdout_every", 1),
         ("occlusion_tolerance_mm", 0.0),
+        ("footprint_margin_px", -1),
+        ("footprint_tolerance_mm", 0.0),
     ],
 )
 def test_config_errors(field, value):
@@ -117,3 +122,55 @@ def test_nan_observations_raise(capture):
             UnwrapConfig(texture_resolution=16),
             "frame 0",
         )
+
+
+def _plane(half_mm: float, z_mm: float) -> TriangleMesh:
+    vertices = np.array(
+        [
+            [-half_mm, -half_mm, z_mm],
+            [half_mm, -half_mm, z_mm],
+            [half_mm, half_mm, z_mm],
+            [-half_mm, half_mm, z_mm],
+        ]
+    )
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    return TriangleMesh.from_arrays(vertices, faces, uv=(vertices[:, :2] / (2 * half_mm) + 0.5))
+
+
+def test_footprint_rejects_mixed_pixels_at_edges_and_occluders():
+    """A 100 mm plane seen from 1 m (1 px ~ 1 mm): samples whose footprint crosses the plane's edge or
+    the edge of a 20 mm occluder 100 mm in front are rejected; interior samples and inf tolerance pass."""
+    plane = _plane(50.0, 0.0)
+    occluder = _plane(10.0, 100.0)
+    scene = TriangleMesh.from_arrays(
+        np.concatenate([plane.vertices, occluder.vertices]),
+        np.concatenate([plane.faces, occluder.faces + 4]),
+        uv=np.concatenate([plane.uv, occluder.uv]),
+    )
+    camera = PinholeCamera.look_at([0.0, 0.0, 1000.0], [0.0, 0.0, 0.0], width=201, height=201, focal=1000.0)
+    caster = RayCaster(scene)
+    points = np.array(
+        [[30.0, 30.0, 0.0], [49.8, 0.0, 0.0], [30.0, -49.5, 0.0], [0.0, 11.4, 0.0], [25.0, 0.0, 0.0]]
+    )
+    normals = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    pixels, _ = camera.project(points)
+    ok = footprint_sees_surface(caster, camera, points, normals, pixels, 1, 3.0)
+    assert ok.tolist() == [True, False, False, False, True]
+    assert footprint_sees_surface(caster, camera, points, normals, pixels, 1, np.inf).all()
+    # margin 0 checks only the 2 x 2 bilinear cell: a sample 2.4 px from the occluder's edge passes
+    far = np.array([[0.0, 12.4, 0.0]])
+    assert footprint_sees_surface(caster, camera, far, normals[:1], camera.project(far)[0], 0, 3.0).all()
+    assert not footprint_sees_surface(caster, camera, far, normals[:1], camera.project(far)[0], 2, 3.0).any()
+    assert footprint_sees_surface(caster, camera, points[:0], normals[:0], pixels[:0], 1, 3.0).shape == (0,)
+
+
+def test_footprint_test_removes_boundary_samples_of_the_sphere_cap(capture):
+    """On the sphere-cap capture the test drops some samples next to the cap's silhouette edge only."""
+    _info, store, mesh, poses, root = capture
+    counts = {}
+    for name, tolerance in (("checked", 3.0), ("unchecked", np.inf)):
+        config = UnwrapConfig(texture_resolution=16, patch=8, footprint_tolerance_mm=tolerance)
+        unwrap = unwrap_capture(store, mesh, poses, root / f"fp_{name}.zarr", config, progress=False)
+        counts[name] = unwrap.visible_count()
+    assert (counts["checked"] <= counts["unchecked"]).all()
+    assert counts["checked"].sum() < counts["unchecked"].sum()

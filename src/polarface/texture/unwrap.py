@@ -8,7 +8,8 @@ Layout of the zarr group written by :func:`unwrap_capture` (``UNWRAP.zarr``; zar
     obs     float32 (V, Ht, Wt, 3, 3)  per view: [I_sss = 2 I90, I_zeta = I135 - I45, I_s = I0 - I90] x the
                                        view's 3 channels (radiance, bilinear samples; 0 where invalid)
     valid   bool (V, Ht, Wt)           texel seen by the view: inside the image, unoccluded (ray cast,
-                                       0.5 mm tolerance), n.v > ``cos_view_min``, no saturated neighbour
+                                       0.5 mm tolerance), n.v > ``cos_view_min``, no saturated neighbour,
+                                       every pixel of its sampling footprint sees the texel's own surface
     lit     bool (V, Ht, Wt, K)        each LED module's shadow ray from the texel is free
     attrs:  format "polarface-unwrap", version, resolution, patch, views (list of :class:`ViewSpec` dicts),
             done (view indices written), complete
@@ -44,6 +45,7 @@ __all__ = [
     "UnwrapConfig",
     "UnwrapStore",
     "ViewSpec",
+    "footprint_sees_surface",
     "texel_geometry",
     "unwrap_capture",
 ]
@@ -62,6 +64,12 @@ class UnwrapConfig:
         patch: texture patch side (zarr chunk), texels.
         cos_view_min: minimum n.v of the base normal for a texel to count as seen (0.2 = 78 deg).
         occlusion_tolerance_mm: a camera ray must first hit the surface within this distance of the texel.
+        footprint_margin_px: pixels checked around the bilinear 2 x 2 cell of a texel's projection (1 also
+            covers a demosaicing kernel of radius 1): all ``(2 m + 2)^2`` must see the texel's surface.
+        footprint_tolerance_mm: a footprint pixel sees the texel's surface when its camera ray first hits
+            the mesh within this distance (along the ray) of the texel's tangent plane; ``inf`` disables
+            the test. It rejects *mixed pixels* at silhouettes, mesh holes (eyes, nostrils, mouth) and
+            occlusion edges, whose values blend the face with background or another surface.
         holdout_every: every ``holdout_every``-th frame (index % n == n - 1) is held out of fitting
             (evaluation views); 0 holds out nothing.
     """
@@ -70,6 +78,8 @@ class UnwrapConfig:
     patch: int = 64
     cos_view_min: float = 0.2
     occlusion_tolerance_mm: float = 0.5
+    footprint_margin_px: int = 1
+    footprint_tolerance_mm: float = 3.0
     holdout_every: int = 0
 
     def __post_init__(self) -> None:
@@ -84,6 +94,15 @@ class UnwrapConfig:
         if self.occlusion_tolerance_mm <= 0:
             raise ValueError(
                 f"argument 'occlusion_tolerance_mm' must be > 0; got {self.occlusion_tolerance_mm}"
+            )
+        if not 0 <= int(self.footprint_margin_px) <= 8:
+            raise ValueError(
+                f"argument 'footprint_margin_px' must be in [0, 8]; got {self.footprint_margin_px}"
+            )
+        if not self.footprint_tolerance_mm > 0:
+            raise ValueError(
+                "argument 'footprint_tolerance_mm' must be > 0 (inf disables); "
+                f"got {self.footprint_tolerance_mm}"
             )
         if int(self.holdout_every) < 0 or int(self.holdout_every) == 1:
             raise ValueError(f"argument 'holdout_every' must be 0 or >= 2; got {self.holdout_every}")
@@ -249,6 +268,57 @@ def _any_neighbour(flags: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarra
     return flags[y0, x0] | flags[y0, x1] | flags[y1, x0] | flags[y1, x1]
 
 
+def footprint_sees_surface(
+    caster: RayCaster,
+    camera: PinholeCamera,
+    points: np.ndarray,
+    normals: np.ndarray,
+    pixels: np.ndarray,
+    margin_px: int,
+    tolerance_mm: float,
+) -> np.ndarray:
+    """Whether every pixel of each sample's footprint sees the sample's own surface (mixed-pixel test).
+
+    A sample at sub-pixel position ``(x, y)`` is read bilinearly from the 2 x 2 pixel cell around it
+    (after demosaicing, which spreads a pixel over its neighbours); near a silhouette, a hole in the mesh
+    or an occluding edge some of those pixels show the background or another surface, and the sample
+    mixes them in. Each footprint pixel's camera ray is cast; it passes when it first hits the mesh
+    within ``tolerance_mm`` (along the ray) of the plane through the sample point with its normal, a
+    first-order model of the surface around the sample (exact for planes; curvature radius ``R`` adds
+    ``s^2 / (2 R cos)`` for a footprint ``s`` mm wide seen at ``cos`` incidence).
+
+    Args:
+        caster: ray caster of the posed mesh; camera: the view's camera (world frame, mm).
+        points, normals: ``(N, 3)`` world sample positions (mm) and unit base normals.
+        pixels: ``(N, 2)`` projected sample positions (x = column, y = row; pixel centres on integers).
+        margin_px: extra pixels around the 2 x 2 cell; tolerance_mm: > 0.
+
+    Returns:
+        ``(N,)`` bool.
+    """
+    count = points.shape[0]
+    if count == 0 or not np.isfinite(tolerance_mm):
+        return np.ones(count, bool)
+    offsets = np.arange(-int(margin_px), int(margin_px) + 2)
+    base_x = np.floor(pixels[:, 0]).astype(np.int64)
+    base_y = np.floor(pixels[:, 1]).astype(np.int64)
+    cols = np.clip(base_x[:, None, None] + offsets[None, None, :], 0, camera.width - 1)
+    rows = np.clip(base_y[:, None, None] + offsets[None, :, None], 0, camera.height - 1)
+    flat = (rows * camera.width + cols).reshape(count, -1)
+    unique, inverse = np.unique(flat, return_inverse=True)
+    centres = np.stack([unique % camera.width, unique // camera.width], axis=-1).astype(np.float64)
+    origins, directions = camera.pixel_rays(centres)
+    hits = caster.first_hits(origins, directions)
+    inverse = inverse.reshape(flat.shape)
+    ray = directions[inverse]  # (N, P, 3)
+    facing = np.einsum("npc,nc->np", ray, normals)
+    offset = np.einsum("nc,nc->n", points - camera.center, normals)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        plane_distance = offset[:, None] / facing
+    ok = hits.hit[inverse] & (np.abs(hits.distance[inverse] - plane_distance) < tolerance_mm)
+    return ok.all(axis=1)
+
+
 def sample_view(
     geometry: TexelGeometry,
     mesh_world: TriangleMesh,
@@ -293,6 +363,17 @@ def sample_view(
         hits = caster.first_hits(np.repeat(centre[None], index.size, axis=0), directions[index])
         visible[index] = hits.hit & (np.abs(hits.distance - distance[index]) < config.occlusion_tolerance_mm)
     index = np.nonzero(visible)[0]
+    index = index[
+        footprint_sees_surface(
+            caster,
+            camera,
+            points[index],
+            normals[index],
+            pixels[index],
+            config.footprint_margin_px,
+            config.footprint_tolerance_mm,
+        )
+    ]
     obs = np.zeros((*resolution, 3, 3), np.float32)
     valid = np.zeros(resolution, bool)
     lit = np.zeros((*resolution, lights_world.shape[0]), bool)
