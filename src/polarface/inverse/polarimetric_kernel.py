@@ -19,10 +19,17 @@ texel (samples sorted by texel, CSR offsets), view index, shadow bitmask and the
 (44 bytes), and the directions to lights and camera, half vectors and Stokes-frame rotations are
 recomputed from per-view tables (camera centre and up, LED positions and intensities) and the texel's
 base-mesh position. A patch's samples then stay in cache across optimiser iterations, which matters
-more on a CPU than the ~100 extra flops per light. Per sample, a first loop over the lights accumulates
-the predictions; after the per-channel losses and their derivatives, a second loop recomputes each
-light's terms with their partial derivatives and accumulates the gradient. Both loops only load and
-reduce, so LLVM vectorises them across the lights (in float32 for a float32 fit).
+more on a CPU than the ~100 extra flops per light.
+
+SIMD layout: samples are processed in blocks of 32. A scalar loop gathers each sample's texel
+parameters, view tables, observations and lights into the rows of one structure-of-arrays scratch
+array; every later phase (view geometry, the forward loop over lights, the per-channel losses and
+their reverse pass, the reverse loop over lights) is a loop over the block's samples that addresses
+only constant rows of that array, so LLVM vectorises it across samples (16 float32 lanes with
+AVX-512; in float32 for a float32 fit); a last scalar loop adds each sample's gradient into its
+texel's float64 sums. Vectorising across samples rather than across the 8 lights made the kernel
+2.1x faster (demo-sized patch, 1 thread): the per-sample work (exit Fresnel, losses) had been scalar
+and was 75 % of the time.
 
 Threads: ``numba.prange`` over runs of texels with about equal sample counts (each texel's samples
 are summed by one thread, so gradients need no atomics); results do not depend on the thread count.
@@ -135,23 +142,24 @@ def _double_angle(hx, hy, hz, dx, dy, dz, px, py, pz, tiny):
     return cos2, sin2
 
 
-def _light(v, k, light_pos, lit_bits, geometry, texel, exit_terms, tiny):
-    """Everything about light ``k`` of a sample: ``(w_l, sp_0..2, dsp_0..2/deta, lobe, dlobe/dn (3),
+def _light(lx, ly, lz, lit, geometry, texel, exit_terms, tiny):
+    """Everything about one light of a sample: ``(w_l, sp_0..2, dsp_0..2/deta, lobe, dlobe/dn (3),
     dlobe/dcos_o, dlobe/dalpha_s, dlobe/dalpha_ss, dlobe/drho_s, dlobe/drho_ss, entry, dentry/dn (3),
     dentry/deta)`` with ``w_l`` the shadow mask / squared distance (the channel intensities multiply it),
     ``sp`` the Stokes vector of the Fresnel reflection (camera frame), ``lobe`` the shaded specular +
-    single-scattering lobe and ``entry`` the polarization-aware entry flux factor. Inlined into both
-    light loops of the kernel: they only load and reduce, so LLVM vectorises them across lights.
-    ``geometry``: texel position, w_o, camera up, reference up, P_o (15 floats); ``texel``: normal,
-    eta, 1/eta, 1/eta^2, alpha_s, alpha_s^2, alpha_ss, alpha_ss^2, rho_s, rho_ss; ``exit_terms``:
-    front-facing mask and G1/cos of the view direction with partials for both lobes.
+    single-scattering lobe and ``entry`` the polarization-aware entry flux factor.
+    ``lx, ly, lz``: light position; ``lit``: 1 (unshadowed) or 0; ``geometry``: texel position, w_o,
+    camera up, reference up, P_o (15 floats); ``texel``: normal, eta, 1/eta, 1/eta^2, alpha_s, alpha_s^2,
+    alpha_ss, alpha_ss^2, rho_s, rho_ss; ``exit_terms``: front-facing mask and G1/cos of the view
+    direction with partials for both lobes. Branch-free: inlined into loops over samples that LLVM
+    vectorises.
     """
     px, py, pz, ox, oy, oz, ux, uy, uz, rx, ry, rz, pox, poy, poz = geometry
     nx, ny, nz, eta, inv_eta, inv_eta2, alpha_s, alpha2_s, alpha_ss, alpha2_ss, rho_s, rho_ss = texel
     front, gs_o, gs_o_dc, gs_o_da, gss_o, gss_o_dc, gss_o_da = exit_terms
-    dx = light_pos[v, 0, k] - px
-    dy = light_pos[v, 1, k] - py
-    dz = light_pos[v, 2, k] - pz
+    dx = lx - px
+    dy = ly - py
+    dz = lz - pz
     dist2 = max(dx * dx + dy * dy + dz * dz, F(1e-12))
     inv_d = F(1.0) / math.sqrt(dist2)
     ix, iy, iz = dx * inv_d, dy * inv_d, dz * inv_d
@@ -168,7 +176,7 @@ def _light(v, k, light_pos, lit_bits, geometry, texel, exit_terms, tiny):
     )
     c_out, s_out = _double_angle(hx, hy, hz, ox, oy, oz, pox, poy, poz, tiny)
     u1, u2, c_out, s_out = -c_in, s_in, -c_out, -s_out
-    wl = (F(1.0) if (lit_bits >> k) & 1 else F(0.0)) / dist2
+    wl = lit / dist2
     cos_i_raw = nx * ix + ny * iy + nz * iz
     clamp_i = F(1.0) if (cos_i_raw >= -F(1.0) and cos_i_raw <= F(1.0)) else F(0.0)
     cos_i = min(max(cos_i_raw, -F(1.0)), F(1.0))
@@ -234,6 +242,226 @@ def _light(v, k, light_pos, lit_bits, geometry, texel, exit_terms, tiny):
     )  # fmt: skip
 
 
+# Rows of the per-block scratch array ``work[row, i]`` (``i``: sample of the block; SoA, so that every
+# loop over a block's samples reads and writes unit-stride rows of one array and LLVM vectorises it).
+_B = 32  # samples per block
+(
+    _PX, _PY, _PZ, _OX, _OY, _OZ, _UX, _UY, _UZ, _RX, _RY, _RZ, _POX, _POY, _POZ, _AOX, _AOY, _AOZ,
+    _FRONT, _GSO, _GSO_C, _GSO_A, _GSSO, _GSSO_C, _GSSO_A,
+    _NX, _NY, _NZ, _EN, _IEN, _IEN2, _AS1, _AS2, _ASS1, _ASS2, _RS1, _RSS1,
+    _COSO, _COSO_IN, _A_O, _B_O, _GETA, _GCOSO, _GAO, _GBO, _LOSS,
+) = range(46)  # fmt: skip
+_SPEC, _FLUX, _OBS, _RHOC, _GSPEC, _GFLUX, _GRHO, _TERMS, _LACC = 46, 55, 58, 67, 70, 79, 82, 85, 89
+_LIGHT = 98  # the current light (7 rows: position, channel intensities, unshadowed), copied from:
+_LIGHTS = 105  # 7 rows per light (the vectorised loops only address constant rows: LLVM then proves
+# that their loads and stores do not overlap)
+
+
+def _load_light(work, count, k):
+    base = _LIGHTS + 7 * k
+    for row in range(7):
+        for i in range(count):
+            work[_LIGHT + row, i] = work[base + row, i]
+
+
+def _geometry(work, i):
+    return (
+        work[_PX, i], work[_PY, i], work[_PZ, i], work[_OX, i], work[_OY, i], work[_OZ, i],
+        work[_UX, i], work[_UY, i], work[_UZ, i], work[_RX, i], work[_RY, i], work[_RZ, i],
+        work[_POX, i], work[_POY, i], work[_POZ, i],
+    )  # fmt: skip
+
+
+def _texel(work, i):
+    return (
+        work[_NX, i], work[_NY, i], work[_NZ, i], work[_EN, i], work[_IEN, i], work[_IEN2, i],
+        work[_AS1, i], work[_AS2, i], work[_ASS1, i], work[_ASS2, i], work[_RS1, i], work[_RSS1, i],
+    )  # fmt: skip
+
+
+def _exit_terms(work, i):
+    return (
+        work[_FRONT, i], work[_GSO, i], work[_GSO_C, i], work[_GSO_A, i],
+        work[_GSSO, i], work[_GSSO_C, i], work[_GSSO_A, i],
+    )  # fmt: skip
+
+
+def _view_terms(work, count, tiny):
+    """Per-sample view geometry and exit lobe factors (rows _OX.._B_O); vectorised over samples."""
+    for i in range(count):
+        px, py, pz = work[_PX, i], work[_PY, i], work[_PZ, i]
+        ox, oy, oz = work[_OX, i] - px, work[_OY, i] - py, work[_OZ, i] - pz  # camera centre - position
+        inv_norm = F(1.0) / max(math.sqrt(ox * ox + oy * oy + oz * oz), F(1e-12))
+        ox, oy, oz = ox * inv_norm, oy * inv_norm, oz * inv_norm
+        ux, uy, uz = work[_UX, i], work[_UY, i], work[_UZ, i]
+        along = ux * ox + uy * oy + uz * oz
+        pox, poy, poz = ux - along * ox, uy - along * oy, uz - along * oz
+        aox, aoy, aoz = poy * oz - poz * oy, poz * ox - pox * oz, pox * oy - poy * ox
+        nx, ny, nz = work[_NX, i], work[_NY, i], work[_NZ, i]
+        cos_o_raw = nx * ox + ny * oy + nz * oz
+        cos_o = min(max(cos_o_raw, -F(1.0)), F(1.0))
+        eta = work[_EN, i]
+        alpha_s, alpha_ss = work[_AS1, i], work[_ASS1, i]
+        alpha2_s, alpha2_ss = alpha_s * alpha_s, alpha_ss * alpha_ss
+        gs_o, gs_o_dc, gs_o_da = _g1_over_cos(cos_o, alpha_s, alpha2_s)
+        gss_o, gss_o_dc, gss_o_da = _g1_over_cos(cos_o, alpha_ss, alpha2_ss)
+        work[_OX, i], work[_OY, i], work[_OZ, i] = ox, oy, oz
+        work[_POX, i], work[_POY, i], work[_POZ, i] = pox, poy, poz
+        work[_AOX, i], work[_AOY, i], work[_AOZ, i] = aox, aoy, aoz
+        work[_COSO, i] = cos_o
+        work[_COSO_IN, i] = F(1.0) if (cos_o_raw >= -F(1.0) and cos_o_raw <= F(1.0)) else F(0.0)
+        work[_A_O, i] = nx * aox + ny * aoy + nz * aoz
+        work[_B_O, i] = nx * pox + ny * poy + nz * poz
+        work[_FRONT, i] = F(1.0) if cos_o > F(0.0) else F(0.0)
+        work[_IEN, i] = F(1.0) / eta
+        work[_IEN2, i] = F(1.0) / (eta * eta)
+        work[_AS2, i], work[_ASS2, i] = alpha2_s, alpha2_ss
+        work[_GSO, i], work[_GSO_C, i], work[_GSO_A, i] = gs_o, gs_o_dc, gs_o_da
+        work[_GSSO, i], work[_GSSO_C, i], work[_GSSO_A, i] = gss_o, gss_o_dc, gss_o_da
+
+
+def _forward_lights(work, count, light_count, tiny):
+    """Accumulate the specular Stokes ``(3 channels x 3)`` and the entry flux per channel over lights."""
+    for row in range(_SPEC, _FLUX + 3):
+        for i in range(count):
+            work[row, i] = F(0.0)
+    for k in range(light_count):
+        _load_light(work, count, k)
+        for i in range(count):
+            (wl, sp0, sp1, sp2, _, _, _, lobe, _, _, _, _, _, _, _, _, entry, _, _, _, _) = _light(
+                work[_LIGHT, i], work[_LIGHT + 1, i], work[_LIGHT + 2, i], work[_LIGHT + 6, i],
+                _geometry(work, i), _texel(work, i), _exit_terms(work, i), tiny,
+            )  # fmt: skip
+            # the three channels written out: an inner loop would be vectorised instead of this one
+            i0 = work[_LIGHT + 3, i] * wl
+            i1 = work[_LIGHT + 4, i] * wl
+            i2 = work[_LIGHT + 5, i] * wl
+            work[_SPEC, i] += i0 * sp0 * lobe
+            work[_SPEC + 1, i] += i0 * sp1 * lobe
+            work[_SPEC + 2, i] += i0 * sp2 * lobe
+            work[_SPEC + 3, i] += i1 * sp0 * lobe
+            work[_SPEC + 4, i] += i1 * sp1 * lobe
+            work[_SPEC + 5, i] += i1 * sp2 * lobe
+            work[_SPEC + 6, i] += i2 * sp0 * lobe
+            work[_SPEC + 7, i] += i2 * sp1 * lobe
+            work[_SPEC + 8, i] += i2 * sp2 * lobe
+            work[_FLUX, i] += i0 * entry
+            work[_FLUX + 1, i] += i1 * entry
+            work[_FLUX + 2, i] += i2 * entry
+
+
+def _channel(work, i, j, exit_terms, constants):
+    """Loss of channel ``j`` of sample ``i`` and its reverse pass to the Stokes components; writes the
+    channel's rows and returns ``(loss, l_sss, l_s, l_phi, l_psi, dL/dT+_o, dL/dT-_o, dL/dxi, dL/dzeta)``.
+    ``exit_terms``: ``(T+_o, T-_o, xi_o, zeta_o)``; ``constants``: loss weights, 1/scale, DoP floor."""
+    t_plus_o, t_minus_o, xi_o, zeta_o = exit_terms
+    w_sss, w_s, w_phi, w_psi, inv_scale, floor = constants
+    spec_0, spec_1, spec_2 = work[_SPEC + 3 * j, i], work[_SPEC + 3 * j + 1, i], work[_SPEC + 3 * j + 2, i]
+    flux_j, rho_c, front = work[_FLUX + j, i], work[_RHOC + j, i], work[_FRONT, i]
+    exitance = rho_c * flux_j * F(_INV_PI) * front
+    s1 = spec_1 - exitance * xi_o * t_minus_o
+    i_sss = spec_0 + exitance * t_plus_o - s1
+    i_zeta = -(spec_2 - exitance * zeta_o * t_minus_o)
+    i_s = s1
+    o_sss, o_zeta, o_s = work[_OBS + 3 * j, i], work[_OBS + 3 * j + 1, i], work[_OBS + 3 * j + 2, i]
+    r_sss = (i_sss - o_sss) * inv_scale
+    r_zeta = (i_zeta - o_zeta) * inv_scale
+    r_s_res = (i_s - o_s) * inv_scale
+    w_phi_obs = max(o_sss * inv_scale, F(0.0))
+    inv_do = F(1.0) / max(o_sss, floor)
+    inv_dp = F(1.0) / max(i_sss, floor)
+    xi_pred = i_s - spec_1
+    e1 = i_zeta * inv_dp - o_zeta * inv_do
+    e2 = xi_pred * inv_dp - (o_s - spec_1) * inv_do
+    l_sss = r_sss * r_sss
+    l_s = r_s_res * r_s_res
+    l_phi = w_phi_obs * (r_zeta * r_zeta + l_s)
+    l_psi = e1 * e1 + e2 * e2
+    loss = w_sss * l_sss + w_s * l_s + w_phi * l_phi + w_psi * l_psi
+    # reverse: loss -> predictions -> Stokes components
+    above = F(1.0) if i_sss >= floor else F(0.0)
+    g_isss = (
+        F(2.0) * w_sss * r_sss * inv_scale
+        - above * w_psi * F(2.0) * (e1 * i_zeta + e2 * xi_pred) * inv_dp * inv_dp
+    )
+    g_izeta = F(2.0) * w_phi * w_phi_obs * r_zeta * inv_scale + w_psi * F(2.0) * e1 * inv_dp
+    g_xi_pred = F(2.0) * e2 * inv_dp
+    g_is = F(2.0) * (w_s + w_phi * w_phi_obs) * r_s_res * inv_scale + w_psi * g_xi_pred
+    g_s1 = g_is - g_isss
+    g_s2 = -g_izeta
+    work[_GSPEC + 3 * j, i] = g_isss
+    work[_GSPEC + 3 * j + 1, i] = g_s1 + w_psi * (-g_xi_pred + F(2.0) * e2 * inv_do)
+    work[_GSPEC + 3 * j + 2, i] = g_s2
+    g_exit = (g_isss * t_plus_o - (g_s1 * xi_o + g_s2 * zeta_o) * t_minus_o) * front
+    work[_GRHO + j, i] = g_exit * flux_j * F(_INV_PI)
+    work[_GFLUX + j, i] = g_exit * rho_c * F(_INV_PI)
+    return (
+        loss, l_sss, l_s, l_phi, l_psi, g_isss * exitance, -(g_s1 * xi_o + g_s2 * zeta_o) * exitance,
+        -g_s1 * exitance * t_minus_o, -g_s2 * exitance * t_minus_o,
+    )  # fmt: skip
+
+
+def _losses(work, count, constants, tiny):
+    """Exit Fresnel, predictions, losses and their reverse pass per sample; vectorised over samples."""
+    for i in range(count):
+        cos_o, eta, inv_eta, inv_eta2 = work[_COSO, i], work[_EN, i], work[_IEN, i], work[_IEN2, i]
+        to_s, to_p, dtos_dc, dtos_de, dtop_dc, dtop_de = _fresnel(cos_o, eta, inv_eta, inv_eta2)
+        t_plus_o = F(1.0) - F(0.5) * (to_s * to_s + to_p * to_p)
+        t_minus_o = -F(0.5) * (to_s * to_s - to_p * to_p)
+        xi_o, zeta_o, dxi_da, dxi_db, dzeta_da, dzeta_db = _cos2_sin2(work[_A_O, i], work[_B_O, i], tiny)
+        exit_terms = (t_plus_o, t_minus_o, xi_o, zeta_o)
+        a = _channel(work, i, 0, exit_terms, constants)
+        b = _channel(work, i, 1, exit_terms, constants)
+        c = _channel(work, i, 2, exit_terms, constants)
+        work[_LOSS, i] = a[0] + b[0] + c[0]
+        work[_TERMS, i] = a[1] + b[1] + c[1]
+        work[_TERMS + 1, i] = a[2] + b[2] + c[2]
+        work[_TERMS + 2, i] = a[3] + b[3] + c[3]
+        work[_TERMS + 3, i] = a[4] + b[4] + c[4]
+        g_tpo, g_tmo = a[5] + b[5] + c[5], a[6] + b[6] + c[6]
+        g_xi, g_zeta = a[7] + b[7] + c[7], a[8] + b[8] + c[8]
+        g_tos = -(g_tpo + g_tmo) * to_s
+        g_top = (g_tmo - g_tpo) * to_p
+        work[_GCOSO, i] = g_tos * dtos_dc + g_top * dtop_dc
+        work[_GETA, i] = g_tos * dtos_de + g_top * dtop_de
+        work[_GAO, i] = g_xi * dxi_da + g_zeta * dzeta_da
+        work[_GBO, i] = g_xi * dxi_db + g_zeta * dzeta_db
+
+
+def _reverse_lights(work, count, light_count, tiny):
+    """Accumulate the parameter gradients through every light (rows _LACC..+8); vectorised over samples."""
+    for row in range(_LACC, _LACC + 9):
+        for i in range(count):
+            work[row, i] = F(0.0)
+    for k in range(light_count):
+        _load_light(work, count, k)
+        for i in range(count):
+            (
+                wl, sp0, sp1, sp2, dsp0, dsp1, dsp2, lobe, dl_nx, dl_ny, dl_nz, dl_co, dl_as, dl_ass,
+                dl_rs, dl_rss, _, de_nx, de_ny, de_nz, de_eta,
+            ) = _light(
+                work[_LIGHT, i], work[_LIGHT + 1, i], work[_LIGHT + 2, i], work[_LIGHT + 6, i],
+                _geometry(work, i), _texel(work, i), _exit_terms(work, i), tiny,
+            )  # fmt: skip
+            i0 = work[_LIGHT + 3, i] * wl
+            i1 = work[_LIGHT + 4, i] * wl
+            i2 = work[_LIGHT + 5, i] * wl
+            big0 = i0 * work[_GSPEC, i] + i1 * work[_GSPEC + 3, i] + i2 * work[_GSPEC + 6, i]
+            big1 = i0 * work[_GSPEC + 1, i] + i1 * work[_GSPEC + 4, i] + i2 * work[_GSPEC + 7, i]
+            big2 = i0 * work[_GSPEC + 2, i] + i1 * work[_GSPEC + 5, i] + i2 * work[_GSPEC + 8, i]
+            g_lobe = big0 * sp0 + big1 * sp1 + big2 * sp2
+            g_entry = i0 * work[_GFLUX, i] + i1 * work[_GFLUX + 1, i] + i2 * work[_GFLUX + 2, i]
+            work[_LACC, i] += lobe * (big0 * dsp0 + big1 * dsp1 + big2 * dsp2) + g_entry * de_eta
+            work[_LACC + 1, i] += g_lobe * dl_nx + g_entry * de_nx
+            work[_LACC + 2, i] += g_lobe * dl_ny + g_entry * de_ny
+            work[_LACC + 3, i] += g_lobe * dl_nz + g_entry * de_nz
+            work[_LACC + 4, i] += g_lobe * dl_co
+            work[_LACC + 5, i] += g_lobe * dl_as
+            work[_LACC + 6, i] += g_lobe * dl_ass
+            work[_LACC + 7, i] += g_lobe * dl_rs
+            work[_LACC + 8, i] += g_lobe * dl_rss
+
+
 def _kernel(
     offsets, position, params, sample_view, sample_lit, observed,
     view_center, view_up, view_ref_up, light_pos, light_intensity, view_channels,
@@ -241,202 +469,79 @@ def _kernel(
 ):  # fmt: skip
     light_count = light_pos.shape[2]
     chunks = bounds.shape[0] - 1
-    w_sss, w_s, w_phi, w_psi = weights[0], weights[1], weights[2], weights[3]
-    inv_scale = 1.0 / scale
-    floor = 0.05 * scale
+    constants = (
+        F(weights[0]), F(weights[1]), F(weights[2]), F(weights[3]), F(1.0 / scale), F(0.05 * scale),
+    )  # fmt: skip
+    light_tiny = F(tiny)
     for block in numba.prange(chunks):
-        terms = np.zeros(4, dtype=np.float64)
-        g_spec = np.empty((3, 3))
-        g_flux = np.empty(3)
-        g_rho = np.empty(6)
-        for t in range(bounds[block], bounds[block + 1]):
-            for q in range(PARAM_COUNT):
-                grad[t, q] = 0.0
-            texel_loss[t] = 0.0
-            if offsets[t + 1] == offsets[t]:
-                continue
-            nx, ny, nz = float(params[t, 0]), float(params[t, 1]), float(params[t, 2])
-            eta, alpha_s, alpha_ss = float(params[t, _ETA]), float(params[t, _AS]), float(params[t, _ASS])
-            rho_s, rho_ss = float(params[t, _RS]), float(params[t, _RSS])
-            inv_eta = 1.0 / eta
-            inv_eta2 = inv_eta * inv_eta
-            alpha2_s, alpha2_ss = alpha_s * alpha_s, alpha_ss * alpha_ss
-            px, py, pz = float(position[t, 0]), float(position[t, 1]), float(position[t, 2])
-            texel_terms = (
-                F(nx), F(ny), F(nz), F(eta), F(inv_eta), F(inv_eta2), F(alpha_s), F(alpha2_s), F(alpha_ss),
-                F(alpha2_ss), F(rho_s), F(rho_ss),
-            )  # fmt: skip
-            light_tiny = F(tiny)
-            g_nx = g_ny = g_nz = g_eta = g_as = g_ass = g_rs = g_rss = 0.0
-            g_rho[:] = 0.0
-            loss_t = 0.0
+        t_begin, t_end = bounds[block], bounds[block + 1]
+        s_begin, s_end = offsets[t_begin], offsets[t_end]
+        acc = np.zeros((t_end - t_begin, PARAM_COUNT + 1))  # float64 per-texel sums; last column: loss
+        terms = np.zeros(4)
+        sample_texel = np.empty(s_end - s_begin, dtype=np.int64)
+        for t in range(t_begin, t_end):
             for s in range(offsets[t], offsets[t + 1]):
+                sample_texel[s - s_begin] = t
+        work = np.zeros((_LIGHTS + 7 * light_count, _B), dtype=F)
+        for s0 in range(s_begin, s_end, _B):
+            count = min(_B, s_end - s0)
+            # gather (scalar): texel parameters and position, view tables, observations, lights
+            for i in range(count):
+                s = s0 + i
+                t = sample_texel[s - s_begin]
                 v = sample_view[s]
-                lit_bits = sample_lit[s]
-                # ---- view geometry: w_o, exit azimuth vectors A_o = P_o x w_o, P_o
-                ox, oy, oz = view_center[v, 0] - px, view_center[v, 1] - py, view_center[v, 2] - pz
-                inv_norm = 1.0 / max(math.sqrt(ox * ox + oy * oy + oz * oz), 1e-12)
-                ox, oy, oz = ox * inv_norm, oy * inv_norm, oz * inv_norm
-                ux, uy, uz = view_up[v, 0], view_up[v, 1], view_up[v, 2]
-                along = ux * ox + uy * oy + uz * oz
-                pox, poy, poz = ux - along * ox, uy - along * oy, uz - along * oz
-                aox, aoy, aoz = poy * oz - poz * oy, poz * ox - pox * oz, pox * oy - poy * ox
-                rx, ry, rz = view_ref_up[v, 0], view_ref_up[v, 1], view_ref_up[v, 2]
-                cos_o_raw = nx * ox + ny * oy + nz * oz
-                cos_o = min(max(cos_o_raw, -1.0), 1.0)
-                a_o = nx * aox + ny * aoy + nz * aoz
-                b_o = nx * pox + ny * poy + nz * poz
-                front = 1.0 if cos_o > 0.0 else 0.0
-                gs_o, gs_o_dc, gs_o_da = _g1_over_cos(cos_o, alpha_s, alpha2_s)
-                gss_o, gss_o_dc, gss_o_da = _g1_over_cos(cos_o, alpha_ss, alpha2_ss)
-                geometry = (
-                    F(px), F(py), F(pz), F(ox), F(oy), F(oz), F(ux), F(uy), F(uz), F(rx), F(ry), F(rz),
-                    F(pox), F(poy), F(poz),
-                )  # fmt: skip
-                exit_terms = (F(front), F(gs_o), F(gs_o_dc), F(gs_o_da), F(gss_o), F(gss_o_dc), F(gss_o_da))
-                # ---- forward over lights (vectorised loop; reductions into spec and flux)
-                spec00 = spec01 = spec02 = spec10 = spec11 = spec12 = spec20 = spec21 = spec22 = F(0.0)
-                flux0 = flux1 = flux2 = F(0.0)
-                for k in range(light_count):
-                    (wl, sp0, sp1, sp2, _, _, _, lobe, _, _, _, _, _, _, _, _, entry, _, _, _, _) = _light(
-                        v, k, light_pos, lit_bits, geometry, texel_terms, exit_terms, light_tiny
-                    )
-                    i0 = light_intensity[v, 0, k] * wl
-                    i1 = light_intensity[v, 1, k] * wl
-                    i2 = light_intensity[v, 2, k] * wl
-                    spec00 += i0 * sp0 * lobe
-                    spec01 += i0 * sp1 * lobe
-                    spec02 += i0 * sp2 * lobe
-                    spec10 += i1 * sp0 * lobe
-                    spec11 += i1 * sp1 * lobe
-                    spec12 += i1 * sp2 * lobe
-                    spec20 += i2 * sp0 * lobe
-                    spec21 += i2 * sp1 * lobe
-                    spec22 += i2 * sp2 * lobe
-                    flux0 += i0 * entry
-                    flux1 += i1 * entry
-                    flux2 += i2 * entry
-                # ---- exit, predictions and losses (per channel)
-                to_s, to_p, dtos_dc, dtos_de, dtop_dc, dtop_de = _fresnel(cos_o, eta, inv_eta, inv_eta2)
-                t_plus_o = 1.0 - 0.5 * (to_s * to_s + to_p * to_p)
-                t_minus_o = -0.5 * (to_s * to_s - to_p * to_p)
-                xi_o, zeta_o, dxi_da, dxi_db, dzeta_da, dzeta_db = _cos2_sin2(a_o, b_o, tiny)
-                g_tpo = g_tmo = g_xi = g_zeta = 0.0
+                for c in range(3):
+                    work[_PX + c, i] = position[t, c]
+                    work[_OX + c, i] = view_center[v, c]
+                    work[_UX + c, i] = view_up[v, c]
+                    work[_RX + c, i] = view_ref_up[v, c]
+                    work[_NX + c, i] = params[t, c]
+                work[_EN, i] = params[t, _ETA]
+                work[_AS1, i] = params[t, _AS]
+                work[_ASS1, i] = params[t, _ASS]
+                work[_RS1, i] = params[t, _RS]
+                work[_RSS1, i] = params[t, _RSS]
                 for j in range(3):
-                    if j == 0:
-                        spec_0, spec_1, spec_2, flux_j = spec00, spec01, spec02, flux0
-                    elif j == 1:
-                        spec_0, spec_1, spec_2, flux_j = spec10, spec11, spec12, flux1
-                    else:
-                        spec_0, spec_1, spec_2, flux_j = spec20, spec21, spec22, flux2
-                    channel = _RHO + view_channels[v, j]
-                    rho_c = float(params[t, channel])
-                    exitance = rho_c * flux_j * _INV_PI * front
-                    s1 = spec_1 - exitance * xi_o * t_minus_o
-                    i_sss = spec_0 + exitance * t_plus_o - s1
-                    i_zeta = -(spec_2 - exitance * zeta_o * t_minus_o)
-                    i_s = s1
-                    o_sss, o_zeta, o_s = observed[s, 0, j], observed[s, 1, j], observed[s, 2, j]
-                    r_sss = (i_sss - o_sss) * inv_scale
-                    r_zeta = (i_zeta - o_zeta) * inv_scale
-                    r_s_res = (i_s - o_s) * inv_scale
-                    w_phi_obs = max(o_sss * inv_scale, 0.0)
-                    inv_do = 1.0 / max(o_sss, floor)
-                    inv_dp = 1.0 / max(i_sss, floor)
-                    xi_pred = i_s - spec_1
-                    e1 = i_zeta * inv_dp - o_zeta * inv_do
-                    e2 = xi_pred * inv_dp - (o_s - spec_1) * inv_do
-                    l_sss = r_sss * r_sss
-                    l_s = r_s_res * r_s_res
-                    l_phi = w_phi_obs * (r_zeta * r_zeta + l_s)
-                    l_psi = e1 * e1 + e2 * e2
-                    terms[0] += l_sss
-                    terms[1] += l_s
-                    terms[2] += l_phi
-                    terms[3] += l_psi
-                    loss_t += w_sss * l_sss + w_s * l_s + w_phi * l_phi + w_psi * l_psi
-                    # reverse: loss -> predictions -> Stokes components
-                    g_isss = 2.0 * w_sss * r_sss * inv_scale
-                    if i_sss >= floor:
-                        g_isss -= w_psi * 2.0 * (e1 * i_zeta + e2 * xi_pred) * inv_dp * inv_dp
-                    g_izeta = 2.0 * w_phi * w_phi_obs * r_zeta * inv_scale + w_psi * 2.0 * e1 * inv_dp
-                    g_xi_pred = 2.0 * e2 * inv_dp
-                    g_is = 2.0 * (w_s + w_phi * w_phi_obs) * r_s_res * inv_scale + w_psi * g_xi_pred
-                    g_s1 = g_is - g_isss
-                    g_s2 = -g_izeta
-                    g_spec[j, 0] = g_isss
-                    g_spec[j, 1] = g_s1 + w_psi * (-g_xi_pred + 2.0 * e2 * inv_do)
-                    g_spec[j, 2] = g_s2
-                    g_exit = (g_isss * t_plus_o - (g_s1 * xi_o + g_s2 * zeta_o) * t_minus_o) * front
-                    g_tpo += g_isss * exitance
-                    g_tmo -= (g_s1 * xi_o + g_s2 * zeta_o) * exitance
-                    g_xi -= g_s1 * exitance * t_minus_o
-                    g_zeta -= g_s2 * exitance * t_minus_o
-                    g_rho[channel - _RHO] += g_exit * flux_j * _INV_PI
-                    g_flux[j] = g_exit * rho_c * _INV_PI
-                # exit Fresnel and azimuth -> cos_o, eta, a_o, b_o
-                g_tos = -(g_tpo + g_tmo) * to_s
-                g_top = (g_tmo - g_tpo) * to_p
-                g_cos_o = g_tos * dtos_dc + g_top * dtop_dc
-                g_eta += g_tos * dtos_de + g_top * dtop_de
-                g_ao = g_xi * dxi_da + g_zeta * dzeta_da
-                g_bo = g_xi * dxi_db + g_zeta * dzeta_db
-                # ---- reverse over lights (vectorised loop; reductions into the texel's gradient)
-                gs00, gs01, gs02 = F(g_spec[0, 0]), F(g_spec[0, 1]), F(g_spec[0, 2])
-                gs10, gs11, gs12 = F(g_spec[1, 0]), F(g_spec[1, 1]), F(g_spec[1, 2])
-                gs20, gs21, gs22 = F(g_spec[2, 0]), F(g_spec[2, 1]), F(g_spec[2, 2])
-                gf0, gf1, gf2 = F(g_flux[0]), F(g_flux[1]), F(g_flux[2])
-                l_eta = l_nx = l_ny = l_nz = l_co = l_as = l_ass = l_rs = l_rss = F(0.0)
+                    work[_RHOC + j, i] = params[t, _RHO + view_channels[v, j]]
+                    for q in range(3):
+                        work[_OBS + 3 * j + q, i] = observed[s, q, j]
+                lit_bits = sample_lit[s]
                 for k in range(light_count):
-                    (
-                        wl, sp0, sp1, sp2, dsp0, dsp1, dsp2, lobe, dl_nx, dl_ny, dl_nz, dl_co, dl_as, dl_ass,
-                        dl_rs, dl_rss, _, de_nx, de_ny, de_nz, de_eta,
-                    ) = _light(
-                        v, k, light_pos, lit_bits, geometry, texel_terms, exit_terms, light_tiny
+                    base = _LIGHTS + 7 * k
+                    for c in range(3):
+                        work[base + c, i] = light_pos[v, c, k]
+                        work[base + 3 + c, i] = light_intensity[v, c, k]
+                    work[base + 6, i] = F(1.0) if (lit_bits >> k) & 1 else F(0.0)
+            _view_terms(work, count, light_tiny)
+            _forward_lights(work, count, light_count, light_tiny)
+            _losses(work, count, constants, light_tiny)
+            _reverse_lights(work, count, light_count, light_tiny)
+            # scatter (scalar): per-sample gradients into the texels' float64 sums
+            for i in range(count):
+                s = s0 + i
+                row = sample_texel[s - s_begin] - t_begin
+                g_cos_o = (work[_GCOSO, i] + work[_LACC + 4, i]) * work[_COSO_IN, i]
+                g_ao, g_bo = work[_GAO, i], work[_GBO, i]
+                for c in range(3):
+                    acc[row, c] += (
+                        work[_LACC + 1 + c, i] + g_cos_o * work[_OX + c, i] + g_ao * work[_AOX + c, i]
+                        + g_bo * work[_POX + c, i]
                     )  # fmt: skip
-                    i0 = light_intensity[v, 0, k] * wl
-                    i1 = light_intensity[v, 1, k] * wl
-                    i2 = light_intensity[v, 2, k] * wl
-                    big0 = i0 * gs00 + i1 * gs10 + i2 * gs20
-                    big1 = i0 * gs01 + i1 * gs11 + i2 * gs21
-                    big2 = i0 * gs02 + i1 * gs12 + i2 * gs22
-                    g_lobe = big0 * sp0 + big1 * sp1 + big2 * sp2
-                    g_entry = i0 * gf0 + i1 * gf1 + i2 * gf2
-                    l_eta += lobe * (big0 * dsp0 + big1 * dsp1 + big2 * dsp2) + g_entry * de_eta
-                    l_nx += g_lobe * dl_nx + g_entry * de_nx
-                    l_ny += g_lobe * dl_ny + g_entry * de_ny
-                    l_nz += g_lobe * dl_nz + g_entry * de_nz
-                    l_co += g_lobe * dl_co
-                    l_as += g_lobe * dl_as
-                    l_ass += g_lobe * dl_ass
-                    l_rs += g_lobe * dl_rs
-                    l_rss += g_lobe * dl_rss
-                # per-sample sums (light arithmetic type) into the texel's float64 accumulators
-                g_eta += l_eta
-                g_nx += l_nx
-                g_ny += l_ny
-                g_nz += l_nz
-                g_cos_o += l_co
-                g_as += l_as
-                g_ass += l_ass
-                g_rs += l_rs
-                g_rss += l_rss
-                if cos_o_raw < -1.0 or cos_o_raw > 1.0:
-                    g_cos_o = 0.0
-                g_nx += g_cos_o * ox + g_ao * aox + g_bo * pox
-                g_ny += g_cos_o * oy + g_ao * aoy + g_bo * poy
-                g_nz += g_cos_o * oz + g_ao * aoz + g_bo * poz
-            grad[t, 0] = g_nx
-            grad[t, 1] = g_ny
-            grad[t, 2] = g_nz
-            grad[t, _ETA] = g_eta
-            grad[t, _AS] = g_as
-            grad[t, _ASS] = g_ass
-            grad[t, _RS] = g_rs
-            grad[t, _RSS] = g_rss
-            for q in range(6):
-                grad[t, _RHO + q] = g_rho[q]
-            texel_loss[t] = loss_t
+                acc[row, _ETA] += work[_GETA, i] + work[_LACC, i]
+                acc[row, _AS] += work[_LACC + 5, i]
+                acc[row, _ASS] += work[_LACC + 6, i]
+                acc[row, _RS] += work[_LACC + 7, i]
+                acc[row, _RSS] += work[_LACC + 8, i]
+                v = sample_view[s]
+                for j in range(3):
+                    acc[row, _RHO + view_channels[v, j]] += work[_GRHO + j, i]
+                acc[row, PARAM_COUNT] += work[_LOSS, i]
+                for q in range(4):
+                    terms[q] += work[_TERMS + q, i]
+        for t in range(t_begin, t_end):
+            for q in range(PARAM_COUNT):
+                grad[t, q] = acc[t - t_begin, q]
+            texel_loss[t] = acc[t - t_begin, PARAM_COUNT]
         for q in range(4):
             term_sums[block, q] = terms[q]
 
@@ -445,7 +550,12 @@ def _compile(float_type) -> numba.core.registry.CPUDispatcher:
     """The kernel with its per-light arithmetic in ``float_type`` (module docstring)."""
     namespace = dict(globals())
     namespace["F"] = float_type
-    for name in ("_fresnel", "_ggx", "_g1_over_cos", "_cos2_sin2", "_double_angle", "_light"):
+    helpers = (
+        "_fresnel", "_ggx", "_g1_over_cos", "_cos2_sin2", "_double_angle", "_light", "_geometry",
+        "_texel", "_exit_terms", "_view_terms", "_load_light", "_forward_lights", "_channel", "_losses",
+        "_reverse_lights",
+    )  # fmt: skip
+    for name in helpers:
         source = globals()[name]
         clone = types.FunctionType(source.__code__, namespace, name)
         namespace[name] = numba.njit(inline="always", **_JIT)(clone)
