@@ -14,6 +14,7 @@ from polarface.geometry import (
     normals_from_heights,
     rasterize_uv,
 )
+from polarface.geometry.heights import HeightNormals
 
 H, W = 12, 16
 
@@ -169,3 +170,47 @@ def test_sphere_atlas_bump_normals(uv_sphere_factory):
     args = (raster.tangent_u, raster.tangent_v, raster.normal, raster.texel_size_u, raster.texel_size_v)
     out = normals_from_heights(np.full((64, 64), 0.2, dtype=np.float32), *args, mask=raster.mask)
     np.testing.assert_allclose(out[raster.mask], raster.normal[raster.mask], atol=1e-5)
+
+
+def _random_frame(seed: int, shape=(9, 11), dtype=torch.float64):
+    generator = torch.Generator().manual_seed(seed)
+    normal = torch.nn.functional.normalize(
+        torch.randn(*shape, 3, generator=generator, dtype=dtype) * 0.2
+        + torch.tensor([0.0, 0.0, 1.0], dtype=dtype),
+        dim=-1,
+    )
+    tangent_u = torch.nn.functional.normalize(
+        torch.randn(*shape, 3, generator=generator, dtype=dtype), dim=-1
+    )
+    tangent_v = torch.nn.functional.normalize(
+        torch.randn(*shape, 3, generator=generator, dtype=dtype), dim=-1
+    )
+    size_u = torch.rand(shape, generator=generator, dtype=dtype) + 0.2
+    size_v = torch.rand(shape, generator=generator, dtype=dtype) + 0.2
+    size_u[0, 3] = 0.0  # degenerate texel keeps its base normal
+    mask = torch.rand(shape, generator=generator) > 0.25
+    height = torch.randn(shape, generator=generator, dtype=dtype) * 0.3
+    return height, tangent_u, tangent_v, normal, size_u, size_v, mask
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_height_normals_operator_matches_normals_from_heights(seed):
+    height, *frame, mask = _random_frame(seed)
+    operator = HeightNormals.build(*frame, mask)
+    expected = normals_from_heights(height, *frame, mask)
+    torch.testing.assert_close(operator(height), expected, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(
+        operator(torch.zeros_like(height)), normals_from_heights(height * 0, *frame, mask)
+    )
+
+
+def test_height_normals_operator_gradcheck_and_errors():
+    height, *frame, mask = _random_frame(5, shape=(5, 6))
+    operator = HeightNormals.build(*frame, mask)
+    assert torch.autograd.gradcheck(operator, (height.clone().requires_grad_(True),))
+    with pytest.raises(ValueError, match="texel_size_u"):
+        HeightNormals.build(frame[0], frame[1], frame[2], -frame[3], frame[4], mask)
+    with pytest.raises(ValueError, match="mask"):
+        HeightNormals.build(*frame, mask[:-1])
+    with pytest.raises(ValueError, match="normal"):
+        HeightNormals.build(frame[0], frame[1], frame[2][..., :2], frame[3], frame[4], mask)

@@ -27,11 +27,13 @@ Robustness choices (documented, tested):
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from polarface._validation import array_api, broadcast_named, check_last_dim, check_range
 
-__all__ = ["height_gradients", "normals_from_height_gradients", "normals_from_heights"]
+__all__ = ["HeightNormals", "height_gradients", "normals_from_height_gradients", "normals_from_heights"]
 
 
 def _grid_mask(mask: torch.Tensor | None, height: torch.Tensor) -> torch.Tensor:
@@ -175,3 +177,91 @@ def normals_from_heights(
         dh_du, dh_dv, tangent_u, tangent_v, normal, texel_size_u, texel_size_v
     )
     return torch.where(valid[..., None], normals, normal.expand_as(normals))
+
+
+def _difference_weights(valid: torch.Tensor, dim: int, dtype: torch.dtype) -> torch.Tensor:
+    """``(3, H, W)`` weights of (next, this, previous) texel along ``dim`` in :func:`_masked_difference`."""
+    size = valid.shape[dim]
+    pad = [0, 0, 0, 0]
+    pad_index = 0 if dim == -1 else 2
+    pad[pad_index] = pad[pad_index + 1] = 1
+    padded = torch.nn.functional.pad(valid.to(dtype), pad) > 0
+    after = padded.narrow(dim, 2, size) & valid
+    before = padded.narrow(dim, 0, size) & valid
+    both = after & before
+    one = torch.ones((), dtype=dtype, device=valid.device)
+    zero = torch.zeros((), dtype=dtype, device=valid.device)
+    w_next = torch.where(both, 0.5 * one, torch.where(after, one, zero))
+    w_prev = torch.where(both, -0.5 * one, torch.where(before & ~after, -one, zero))
+    w_this = torch.where(both, zero, torch.where(after, -one, torch.where(before, one, zero)))
+    return torch.stack([w_next, w_this, w_prev])
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class HeightNormals:
+    """:func:`normals_from_heights` of one atlas region with every H-independent term precomputed.
+
+    For an optimiser that evaluates the normals of the same texels at every step: the finite
+    differences become fixed 3-tap stencils and the cross product is linear in them,
+    ``n~ = s_u s_v (t_u x t_v) + dH/dv s_u (t_u x n) + dH/du s_v (n x t_v)`` (projected tangents,
+    orientation folded in), so a call costs a few fused tensor operations. Same result as
+    :func:`normals_from_heights` (tests), for ``(H, W)`` maps only. Build with :meth:`build`.
+    """
+
+    weights_u: torch.Tensor
+    weights_v: torch.Tensor
+    constant: torch.Tensor
+    per_dh_dv: torch.Tensor
+    per_dh_du: torch.Tensor
+    normal: torch.Tensor
+    keep_base: torch.Tensor
+
+    @classmethod
+    def build(
+        cls,
+        tangent_u: torch.Tensor,
+        tangent_v: torch.Tensor,
+        normal: torch.Tensor,
+        texel_size_u: torch.Tensor,
+        texel_size_v: torch.Tensor,
+        mask: torch.Tensor,
+    ) -> HeightNormals:
+        """Arguments as :func:`normals_from_heights` with ``(H, W, 3)`` frames, ``(H, W)`` sizes and mask."""
+        for name, tensor in (("tangent_u", tangent_u), ("tangent_v", tangent_v), ("normal", normal)):
+            if tensor.ndim != 3 or tensor.shape[-1] != 3:
+                raise ValueError(f"argument '{name}' must have shape (H, W, 3); got {tuple(tensor.shape)}")
+        shape = tuple(normal.shape[:2])
+        for name, tensor in (("texel_size_u", texel_size_u), ("texel_size_v", texel_size_v), ("mask", mask)):
+            if tuple(tensor.shape) != shape:
+                raise ValueError(f"argument '{name}' must have shape {shape}; got {tuple(tensor.shape)}")
+        check_range(texel_size_u, "texel_size_u", 0.0)
+        check_range(texel_size_v, "texel_size_v", 0.0)
+        valid = _grid_mask(mask, normal[..., 0])
+        dtype = normal.dtype
+        t_u = tangent_u - (tangent_u * normal).sum(-1, keepdim=True) * normal
+        t_v = tangent_v - (tangent_v * normal).sum(-1, keepdim=True) * normal
+        base = torch.linalg.cross(t_u, t_v, dim=-1)
+        orientation = torch.where((base * normal).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(dtype)
+        s_u, s_v = texel_size_u[..., None], texel_size_v[..., None]
+        return cls(
+            weights_u=_difference_weights(valid, -1, dtype),
+            weights_v=-_difference_weights(valid, -2, dtype),  # rows grow downwards, +v is up
+            constant=orientation * s_u * s_v * base,
+            per_dh_dv=orientation * s_u * torch.linalg.cross(t_u, normal, dim=-1),
+            per_dh_du=orientation * s_v * torch.linalg.cross(normal, t_v, dim=-1),
+            normal=normal,
+            keep_base=(~valid | (texel_size_u <= 0) | (texel_size_v <= 0))[..., None],
+        )
+
+    def __call__(self, height: torch.Tensor) -> torch.Tensor:
+        """``(H, W, 3)`` unit normals of ``P + H n`` for a ``(H, W)`` height map (mm); differentiable."""
+        padded = torch.nn.functional.pad(height, (1, 1, 1, 1))
+        rows, cols = height.shape
+        w_u, w_v = self.weights_u, self.weights_v
+        dh_du = w_u[0] * padded[1:-1, 2:] + w_u[1] * height + w_u[2] * padded[1:-1, :cols]
+        dh_dv = w_v[0] * padded[2:, 1:-1] + w_v[1] * height + w_v[2] * padded[:rows, 1:-1]
+        raw = self.constant + dh_dv[..., None] * self.per_dh_dv + dh_du[..., None] * self.per_dh_du
+        squared = (raw * raw).sum(-1, keepdim=True)
+        tiny = torch.finfo(raw.dtype).tiny
+        result = raw / torch.sqrt(squared.clamp(min=tiny))
+        return torch.where(self.keep_base | (squared <= tiny), self.normal, result)

@@ -11,7 +11,8 @@ reparameterised variables that keep them in physical ranges:
   lobe mixing; the authors' release instead overwrote the single-scattering image inside the
   specular mask, DESIGN.md);
 * ``rho_s, rho_ss = rho_max sigmoid(z)``, ``rho_sss_bar = sigmoid(z)`` (in [0, 1]);
-* ``H = h_scale z`` (mm); normals through :func:`polarface.geometry.heights.normals_from_heights`.
+* ``H = h_scale z`` (mm); normals through :func:`polarface.geometry.heights.normals_from_heights`
+  (its precomputed form :class:`~polarface.geometry.heights.HeightNormals`).
 
 The texture is processed patch by patch (a halo of ``halo`` texels gives the regularisers and the
 height finite differences their neighbours; only the interior is written back), each patch holding
@@ -35,9 +36,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy import ndimage
 from tqdm import tqdm
 
-from polarface.geometry.heights import normals_from_heights
+from polarface.geometry.heights import HeightNormals
 from polarface.inverse.polarimetric_config import (
     PARAMETER_NAMES,
     PolarimetricConfig,
@@ -146,7 +148,8 @@ class PolarimetricFit:
 
     Attributes:
         maps: name -> ``(Ht, Wt)`` float32 (``rho_sss_bar``: ``(Ht, Wt, 6)``).
-        mask: ``(Ht, Wt)`` bool texels seen by at least ``config.min_views`` fitting views.
+        mask: ``(Ht, Wt)`` bool texels seen by at least ``config.min_views`` fitting views and at least
+            ``config.boundary_margin`` texels inside the atlas coverage.
         loss_curve: mean total loss per iteration (averaged over patches).
         timings: seconds per phase; throughput: texel-view iterations per second of the optimisation.
         sample_count: samples (texel x view) fitted; patches: number of patches.
@@ -203,10 +206,12 @@ class _PatchProblem:
         self.positions = geometry.position
         self.shape = geometry.mask.shape
         self.texel_count = int(self.mask.sum())
+        self._height_normals: HeightNormals | None = None
 
     def normals(self, height: torch.Tensor) -> torch.Tensor:
-        tu, tv, n, su, sv = self.frame
-        return normals_from_heights(height, tu, tv, n, su, sv, self.mask).reshape(-1, 3)
+        if self._height_normals is None:  # H-independent terms, built once per patch
+            self._height_normals = HeightNormals.build(*self.frame, self.mask)
+        return self._height_normals(height).reshape(-1, 3)
 
     def loss(self, raw: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         maps = maps_from_raw(raw, self.config)
@@ -494,6 +499,15 @@ def _fit(
         raise ValueError(
             f"no texel is seen by min_views={config.min_views} fitting views (most: {int(view_count.max())})"
         )
+    if int(config.boundary_margin) > 0:
+        interior = ndimage.binary_erosion(
+            np.asarray(unwrap.root["texel/mask"][...]), iterations=int(config.boundary_margin), border_value=0
+        )
+        mask_seen &= interior
+        if not mask_seen.any():
+            raise ValueError(
+                f"no texel is left inside boundary_margin={config.boundary_margin} of the atlas coverage"
+            )
     patches_fitted = max(len(patches), 1)
     curve_mean = [v / patches_fitted for v in curve]
     timings = {"fit_s": time.perf_counter() - started, "optimise_s": opt_seconds}
