@@ -56,6 +56,7 @@ from polarface.inverse.polarimetric_fused import (
 from polarface.inverse.polarimetric_init import init_albedos, init_eta, nan_median_filter
 from polarface.inverse.polarimetric_losses import data_losses, laplacian_penalty, smoothness_penalty
 from polarface.inverse.polarimetric_model import SampleBatch, precompute_samples, render_samples
+from polarface.inverse.polarimetric_step import optimise_patch_fused
 from polarface.texture.unwrap import TexelGeometry, UnwrapStore, ViewSpec
 
 __all__ = [
@@ -208,10 +209,14 @@ class _PatchProblem:
         self.texel_count = int(self.mask.sum())
         self._height_normals: HeightNormals | None = None
 
-    def normals(self, height: torch.Tensor) -> torch.Tensor:
-        if self._height_normals is None:  # H-independent terms, built once per patch
+    def height_normals(self) -> HeightNormals:
+        """The patch's normals-from-H operator (H-independent terms, built once)."""
+        if self._height_normals is None:
             self._height_normals = HeightNormals.build(*self.frame, self.mask)
-        return self._height_normals(height).reshape(-1, 3)
+        return self._height_normals
+
+    def normals(self, height: torch.Tensor) -> torch.Tensor:
+        return self.height_normals()(height).reshape(-1, 3)
 
     def loss(self, raw: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, float]]:
         maps = maps_from_raw(raw, self.config)
@@ -273,11 +278,17 @@ def optimise_patch(
     raw: dict[str, torch.Tensor],
     config: PolarimetricConfig,
     curve: list[float] | None = None,
+    *,
+    fused_steps: bool = True,
 ) -> dict[str, torch.Tensor]:
-    """Run the optimiser on one patch; returns detached raw variables."""
-    leaves = {k: v.detach().clone().requires_grad_(True) for k, v in raw.items()}
-    optimizer = _optimizer(list(leaves.values()), config)
+    """Run the optimiser on one patch; returns detached raw variables.
+
+    With fused samples on the CPU and RMSprop, the whole step runs in numba
+    (:func:`polarface.inverse.polarimetric_step.optimise_patch_fused`, the same mathematics without the
+    torch glue); otherwise torch autograd drives ``problem.loss``.
+    """
     steps = int(config.iterations)
+    learning_rates = []
     for step in range(steps):
         # RMSprop's first steps are ~10 lr (its running mean starts at 0): a short linear warm-up
         warm = min(1.0, (step + 1) / max(config.warmup, 1))
@@ -285,8 +296,15 @@ def optimise_patch(
             config.lr_final_fraction
             + (1 - config.lr_final_fraction) * 0.5 * (1 + math.cos(math.pi * step / max(steps, 1)))
         )
+        learning_rates.append(config.lr * fraction)
+    on_cpu = all(v.device.type == "cpu" for v in raw.values())
+    if problem.fused is not None and config.optimizer == "rmsprop" and on_cpu and fused_steps:
+        return optimise_patch_fused(problem, raw, config, learning_rates, curve)
+    leaves = {k: v.detach().clone().requires_grad_(True) for k, v in raw.items()}
+    optimizer = _optimizer(list(leaves.values()), config)
+    for step, lr in enumerate(learning_rates):
         for group in optimizer.param_groups:
-            group["lr"] = config.lr * fraction
+            group["lr"] = lr
         optimizer.zero_grad(set_to_none=True)
         total, _ = problem.loss(leaves)
         total.backward()

@@ -1,0 +1,294 @@
+"""Whole optimiser steps of one patch on the CPU, without torch (the fused engine's hot loop).
+
+An RMSprop step of :func:`polarface.inverse.polarimetric_fit.optimise_patch` is: raw variables ->
+maps (:func:`~polarface.inverse.polarimetric_config.maps_from_raw`) -> normals from H
+(:class:`~polarface.geometry.heights.HeightNormals`) -> data loss (the fused kernel,
+:mod:`polarface.inverse.polarimetric_kernel`) + regularisers (H^2, (Laplacian H)^2, 5x5 smoothness of
+eta, alpha_s, alpha_ss; :mod:`polarface.inverse.polarimetric_losses`) -> gradient -> RMSprop update.
+Once the data loss ran in the kernel, the rest — about a hundred small torch operations and their
+autograd graph — cost a quarter of a step. Here the same mathematics runs in two numba functions around
+the kernel: :func:`_forward` (reparameterisation and normals, packed for the kernel) and
+:func:`_backward` (regularisers and their gradient, the chain rule back to the raw variables, and
+torch's RMSprop update with its defaults ``alpha = 0.99, eps = 1e-8``). Tests compare the trajectory
+with the torch implementation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+
+from polarface.inverse.polarimetric_kernel import fused_loss_and_grad
+
+__all__ = ["RAW_LAYOUT", "optimise_patch_fused"]
+
+#: Channels of the packed raw array ``(h, w, 12)``.
+RAW_LAYOUT = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "rho_sss_bar", "displacement_mm")
+_CHANNELS = (1, 1, 1, 1, 1, 6, 1)
+_JIT = {"cache": True, "error_model": "numpy", "nogil": True}
+_RMS_ALPHA, _RMS_EPS = 0.99, 1e-8
+
+
+@numba.njit(**_JIT)
+def _sigmoid(x):
+    return 1.0 / (1.0 + math.exp(-x))
+
+
+@numba.njit(**_JIT)
+def _unnormalised_normal(height, i, j, stencil_u, stencil_v, constant, per_dh_dv, per_dh_du):
+    """``n~`` of texel ``(i, j)`` (:class:`~polarface.geometry.heights.HeightNormals`)."""
+    rows, cols = height.shape
+    up = height[i - 1, j] if i > 0 else 0.0
+    down = height[i + 1, j] if i < rows - 1 else 0.0
+    left = height[i, j - 1] if j > 0 else 0.0
+    right = height[i, j + 1] if j < cols - 1 else 0.0
+    dh_du = stencil_u[0, i, j] * right + stencil_u[1, i, j] * height[i, j] + stencil_u[2, i, j] * left
+    dh_dv = stencil_v[0, i, j] * down + stencil_v[1, i, j] * height[i, j] + stencil_v[2, i, j] * up
+    return (
+        constant[i, j, 0] + dh_dv * per_dh_dv[i, j, 0] + dh_du * per_dh_du[i, j, 0],
+        constant[i, j, 1] + dh_dv * per_dh_dv[i, j, 1] + dh_du * per_dh_du[i, j, 1],
+        constant[i, j, 2] + dh_dv * per_dh_dv[i, j, 2] + dh_du * per_dh_du[i, j, 2],
+    )
+
+
+@numba.njit(**_JIT)
+def _forward(
+    raw, ranges, stencil_u, stencil_v, constant, per_dh_dv, per_dh_du, base_normal, keep_base, params
+):
+    """Fill ``params (h w, 14)`` (kernel layout) from ``raw (h, w, 12)``; returns the heights ``(h, w)``."""
+    e_lo, e_hi, a_lo, a_hi, rho_max, h_scale = ranges
+    rows, cols = raw.shape[0], raw.shape[1]
+    height = np.empty((rows, cols))
+    for i in range(rows):
+        for j in range(cols):
+            height[i, j] = h_scale * raw[i, j, 11]
+    tiny = np.finfo(params.dtype).tiny
+    for i in range(rows):
+        for j in range(cols):
+            t = i * cols + j
+            nx, ny, nz = _unnormalised_normal(
+                height, i, j, stencil_u, stencil_v, constant, per_dh_dv, per_dh_du
+            )
+            squared = nx * nx + ny * ny + nz * nz
+            if keep_base[i, j] or squared <= tiny:
+                nx, ny, nz = base_normal[i, j, 0], base_normal[i, j, 1], base_normal[i, j, 2]
+            else:
+                inv = 1.0 / math.sqrt(squared)
+                nx, ny, nz = nx * inv, ny * inv, nz * inv
+            alpha_s = a_lo + (a_hi - a_lo) * _sigmoid(raw[i, j, 1])
+            params[t, 0], params[t, 1], params[t, 2] = nx, ny, nz
+            params[t, 3] = e_lo + (e_hi - e_lo) * _sigmoid(raw[i, j, 0])
+            params[t, 4] = alpha_s
+            params[t, 5] = alpha_s + (a_hi - alpha_s) * _sigmoid(raw[i, j, 2])
+            params[t, 6] = rho_max * _sigmoid(raw[i, j, 3])
+            params[t, 7] = rho_max * _sigmoid(raw[i, j, 4])
+            for c in range(6):
+                params[t, 8 + c] = _sigmoid(raw[i, j, 5 + c])
+    return height
+
+
+@numba.njit(**_JIT)
+def _smoothness(values, mask, count, weight, grad):
+    """``weight sum_valid (x - mean_5x5(x))^2`` (mean over the window's valid texels, ``count`` of them);
+    adds its gradient to ``grad``."""
+    rows, cols = values.shape
+    residual = np.zeros((rows, cols))
+    total = 0.0
+    for i in range(rows):
+        for j in range(cols):
+            if not mask[i, j]:
+                continue
+            acc = 0.0
+            for a in range(max(i - 2, 0), min(i + 3, rows)):
+                for b in range(max(j - 2, 0), min(j + 3, cols)):
+                    if mask[a, b]:
+                        acc += values[a, b]
+            residual[i, j] = values[i, j] - acc / max(count[i, j], 1e-12)
+            total += residual[i, j] * residual[i, j]
+    for i in range(rows):
+        for j in range(cols):
+            if not mask[i, j]:
+                continue
+            spread = 0.0  # through the means of the windows that contain (i, j)
+            for a in range(max(i - 2, 0), min(i + 3, rows)):
+                for b in range(max(j - 2, 0), min(j + 3, cols)):
+                    if mask[a, b]:
+                        spread += residual[a, b] / max(count[a, b], 1e-12)
+            grad[i, j] += weight * 2.0 * (residual[i, j] - spread)
+    return weight * total
+
+
+@numba.njit(**_JIT)
+def _backward(
+    raw, square_avg, params, data_grad, data_loss, height, mask, count, lap_valid, reg_weights, ranges,
+    inv_texels, stencil_u, stencil_v, constant, per_dh_dv, per_dh_du, keep_base, lr,
+):  # fmt: skip
+    """Regularisers, gradient w.r.t. ``raw`` and the RMSprop update (in place); returns the total loss."""
+    e_lo, e_hi, a_lo, a_hi, rho_max, h_scale = ranges
+    w_ht, w_hl, w_eta, w_as, w_ass = reg_weights
+    rows, cols = raw.shape[0], raw.shape[1]
+    g_maps = np.zeros((3, rows, cols))  # regulariser gradients of eta, alpha_s, alpha_ss
+    g_h = np.zeros((rows, cols))
+    maps = np.empty((3, rows, cols))
+    for i in range(rows):
+        for j in range(cols):
+            for q in range(3):
+                maps[q, i, j] = params[i * cols + j, 3 + q]
+    total = data_loss
+    total += _smoothness(maps[0], mask, count, w_eta, g_maps[0])
+    total += _smoothness(maps[1], mask, count, w_as, g_maps[1])
+    total += _smoothness(maps[2], mask, count, w_ass, g_maps[2])
+    tiny = np.finfo(params.dtype).tiny
+    for i in range(rows):
+        for j in range(cols):
+            if mask[i, j]:
+                total += w_ht * height[i, j] * height[i, j]
+                g_h[i, j] += 2.0 * w_ht * height[i, j]
+            if lap_valid[i, j]:
+                lap = (
+                    height[i - 1, j]
+                    + height[i + 1, j]
+                    + height[i, j - 1]
+                    + height[i, j + 1]
+                    - 4.0 * height[i, j]
+                )
+                total += w_hl * lap * lap
+                g = 2.0 * w_hl * lap
+                g_h[i - 1, j] += g
+                g_h[i + 1, j] += g
+                g_h[i, j - 1] += g
+                g_h[i, j + 1] += g
+                g_h[i, j] -= 4.0 * g
+            if keep_base[i, j]:
+                continue
+            # data gradient of the unit normal -> n~ -> (dH/du, dH/dv) -> H (transposed stencils)
+            t = i * cols + j
+            nx, ny, nz = _unnormalised_normal(
+                height, i, j, stencil_u, stencil_v, constant, per_dh_dv, per_dh_du
+            )
+            squared = nx * nx + ny * ny + nz * nz
+            if squared <= tiny:
+                continue
+            inv = 1.0 / math.sqrt(squared)
+            nx, ny, nz = nx * inv, ny * inv, nz * inv
+            gx, gy, gz = data_grad[t, 0], data_grad[t, 1], data_grad[t, 2]
+            along = nx * gx + ny * gy + nz * gz
+            gx, gy, gz = (gx - along * nx) * inv, (gy - along * ny) * inv, (gz - along * nz) * inv  # d/dn~
+            g_du = gx * per_dh_du[i, j, 0] + gy * per_dh_du[i, j, 1] + gz * per_dh_du[i, j, 2]
+            g_dv = gx * per_dh_dv[i, j, 0] + gy * per_dh_dv[i, j, 1] + gz * per_dh_dv[i, j, 2]
+            g_h[i, j] += stencil_u[1, i, j] * g_du + stencil_v[1, i, j] * g_dv
+            if j < cols - 1:
+                g_h[i, j + 1] += stencil_u[0, i, j] * g_du
+            if j > 0:
+                g_h[i, j - 1] += stencil_u[2, i, j] * g_du
+            if i < rows - 1:
+                g_h[i + 1, j] += stencil_v[0, i, j] * g_dv
+            if i > 0:
+                g_h[i - 1, j] += stencil_v[2, i, j] * g_dv
+    # chain rule to the raw variables (every term carries the loss's 1 / texel_count) and RMSprop
+    grad = np.empty(12)
+    for i in range(rows):
+        for j in range(cols):
+            t = i * cols + j
+            s_eta = _sigmoid(raw[i, j, 0])
+            s_as = _sigmoid(raw[i, j, 1])
+            s_ass = _sigmoid(raw[i, j, 2])
+            alpha_s = params[t, 4]
+            g_eta = data_grad[t, 3] * inv_texels + g_maps[0, i, j] * inv_texels
+            g_alpha_ss = data_grad[t, 5] * inv_texels + g_maps[2, i, j] * inv_texels
+            g_alpha_s = (
+                data_grad[t, 4] * inv_texels + g_maps[1, i, j] * inv_texels + g_alpha_ss * (1.0 - s_ass)
+            )
+            grad[0] = g_eta * (e_hi - e_lo) * s_eta * (1.0 - s_eta)
+            grad[1] = g_alpha_s * (a_hi - a_lo) * s_as * (1.0 - s_as)
+            grad[2] = g_alpha_ss * (a_hi - alpha_s) * s_ass * (1.0 - s_ass)
+            for q in range(2):
+                s = _sigmoid(raw[i, j, 3 + q])
+                grad[3 + q] = data_grad[t, 6 + q] * inv_texels * rho_max * s * (1.0 - s)
+            for c in range(6):
+                s = _sigmoid(raw[i, j, 5 + c])
+                grad[5 + c] = data_grad[t, 8 + c] * inv_texels * s * (1.0 - s)
+            grad[11] = g_h[i, j] * inv_texels * h_scale
+            for q in range(12):
+                avg = _RMS_ALPHA * square_avg[i, j, q] + (1.0 - _RMS_ALPHA) * grad[q] * grad[q]
+                square_avg[i, j, q] = avg
+                raw[i, j, q] -= lr * grad[q] / (math.sqrt(avg) + _RMS_EPS)
+    return total * inv_texels
+
+
+def _pack(raw: dict[str, torch.Tensor]) -> np.ndarray:
+    return np.ascontiguousarray(
+        np.concatenate([raw[name].detach().cpu().numpy() for name in RAW_LAYOUT], axis=-1)
+    )
+
+
+def _unpack(packed: np.ndarray, like: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    out, start = {}, 0
+    for name, width in zip(RAW_LAYOUT, _CHANNELS, strict=True):
+        out[name] = torch.from_numpy(packed[..., start : start + width].copy()).to(like[name])
+        start += width
+    return out
+
+
+def optimise_patch_fused(problem, raw: dict[str, torch.Tensor], config, learning_rates, curve=None):
+    """RMSprop on one patch with the fused kernel (same steps as the torch glue; module docstring).
+
+    Args:
+        problem: a ``polarimetric_fit._PatchProblem`` with fused samples; raw: raw variables
+            ``(h, w, 1)`` / ``(h, w, 6)`` per :data:`RAW_LAYOUT` name; config: ``PolarimetricConfig``.
+        learning_rates: one learning rate per step (the caller's schedule).
+        curve: optional list, ``curve[step] +=`` the step's total loss (as ``optimise_patch``).
+
+    Returns:
+        The final raw variables (detached tensors like ``raw``).
+    """
+    samples = problem.fused
+    operator = problem.height_normals()
+    dtype = np.dtype(np.float32) if raw["eta"].dtype == torch.float32 else np.dtype(np.float64)
+    samples = samples if samples.observed.dtype == dtype else samples.astype(dtype)
+    numpy = lambda x: np.ascontiguousarray(x.detach().cpu().numpy())  # noqa: E731
+    mask = numpy(problem.mask).astype(bool)
+    rows, cols = mask.shape
+    count = np.zeros((rows, cols))
+    padded = np.pad(mask.astype(np.float64), 2)
+    for a in range(5):
+        for b in range(5):
+            count += padded[a : a + rows, b : b + cols]
+    lap_valid = np.zeros_like(mask)
+    if min(rows, cols) >= 3:
+        lap_valid[1:-1, 1:-1] = (
+            mask[1:-1, 1:-1] & mask[:-2, 1:-1] & mask[2:, 1:-1] & mask[1:-1, :-2] & mask[1:-1, 2:]
+        )
+    geometry = (
+        numpy(operator.weights_u), numpy(operator.weights_v), numpy(operator.constant),
+        numpy(operator.per_dh_dv), numpy(operator.per_dh_du),
+    )  # fmt: skip
+    base_normal = numpy(operator.normal)
+    keep_base = numpy(operator.keep_base[..., 0])
+    w = config.weights
+    ranges = (*config.eta_range, *config.alpha_range, config.rho_max, config.h_scale_mm)
+    reg_weights = (w.h_temporal, w.h_laplacian, w.eta, w.alpha_s, w.alpha_ss)
+    data_weights = (w.sss, w.s, w.phi, w.psi)
+    inv_texels = 1.0 / max(problem.texel_count, 1)
+    packed = _pack(raw).astype(dtype)
+    square_avg = np.zeros_like(packed)
+    params = np.empty((rows * cols, 14), dtype=dtype)
+    for step, lr in enumerate(learning_rates):
+        height = _forward(packed, ranges, *geometry, base_normal, keep_base, params)
+        loss, data_grad, _ = fused_loss_and_grad(
+            samples.offsets, samples.position, params, samples.sample_view, samples.sample_lit,
+            samples.observed, samples.view_center, samples.view_up, samples.view_ref_up, samples.light_pos,
+            samples.light_intensity, samples.view_channels, data_weights, problem.scale,
+        )  # fmt: skip
+        total = _backward(
+            packed, square_avg, params, data_grad, float(loss.sum(dtype=np.float64)), height, mask, count,
+            lap_valid, reg_weights, ranges, inv_texels, *geometry, keep_base, float(lr),
+        )  # fmt: skip
+        if curve is not None:
+            if len(curve) <= step:
+                curve.append(0.0)
+            curve[step] += float(total)
+    return _unpack(packed, raw)
