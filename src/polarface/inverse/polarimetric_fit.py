@@ -149,8 +149,8 @@ class PolarimetricFit:
 
     Attributes:
         maps: name -> ``(Ht, Wt)`` float32 (``rho_sss_bar``: ``(Ht, Wt, 6)``).
-        mask: ``(Ht, Wt)`` bool texels seen by at least ``config.min_views`` fitting views and at least
-            ``config.boundary_margin`` texels inside the atlas coverage.
+        mask: ``(Ht, Wt)`` bool texels seen by at least ``config.min_views`` fitting views, at least
+            ``config.boundary_margin`` texels inside the region of such texels.
         loss_curve: mean total loss per iteration (averaged over patches).
         timings: seconds per phase; throughput: texel-view iterations per second of the optimisation.
         sample_count: samples (texel x view) fitted; patches: number of patches.
@@ -518,13 +518,10 @@ def _fit(
             f"no texel is seen by min_views={config.min_views} fitting views (most: {int(view_count.max())})"
         )
     if int(config.boundary_margin) > 0:
-        interior = ndimage.binary_erosion(
-            np.asarray(unwrap.root["texel/mask"][...]), iterations=int(config.boundary_margin), border_value=0
-        )
-        mask_seen &= interior
+        mask_seen &= ndimage.binary_erosion(mask_seen, iterations=int(config.boundary_margin), border_value=0)
         if not mask_seen.any():
             raise ValueError(
-                f"no texel is left inside boundary_margin={config.boundary_margin} of the atlas coverage"
+                f"no texel lies boundary_margin={config.boundary_margin} inside the reconstructed region"
             )
     patches_fitted = max(len(patches), 1)
     curve_mean = [v / patches_fitted for v in curve]
