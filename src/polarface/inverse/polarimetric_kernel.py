@@ -157,18 +157,29 @@ def _view_terms(work, count, tiny):
         work[_GSSO, i], work[_GSSO_C, i], work[_GSSO_A, i] = gss_o, gss_o_dc, gss_o_da
 
 
-def _forward_lights(work, count, light_count, tiny):
-    """Accumulate the specular Stokes ``(3 channels x 3)`` and the entry flux per channel over lights."""
-    for row in range(_SPEC, _FLUX + 3):
+def _zero_rows(work, first, last, count):
+    for row in range(first, last):
         for i in range(count):
             work[row, i] = F(0.0)
+
+
+def _current_light(work, i, tiny):
+    """:func:`_light` of sample ``i`` for the light loaded by :func:`_load_light`."""
+    return _light(
+        work[_LIGHT, i], work[_LIGHT + 1, i], work[_LIGHT + 2, i], work[_LIGHT + 6, i],
+        _geometry(work, i), _texel(work, i), _exit_terms(work, i), tiny,
+    )  # fmt: skip
+
+
+def _forward_lights(work, count, light_count, tiny):
+    """Accumulate the specular Stokes ``(3 channels x 3)`` and the entry flux per channel over lights."""
+    _zero_rows(work, _SPEC, _FLUX + 3, count)
     for k in range(light_count):
         _load_light(work, count, k)
         for i in range(count):
-            (wl, sp0, sp1, sp2, _, _, _, lobe, _, _, _, _, _, _, _, _, entry, _, _, _, _) = _light(
-                work[_LIGHT, i], work[_LIGHT + 1, i], work[_LIGHT + 2, i], work[_LIGHT + 6, i],
-                _geometry(work, i), _texel(work, i), _exit_terms(work, i), tiny,
-            )  # fmt: skip
+            (wl, sp0, sp1, sp2, _, _, _, lobe, _, _, _, _, _, _, _, _, entry, _, _, _, _) = _current_light(
+                work, i, tiny
+            )
             # the three channels written out: an inner loop would be vectorised instead of this one
             i0 = work[_LIGHT + 3, i] * wl
             i1 = work[_LIGHT + 4, i] * wl
@@ -267,19 +278,14 @@ def _losses(work, count, constants, tiny):
 
 def _reverse_lights(work, count, light_count, tiny):
     """Accumulate the parameter gradients through every light (rows _LACC..+8); vectorised over samples."""
-    for row in range(_LACC, _LACC + 9):
-        for i in range(count):
-            work[row, i] = F(0.0)
+    _zero_rows(work, _LACC, _LACC + 9, count)
     for k in range(light_count):
         _load_light(work, count, k)
         for i in range(count):
             (
                 wl, sp0, sp1, sp2, dsp0, dsp1, dsp2, lobe, dl_nx, dl_ny, dl_nz, dl_co, dl_as, dl_ass,
                 dl_rs, dl_rss, _, de_nx, de_ny, de_nz, de_eta,
-            ) = _light(
-                work[_LIGHT, i], work[_LIGHT + 1, i], work[_LIGHT + 2, i], work[_LIGHT + 6, i],
-                _geometry(work, i), _texel(work, i), _exit_terms(work, i), tiny,
-            )  # fmt: skip
+            ) = _current_light(work, i, tiny)  # fmt: skip
             i0 = work[_LIGHT + 3, i] * wl
             i1 = work[_LIGHT + 4, i] * wl
             i2 = work[_LIGHT + 5, i] * wl
@@ -389,8 +395,8 @@ def _compile(float_type) -> numba.core.registry.CPUDispatcher:
     namespace["F"] = float_type
     helpers = (
         "_fresnel", "_ggx", "_g1_over_cos", "_cos2_sin2", "_double_angle", "_light", "_geometry",
-        "_texel", "_exit_terms", "_view_terms", "_load_light", "_forward_lights", "_channel", "_losses",
-        "_reverse_lights",
+        "_texel", "_exit_terms", "_view_terms", "_load_light", "_zero_rows", "_current_light",
+        "_forward_lights", "_channel", "_losses", "_reverse_lights",
     )  # fmt: skip
     for name in helpers:
         source = globals()[name]
