@@ -165,6 +165,16 @@ def test_bad_input_clear_error_and_nothing_written(sim, tmp_path, capsys):
     assert main(_args(sim, out)) == 2
 
 
+def test_reconstruct_with_lobe_refinement(sim, tmp_path):
+    out = tmp_path / "refined"
+    assert main(_args(sim, out, "--iterations", "20", "--refine-lobes", "1")) == 0
+    stage = json.loads((out / "result.json").read_text())["stages"]["polarimetric"]
+    assert stage["config"]["refine_lobes_iterations"] == 1 and stage["timings"]["refine_s"] > 0
+    for name in ("alpha_s", "alpha_ss", "rho_s", "rho_ss"):
+        assert np.isfinite(read_exr(out / "maps" / f"{name}.exr")["Y"]).all()
+    assert main(_args(sim, tmp_path / "bad", "--refine-lobes", "-1")) == 2
+
+
 def test_bench_smoke(capsys):
     assert (
         main(

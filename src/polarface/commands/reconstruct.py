@@ -82,6 +82,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lr", type=float, default=None, help="learning rate (default 0.03)")
     parser.add_argument("--optimizer", choices=("rmsprop", "adam"), default=None)
     parser.add_argument(
+        "--refine-lobes",
+        type=int,
+        default=None,
+        metavar="N",
+        help="Levenberg-Marquardt iterations on the lobe maps after each patch (default 0; see docs)",
+    )
+    parser.add_argument(
         "--holdout-every",
         type=int,
         default=4,
@@ -348,7 +355,12 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"argument '--holdout-every' must be 0 or >= 2; got {args.holdout_every}")
     options = {
         k: v
-        for k, v in (("iterations", args.iterations), ("lr", args.lr), ("optimizer", args.optimizer))
+        for k, v in (
+            ("iterations", args.iterations),
+            ("lr", args.lr),
+            ("optimizer", args.optimizer),
+            ("refine_lobes_iterations", args.refine_lobes),
+        )
         if v is not None
     }
     ctx = ReconstructContext(

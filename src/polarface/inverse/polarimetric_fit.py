@@ -20,7 +20,10 @@ all its fitting samples in memory; the patch side is chosen so that the sample c
 ``sample_budget``, hence memory does not grow with the number of views. Starts per texel (closed form, on
 the patch's samples): eta from a grid search of the signed DoP ratio ``I_zeta / I_sss`` (independent of
 albedos and lighting), rho_sss_bar by linear least squares on I_sss, and (alpha_s, rho_s) by a grid over
-alpha_s with rho_s in closed form on the I_s residual. Deterministic for a seed (the
+alpha_s with rho_s in closed form on the I_s residual. After each patch's optimisation,
+``config.refine_lobes_iterations`` Levenberg-Marquardt iterations on the four lobe maps
+(:mod:`polarface.inverse.polarimetric_refine`) move the patch-wide alpha_s mode that RMSprop leaves
+where the start put it. Deterministic for a seed (the
 order of patches is fixed; nothing is random except an optional sample shuffle seeded by ``seed``).
 Checkpoints after every patch allow an interrupted run to resume to identical maps.
 """
@@ -56,6 +59,7 @@ from polarface.inverse.polarimetric_fused import (
 from polarface.inverse.polarimetric_init import init_albedos, init_eta, nan_median_filter
 from polarface.inverse.polarimetric_losses import data_losses, laplacian_penalty, smoothness_penalty
 from polarface.inverse.polarimetric_model import SampleBatch, precompute_samples, render_samples
+from polarface.inverse.polarimetric_refine import refine_patch_lobes
 from polarface.inverse.polarimetric_step import optimise_patch_fused
 from polarface.texture.unwrap import TexelGeometry, UnwrapStore, ViewSpec
 
@@ -411,7 +415,7 @@ def _fit(
                 curve = [float(v) for v in state["curve"]]
     dtype = torch.float32
     halo = config.halo
-    samples_total, opt_seconds, opt_work = 0, 0.0, 0.0
+    samples_total, opt_seconds, opt_work, refine_seconds = 0, 0.0, 0.0, 0.0
     mask_seen = np.zeros((height, width), bool)
     newly = 0
     bar = tqdm(total=len(patches), desc="polarimetric fit", unit="patch", disable=not progress)
@@ -468,11 +472,20 @@ def _fit(
                 patch_raw["rho_s"] = torch.where(todo_t[..., None], new_s, patch_raw["rho_s"])
             sample_count = batch.count
             seen_texels = batch.texel.cpu().numpy()
-            if use_fused:  # the reference batch served the closed-form starts only: free it
+            # the reference batch serves the closed-form starts and the lobe refinement only
+            reference = batch if config.refine_lobes_iterations > 0 else None
+            if use_fused:
                 problem.batch = batch = None
             tick = time.perf_counter()
             result = optimise_patch(problem, patch_raw, config, curve)
             opt_seconds += time.perf_counter() - tick
+            if reference is not None:  # Levenberg-Marquardt on the four lobe maps (issue 6)
+                tick = time.perf_counter()
+                with torch.no_grad():
+                    normal = problem.normals(maps_from_raw(result, config)["displacement_mm"][..., 0])
+                result = refine_patch_lobes(reference, result, normal, problem.mask, config, scale)
+                refine_seconds += time.perf_counter() - tick
+                reference = None
             opt_work += sample_count * int(config.iterations)
             samples_total += sample_count
             ir = slice(rows.start - r0, rows.stop - r0)
@@ -525,7 +538,7 @@ def _fit(
             )
     patches_fitted = max(len(patches), 1)
     curve_mean = [v / patches_fitted for v in curve]
-    timings = {"fit_s": time.perf_counter() - started, "optimise_s": opt_seconds}
+    timings = {"fit_s": time.perf_counter() - started, "optimise_s": opt_seconds, "refine_s": refine_seconds}
     throughput = opt_work / opt_seconds if opt_seconds > 0 else 0.0
     return PolarimetricFit(
         _to_maps(raw, config),
