@@ -20,10 +20,10 @@ all its fitting samples in memory; the patch side is chosen so that the sample c
 ``sample_budget``, hence memory does not grow with the number of views. Starts per texel (closed form, on
 the patch's samples): eta from a grid search of the signed DoP ratio ``I_zeta / I_sss`` (independent of
 albedos and lighting), rho_sss_bar by linear least squares on I_sss, and (alpha_s, rho_s) by a grid over
-alpha_s with rho_s in closed form on the I_s residual. After each patch's optimisation,
-``config.refine_lobes_iterations`` Levenberg-Marquardt iterations on the four lobe maps
-(:mod:`polarface.inverse.polarimetric_refine`) move the patch-wide alpha_s mode that RMSprop leaves
-where the start put it. Deterministic for a seed (the
+alpha_s with rho_s in closed form on the I_s residual. Optionally (``config.refine_lobes_iterations``,
+default 0) Levenberg-Marquardt iterations on the four lobe maps
+(:mod:`polarface.inverse.polarimetric_refine`) follow each patch's optimisation: they move the
+patch-wide alpha_s mode that RMSprop leaves where the start put it. Deterministic for a seed (the
 order of patches is fixed; nothing is random except an optional sample shuffle seeded by ``seed``).
 Checkpoints after every patch allow an interrupted run to resume to identical maps.
 """
