@@ -16,11 +16,13 @@ with the torch implementation.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numba
 import numpy as np
 import torch
 
+from polarface.inverse.polarimetric_config import PolarimetricConfig
 from polarface.inverse.polarimetric_kernel import fused_loss_and_grad
 
 __all__ = ["RAW_LAYOUT", "optimise_patch_fused"]
@@ -233,7 +235,13 @@ def _unpack(packed: np.ndarray, like: dict[str, torch.Tensor]) -> dict[str, torc
     return out
 
 
-def optimise_patch_fused(problem, raw: dict[str, torch.Tensor], config, learning_rates, curve=None):
+def optimise_patch_fused(
+    problem,
+    raw: dict[str, torch.Tensor],
+    config: PolarimetricConfig,
+    learning_rates: Sequence[float],
+    curve: list[float] | None = None,
+) -> dict[str, torch.Tensor]:
     """RMSprop on one patch with the fused kernel (same steps as the torch glue; module docstring).
 
     Args:
