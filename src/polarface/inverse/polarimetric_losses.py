@@ -25,12 +25,13 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import torch
 from torch.nn import functional
 
 from polarface.inverse.polarimetric_model import SamplePrediction
 
-__all__ = ["LossWeights", "data_losses", "laplacian_penalty", "smoothness_penalty"]
+__all__ = ["LossWeights", "data_losses", "laplacian_penalty", "laplacian_support", "smoothness_penalty"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,5 +118,10 @@ def laplacian_penalty(height: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         return height.sum() * 0.0
     centre = height[1:-1, 1:-1]
     lap = height[:-2, 1:-1] + height[2:, 1:-1] + height[1:-1, :-2] + height[1:-1, 2:] - 4.0 * centre
-    valid = mask[1:-1, 1:-1] & mask[:-2, 1:-1] & mask[2:, 1:-1] & mask[1:-1, :-2] & mask[1:-1, 2:]
-    return ((lap * lap) * valid.to(height.dtype)).sum()
+    return ((lap * lap) * laplacian_support(mask).to(height.dtype)).sum()
+
+
+def laplacian_support(mask: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
+    """``(h - 2, w - 2)`` bool: interior texels whose 4 neighbours are all valid (where
+    :func:`laplacian_penalty` counts); torch tensor or numpy array in, same kind out."""
+    return mask[1:-1, 1:-1] & mask[:-2, 1:-1] & mask[2:, 1:-1] & mask[1:-1, :-2] & mask[1:-1, 2:]
