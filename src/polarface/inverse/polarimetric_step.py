@@ -24,6 +24,7 @@ import torch
 
 from polarface.inverse.polarimetric_config import PolarimetricConfig
 from polarface.inverse.polarimetric_kernel import fused_loss_and_grad
+from polarface.inverse.polarimetric_losses import laplacian_support
 
 __all__ = ["RAW_LAYOUT", "optimise_patch_fused"]
 
@@ -60,13 +61,16 @@ def _unnormalised_normal(height, i, j, stencil_u, stencil_v, constant, per_dh_dv
 def _forward(
     raw, ranges, stencil_u, stencil_v, constant, per_dh_dv, per_dh_du, base_normal, keep_base, params
 ):
-    """Fill ``params (h w, 14)`` (kernel layout) from ``raw (h, w, 12)``; returns the heights ``(h, w)``."""
+    """Fill ``params (h w, 14)`` (kernel layout) from ``raw (h, w, 12)``; returns the heights ``(h, w)`` and
+    ``(h, w, 4)`` float64 unit normals with ``1 / |n~|`` (0 where the base normal is kept) for the
+    backward pass."""
     e_lo, e_hi, a_lo, a_hi, rho_max, h_scale = ranges
     rows, cols = raw.shape[0], raw.shape[1]
     height = np.empty((rows, cols))
     for i in range(rows):
         for j in range(cols):
             height[i, j] = h_scale * raw[i, j, 11]
+    unit = np.zeros((rows, cols, 4))
     tiny = np.finfo(params.dtype).tiny
     for i in range(rows):
         for j in range(cols):
@@ -80,6 +84,7 @@ def _forward(
             else:
                 inv = 1.0 / math.sqrt(squared)
                 nx, ny, nz = nx * inv, ny * inv, nz * inv
+                unit[i, j, 0], unit[i, j, 1], unit[i, j, 2], unit[i, j, 3] = nx, ny, nz, inv
             alpha_s = a_lo + (a_hi - a_lo) * _sigmoid(raw[i, j, 1])
             params[t, 0], params[t, 1], params[t, 2] = nx, ny, nz
             params[t, 3] = e_lo + (e_hi - e_lo) * _sigmoid(raw[i, j, 0])
@@ -89,7 +94,7 @@ def _forward(
             params[t, 7] = rho_max * _sigmoid(raw[i, j, 4])
             for c in range(6):
                 params[t, 8 + c] = _sigmoid(raw[i, j, 5 + c])
-    return height
+    return height, unit
 
 
 @numba.njit(**_JIT)
@@ -125,8 +130,8 @@ def _smoothness(values, mask, count, weight, grad):
 
 @numba.njit(**_JIT)
 def _backward(
-    raw, square_avg, params, data_grad, data_loss, height, mask, count, lap_valid, reg_weights, ranges,
-    inv_texels, stencil_u, stencil_v, constant, per_dh_dv, per_dh_du, keep_base, lr,
+    raw, square_avg, params, data_grad, data_loss, height, unit, mask, count, lap_valid, reg_weights,
+    ranges, inv_texels, stencil_u, stencil_v, per_dh_dv, per_dh_du, lr,
 ):  # fmt: skip
     """Regularisers, gradient w.r.t. ``raw`` and the RMSprop update (in place); returns the total loss."""
     e_lo, e_hi, a_lo, a_hi, rho_max, h_scale = ranges
@@ -143,7 +148,6 @@ def _backward(
     total += _smoothness(maps[0], mask, count, w_eta, g_maps[0])
     total += _smoothness(maps[1], mask, count, w_as, g_maps[1])
     total += _smoothness(maps[2], mask, count, w_ass, g_maps[2])
-    tiny = np.finfo(params.dtype).tiny
     for i in range(rows):
         for j in range(cols):
             if mask[i, j]:
@@ -164,18 +168,12 @@ def _backward(
                 g_h[i, j - 1] += g
                 g_h[i, j + 1] += g
                 g_h[i, j] -= 4.0 * g
-            if keep_base[i, j]:
+            inv = unit[i, j, 3]
+            if inv == 0.0:  # base normal kept: no dependence on H
                 continue
             # data gradient of the unit normal -> n~ -> (dH/du, dH/dv) -> H (transposed stencils)
             t = i * cols + j
-            nx, ny, nz = _unnormalised_normal(
-                height, i, j, stencil_u, stencil_v, constant, per_dh_dv, per_dh_du
-            )
-            squared = nx * nx + ny * ny + nz * nz
-            if squared <= tiny:
-                continue
-            inv = 1.0 / math.sqrt(squared)
-            nx, ny, nz = nx * inv, ny * inv, nz * inv
+            nx, ny, nz = unit[i, j, 0], unit[i, j, 1], unit[i, j, 2]
             gx, gy, gz = data_grad[t, 0], data_grad[t, 1], data_grad[t, 2]
             along = nx * gx + ny * gy + nz * gz
             gx, gy, gz = (gx - along * nx) * inv, (gy - along * ny) * inv, (gz - along * nz) * inv  # d/dn~
@@ -267,13 +265,10 @@ def optimise_patch_fused(
             count += padded[a : a + rows, b : b + cols]
     lap_valid = np.zeros_like(mask)
     if min(rows, cols) >= 3:
-        lap_valid[1:-1, 1:-1] = (
-            mask[1:-1, 1:-1] & mask[:-2, 1:-1] & mask[2:, 1:-1] & mask[1:-1, :-2] & mask[1:-1, 2:]
-        )
-    geometry = (
-        numpy(operator.weights_u), numpy(operator.weights_v), numpy(operator.constant),
-        numpy(operator.per_dh_dv), numpy(operator.per_dh_du),
-    )  # fmt: skip
+        lap_valid[1:-1, 1:-1] = laplacian_support(mask)
+    stencil_u, stencil_v = numpy(operator.weights_u), numpy(operator.weights_v)
+    per_dh_dv, per_dh_du = numpy(operator.per_dh_dv), numpy(operator.per_dh_du)
+    geometry = (stencil_u, stencil_v, numpy(operator.constant), per_dh_dv, per_dh_du)
     base_normal = numpy(operator.normal)
     keep_base = numpy(operator.keep_base[..., 0])
     w = config.weights
@@ -285,15 +280,16 @@ def optimise_patch_fused(
     square_avg = np.zeros_like(packed)
     params = np.empty((rows * cols, 14), dtype=dtype)
     for step, lr in enumerate(learning_rates):
-        height = _forward(packed, ranges, *geometry, base_normal, keep_base, params)
+        height, unit = _forward(packed, ranges, *geometry, base_normal, keep_base, params)
         loss, data_grad, _ = fused_loss_and_grad(
             samples.offsets, samples.position, params, samples.sample_view, samples.sample_lit,
             samples.observed, samples.view_center, samples.view_up, samples.view_ref_up, samples.light_pos,
             samples.light_intensity, samples.view_channels, data_weights, problem.scale,
         )  # fmt: skip
         total = _backward(
-            packed, square_avg, params, data_grad, float(loss.sum(dtype=np.float64)), height, mask, count,
-            lap_valid, reg_weights, ranges, inv_texels, *geometry, keep_base, float(lr),
+            packed, square_avg, params, data_grad, float(loss.sum(dtype=np.float64)), height, unit, mask,
+            count, lap_valid, reg_weights, ranges, inv_texels, stencil_u, stencil_v, per_dh_dv, per_dh_du,
+            float(lr),
         )  # fmt: skip
         if curve is not None:
             if len(curve) <= step:
