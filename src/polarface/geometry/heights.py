@@ -49,19 +49,27 @@ def _grid_mask(mask: torch.Tensor | None, height: torch.Tensor) -> torch.Tensor:
     return mask
 
 
-def _masked_difference(values: torch.Tensor, valid: torch.Tensor, dim: int) -> torch.Tensor:
-    """Central/one-sided difference along ``dim`` (-1 or -2) of ``values[..., H, W]`` towards +index."""
+def _shifted(values: torch.Tensor, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``values`` at the next and the previous texel along ``dim`` (-1 or -2), zero beyond the border."""
     size = values.shape[dim]
     pad = [0, 0, 0, 0]
     pad_index = 0 if dim == -1 else 2
     pad[pad_index] = pad[pad_index + 1] = 1
     padded = torch.nn.functional.pad(values, pad)
-    padded_valid = torch.nn.functional.pad(valid.to(values.dtype), pad) > 0
+    return padded.narrow(dim, 2, size), padded.narrow(dim, 0, size)
+
+
+def _neighbours_valid(valid: torch.Tensor, dim: int, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Valid texels whose next / previous neighbour along ``dim`` is valid too."""
+    after, before = _shifted(valid.to(dtype), dim)
+    return (after > 0) & valid, (before > 0) & valid
+
+
+def _masked_difference(values: torch.Tensor, valid: torch.Tensor, dim: int) -> torch.Tensor:
+    """Central/one-sided difference along ``dim`` (-1 or -2) of ``values[..., H, W]`` towards +index."""
     centre = values
-    after = padded.narrow(dim, 2, size)
-    before = padded.narrow(dim, 0, size)
-    valid_after = padded_valid.narrow(dim, 2, size) & valid
-    valid_before = padded_valid.narrow(dim, 0, size) & valid
+    after, before = _shifted(values, dim)
+    valid_after, valid_before = _neighbours_valid(valid, dim, values.dtype)
     zero = torch.zeros((), dtype=values.dtype, device=values.device)
     return torch.where(
         valid_after & valid_before,
@@ -181,13 +189,7 @@ def normals_from_heights(
 
 def _difference_weights(valid: torch.Tensor, dim: int, dtype: torch.dtype) -> torch.Tensor:
     """``(3, H, W)`` weights of (next, this, previous) texel along ``dim`` in :func:`_masked_difference`."""
-    size = valid.shape[dim]
-    pad = [0, 0, 0, 0]
-    pad_index = 0 if dim == -1 else 2
-    pad[pad_index] = pad[pad_index + 1] = 1
-    padded = torch.nn.functional.pad(valid.to(dtype), pad) > 0
-    after = padded.narrow(dim, 2, size) & valid
-    before = padded.narrow(dim, 0, size) & valid
+    after, before = _neighbours_valid(valid, dim, dtype)
     both = after & before
     one = torch.ones((), dtype=dtype, device=valid.device)
     zero = torch.zeros((), dtype=dtype, device=valid.device)
@@ -255,11 +257,11 @@ class HeightNormals:
 
     def __call__(self, height: torch.Tensor) -> torch.Tensor:
         """``(H, W, 3)`` unit normals of ``P + H n`` for a ``(H, W)`` height map (mm); differentiable."""
-        padded = torch.nn.functional.pad(height, (1, 1, 1, 1))
-        rows, cols = height.shape
+        right, left = _shifted(height, -1)
+        down, up = _shifted(height, -2)  # rows grow downwards
         w_u, w_v = self.weights_u, self.weights_v
-        dh_du = w_u[0] * padded[1:-1, 2:] + w_u[1] * height + w_u[2] * padded[1:-1, :cols]
-        dh_dv = w_v[0] * padded[2:, 1:-1] + w_v[1] * height + w_v[2] * padded[:rows, 1:-1]
+        dh_du = w_u[0] * right + w_u[1] * height + w_u[2] * left
+        dh_dv = w_v[0] * down + w_v[1] * height + w_v[2] * up
         raw = self.constant + dh_dv[..., None] * self.per_dh_dv + dh_du[..., None] * self.per_dh_du
         squared = (raw * raw).sum(-1, keepdim=True)
         tiny = torch.finfo(raw.dtype).tiny
