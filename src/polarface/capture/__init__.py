@@ -20,6 +20,12 @@ from polarface.capture.calibration import (
     StereoResult,
     calibrate_intrinsics,
     calibrate_stereo,
+    chessboard_object_points,
+    detect_charuco,
+    detect_chessboard,
+    read_gray,
+    read_image_list,
+    reprojection_rms,
     update_rig,
 )
 from polarface.capture.demosaic import (
@@ -29,31 +35,67 @@ from polarface.capture.demosaic import (
     demosaic,
     demosaic_camera,
 )
-from polarface.capture.ingest import ingest_directory, scan_raw_directory
-from polarface.capture.manifest import FrameRecord
+from polarface.capture.ingest import RAW_SUFFIXES, ingest_directory, scan_raw_directory
+from polarface.capture.manifest import (
+    MANIFEST_FORMAT,
+    MANIFEST_VERSION,
+    FrameRecord,
+    frame_marker_path,
+    manifest_problems,
+    raw_bit_depth_ok,
+    read_manifest,
+    write_manifest,
+)
 from polarface.capture.observations import (
     OBSERVATION_NAMES,
     Observations,
+    convergence_distance_mm,
+    depth_from_mesh,
     merge_six_channels,
     observations_from_intensities,
     observations_from_stack,
+    plane_homography,
     register_to_reference,
+    registration_map,
 )
-from polarface.capture.rig import Camera, LightModule, Rig, SpectralModel, paper_rig
+from polarface.capture.rig import SIX_CHANNEL_NAMES, Camera, LightModule, Rig, SpectralModel, paper_rig
 from polarface.capture.rig_calibration import calibrate_rig
-from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
+from polarface.capture.sensor import (
+    BAYER_BLOCK,
+    POLARIZER_BLOCK,
+    SENSOR_KINDS,
+    Lattice,
+    SensorNoise,
+    angle_index_map,
+    colour_index_map,
+    lattices,
+    mosaic,
+    pattern_period,
+    simulate_raw,
+)
 from polarface.capture.stokes_images import write_stokes_images
 from polarface.capture.store import CaptureStore
+from polarface.capture.synthetic import PATTERNS, DemosaicErrors, measure_demosaic, stokes_pattern
 
 __all__ = [
+    "BAYER_BLOCK",
     "DEMOSAIC_METHODS",
+    "MANIFEST_FORMAT",
+    "MANIFEST_VERSION",
     "OBSERVATION_NAMES",
+    "PATTERNS",
+    "POLARIZER_BLOCK",
+    "RAW_SUFFIXES",
+    "SENSOR_KINDS",
+    "SIX_CHANNEL_NAMES",
     "Camera",
     "CaptureStore",
     "CharucoBoardSpec",
+    "DemosaicErrors",
     "DemosaicMethod",
     "FrameRecord",
     "IntrinsicsResult",
+    "Lattice",
     "LightModule",
     "Observations",
     "PolarizationStack",
@@ -61,20 +103,41 @@ __all__ = [
     "SensorNoise",
     "SpectralModel",
     "StereoResult",
+    "angle_index_map",
     "calibrate_intrinsics",
     "calibrate_rig",
     "calibrate_stereo",
+    "chessboard_object_points",
+    "colour_index_map",
+    "convergence_distance_mm",
     "demosaic",
     "demosaic_camera",
+    "depth_from_mesh",
+    "detect_charuco",
+    "detect_chessboard",
+    "frame_marker_path",
     "ingest_directory",
+    "lattices",
+    "manifest_problems",
+    "measure_demosaic",
     "merge_six_channels",
     "mosaic",
     "observations_from_intensities",
     "observations_from_stack",
     "paper_rig",
+    "pattern_period",
+    "plane_homography",
+    "raw_bit_depth_ok",
+    "read_gray",
+    "read_image_list",
+    "read_manifest",
     "register_to_reference",
+    "registration_map",
+    "reprojection_rms",
     "scan_raw_directory",
     "simulate_raw",
+    "stokes_pattern",
     "update_rig",
+    "write_manifest",
     "write_stokes_images",
 ]
