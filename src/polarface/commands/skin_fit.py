@@ -12,6 +12,7 @@ model constants), ``fit.png`` (measured vs fitted spectra) and ``fitted_spectra.
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,8 @@ from polarface.skin.fitting import FitSettings
 
 NAME = "skin-fit"
 HELP = "fit melanin/haemoglobin skin parameters to measured reflectance spectra (CSV)"
+
+log = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
         starts=args.starts,
     )
     rmse = fit.rmse
+    log.info("skin-fit: %d spectra in %.1f s, median RMSE %.4f", len(fit.names), fit.seconds, np.median(rmse))
     print(
         f"skin-fit: {len(fit.names)} spectra, RMSE median {np.median(rmse):.4f} / "
         f"p90 {np.percentile(rmse, 90):.4f} / max {rmse.max():.4f}, {fit.seconds:.1f} s -> {fit.out}"

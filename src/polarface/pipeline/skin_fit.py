@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import logging
 import os
 import time
 from pathlib import Path
@@ -25,7 +24,6 @@ from polarface.skin.fitting import FIT_PARAMETER_NAMES, FitSettings, fit_reflect
 
 __all__ = ["SkinFitSummary", "fit_spectra_file", "read_reflectance_csv"]
 
-log = logging.getLogger(__name__)
 _MIN_WAVELENGTHS = 8
 
 
@@ -256,5 +254,4 @@ def fit_spectra_file(
     write_json_atomic(out / "fit.json", payload)
     _write_fitted_csv(out / "fitted_spectra.csv", wavelengths, names, measured, fitted)
     _plot(out / "fit.png", wavelengths, names, measured, fitted, rmse)
-    log.info("skin-fit: %d spectra in %.1f s, median RMSE %.4f", len(names), seconds, np.median(rmse))
     return SkinFitSummary(names=names, rmse=rmse, seconds=seconds, out=out)
