@@ -19,7 +19,7 @@ from polarface.inverse.polarimetric_fit import (
 )
 from polarface.inverse.polarimetric_fused import build_fused_samples
 from polarface.inverse.polarimetric_model import precompute_samples, render_samples
-from polarface.texture.unwrap import TexelGeometry, build_views
+from polarface.texture import TexelGeometry, build_views
 
 TRUTH = {
     "eta": 1.47,

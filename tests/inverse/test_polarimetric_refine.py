@@ -21,7 +21,7 @@ from polarface.inverse.polarimetric_refine import (
     smoothness_hessian,
     weighted_residuals,
 )
-from polarface.texture.unwrap import TexelGeometry, build_views
+from polarface.texture import TexelGeometry, build_views
 
 TRUTH = {"eta": 1.47, "alpha_s": 0.35, "alpha_ss": 0.9, "rho_s": 0.6, "rho_ss": 0.25}
 RHO_SSS = np.array([0.55, 0.4, 0.3, 0.5, 0.35, 0.25])

@@ -25,7 +25,7 @@ GRID = [
 
 @pytest.mark.parametrize(("sigma_a", "sigma_s_prime", "thickness", "eta"), GRID)
 def test_closed_form_equals_numerical_integration(sigma_a, sigma_s_prime, thickness, eta):
-    # DESIGN.md erratum: 2 pi int P r dr = (alpha'/2) sign(z) exp(-sigma |z|).
+    # Erratum (docs/conventions.md): 2 pi int P r dr = (alpha'/2) sign(z) exp(-sigma |z|).
     r_total, t_total = slab_totals(sigma_a, sigma_s_prime, thickness, eta, 1.0)
 
     def integrand(r: float, which: int) -> float:

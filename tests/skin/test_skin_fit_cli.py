@@ -24,7 +24,7 @@ def test_nist_fifty_subjects(test_data, tmp_path, capsys):
     samples = payload["samples"]
     assert len(samples) == 50 and "subject_001" in samples
     rmse = np.array([s["rmse"] for s in samples.values()])
-    # Issue target: median RMSE <= 0.015 over 420-700 nm (measured: 0.0115, p90 0.019, max 0.028).
+    # Target: median RMSE <= 0.015 over 420-700 nm.
     assert np.median(rmse) <= 0.015
     assert rmse.max() <= 0.04
     assert payload["summary"]["rmse_median"] == pytest.approx(np.median(rmse))

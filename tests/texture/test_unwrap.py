@@ -11,9 +11,8 @@ from polarface.geometry.mesh import TriangleMesh, load_mesh
 from polarface.geometry.poses import load_poses
 from polarface.geometry.raycast import RayCaster
 from polarface.inverse.polarimetric import render_view_texture
-from polarface.texture import UnwrapConfig, UnwrapStore, unwrap_capture
+from polarface.texture import UnwrapConfig, UnwrapStore, footprint_sees_surface, unwrap_capture
 from polarface.texture.synthetic import SphereCaptureConfig, make_sphere_capture
-from polarface.texture.unwrap import footprint_sees_surface
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +99,7 @@ def test_nan_observations_raise(capture):
     from polarface.geometry.camera import camera_from_rig
     from polarface.geometry.raycast import RayCaster
     from polarface.geometry.uv_raster import rasterize_uv
-    from polarface.texture.unwrap import sample_view, texel_geometry
+    from polarface.texture import sample_view, texel_geometry
 
     _info, store, mesh, poses, _root = capture
     geometry = texel_geometry(rasterize_uv(mesh, 16))

@@ -1,43 +1,143 @@
 """Capture: rig description, raw sensor model, demosaicing, observations, capture store, calibration.
 
 Modules:
-    rig           ``rig.json`` schema (pydantic): cameras, light modules, spectral calibration.
-    sensor        forward model of the IMX250MZR / IMX250MYR mosaics and raw noise.
-    demosaic      raw -> I0, I45, I90, I135 (bilinear and residual interpolation), masks.
-    observations  I_sss, I_zeta, I_s, DoP, AoLP; registration of the two Dolby cameras.
-    store         the capture store directory (raw PNGs, manifest, zarr derived arrays).
-    ingest        RAW_DIR -> capture store.
-    calibration   OpenCV chessboard / ChArUco calibration written into a rig.
+    rig              ``rig.json`` schema (pydantic): cameras, light modules, spectral calibration.
+    sensor           forward model of the IMX250MZR / IMX250MYR mosaics and raw noise.
+    demosaic         raw -> I0, I45, I90, I135 (bilinear and residual interpolation), masks.
+    observations     I_sss, I_zeta, I_s, DoP, AoLP; registration of the two Dolby cameras.
+    stokes_images    one raw frame -> analyzer, DoP and AoLP images on disk (``polarface stokes``).
+    store            the capture store directory (raw PNGs, manifest, zarr derived arrays).
+    manifest         the store's manifest and frame markers, and their checks against the files.
+    ingest           RAW_DIR -> capture store.
+    calibration      OpenCV chessboard / ChArUco detection and calibration written into a rig.
+    rig_calibration  board photos -> calibrated rig.json (``polarface calibrate``).
+    synthetic        synthetic Stokes patterns and demosaicing error measurements.
 """
 
-from polarface.capture.demosaic import PolarizationStack, demosaic, demosaic_camera
+from polarface.capture.calibration import (
+    CharucoBoardSpec,
+    IntrinsicsResult,
+    StereoResult,
+    calibrate_intrinsics,
+    calibrate_stereo,
+    chessboard_object_points,
+    detect_charuco,
+    detect_chessboard,
+    read_gray,
+    read_image_list,
+    reprojection_rms,
+    update_rig,
+)
+from polarface.capture.demosaic import (
+    DEMOSAIC_METHODS,
+    DemosaicMethod,
+    PolarizationStack,
+    demosaic,
+    demosaic_camera,
+)
+from polarface.capture.ingest import RAW_SUFFIXES, ingest_directory, scan_raw_directory
+from polarface.capture.manifest import (
+    MANIFEST_FORMAT,
+    MANIFEST_VERSION,
+    FrameRecord,
+    frame_marker_path,
+    manifest_problems,
+    raw_bit_depth_ok,
+    read_manifest,
+    write_manifest,
+)
 from polarface.capture.observations import (
+    OBSERVATION_NAMES,
     Observations,
+    convergence_distance_mm,
+    depth_from_mesh,
     merge_six_channels,
     observations_from_intensities,
     observations_from_stack,
+    plane_homography,
     register_to_reference,
+    registration_map,
 )
-from polarface.capture.rig import Camera, LightModule, Rig, SpectralModel, paper_rig
-from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
+from polarface.capture.rig import SIX_CHANNEL_NAMES, Camera, LightModule, Rig, SpectralModel, paper_rig
+from polarface.capture.rig_calibration import calibrate_rig
+from polarface.capture.sensor import (
+    BAYER_BLOCK,
+    POLARIZER_BLOCK,
+    SENSOR_KINDS,
+    Lattice,
+    SensorNoise,
+    angle_index_map,
+    colour_index_map,
+    lattices,
+    mosaic,
+    pattern_period,
+    simulate_raw,
+)
+from polarface.capture.stokes_images import write_stokes_images
 from polarface.capture.store import CaptureStore
+from polarface.capture.synthetic import PATTERNS, DemosaicErrors, measure_demosaic, stokes_pattern
 
 __all__ = [
+    "BAYER_BLOCK",
+    "DEMOSAIC_METHODS",
+    "MANIFEST_FORMAT",
+    "MANIFEST_VERSION",
+    "OBSERVATION_NAMES",
+    "PATTERNS",
+    "POLARIZER_BLOCK",
+    "RAW_SUFFIXES",
+    "SENSOR_KINDS",
+    "SIX_CHANNEL_NAMES",
     "Camera",
     "CaptureStore",
+    "CharucoBoardSpec",
+    "DemosaicErrors",
+    "DemosaicMethod",
+    "FrameRecord",
+    "IntrinsicsResult",
+    "Lattice",
     "LightModule",
     "Observations",
     "PolarizationStack",
     "Rig",
     "SensorNoise",
     "SpectralModel",
+    "StereoResult",
+    "angle_index_map",
+    "calibrate_intrinsics",
+    "calibrate_rig",
+    "calibrate_stereo",
+    "chessboard_object_points",
+    "colour_index_map",
+    "convergence_distance_mm",
     "demosaic",
     "demosaic_camera",
+    "depth_from_mesh",
+    "detect_charuco",
+    "detect_chessboard",
+    "frame_marker_path",
+    "ingest_directory",
+    "lattices",
+    "manifest_problems",
+    "measure_demosaic",
     "merge_six_channels",
     "mosaic",
     "observations_from_intensities",
     "observations_from_stack",
     "paper_rig",
+    "pattern_period",
+    "plane_homography",
+    "raw_bit_depth_ok",
+    "read_gray",
+    "read_image_list",
+    "read_manifest",
     "register_to_reference",
+    "registration_map",
+    "reprojection_rms",
+    "scan_raw_directory",
     "simulate_raw",
+    "stokes_pattern",
+    "update_rig",
+    "write_manifest",
+    "write_stokes_images",
 ]

@@ -211,6 +211,26 @@ def demosaic(
     """
     if method not in DEMOSAIC_METHODS:
         raise ValueError(f"argument 'method' must be one of {DEMOSAIC_METHODS}; got {method!r}")
+    white_level = _white_level(raw, white_level, bit_depth)
+    if not np.isfinite(black_level) or not black_level < white_level:
+        raise ValueError(f"argument 'black_level' ({black_level}) must be below white_level ({white_level})")
+    if not (np.isfinite(exposure) and exposure > 0):
+        raise ValueError(f"argument 'exposure' must be > 0; got {exposure}")
+    raw = _validate_raw(raw, sensor, bit_depth, white_level)
+    scale = 1.0 / ((white_level - black_level) * exposure)
+    saturated_raw = raw >= white_level
+    values = ((raw.astype(np.float32) - np.float32(black_level)) * np.float32(scale)).astype(np.float32)
+    lats = lattices(sensor, phase)
+    defects = _repair_defects_in_place(values, saturated_raw, lats, defect_mask, defect_threshold)
+    period = lats[0].period
+    support = 2 * period - 1
+    saturated = cv2.dilate(saturated_raw.astype(np.uint8), np.ones((support, support), np.uint8)) > 0
+    out = _interpolate_lattices(values, saturated_raw, saturated, lats, method)
+    return PolarizationStack(intensities=out, saturated=saturated, defects=defects)
+
+
+def _white_level(raw: np.ndarray, white_level: float | None, bit_depth: int | None) -> float:
+    """``white_level``, else ``2**bit_depth - 1``, else the integer dtype's maximum (float frames raise)."""
     if white_level is None:
         if bit_depth is not None:
             white_level = float(2**bit_depth - 1)
@@ -218,18 +238,20 @@ def demosaic(
             white_level = float(np.iinfo(np.asarray(raw).dtype).max)
         else:
             raise ValueError("argument 'white_level' (or 'bit_depth') is required for a float raw frame")
-    if not np.isfinite(black_level) or not black_level < white_level:
-        raise ValueError(f"argument 'black_level' ({black_level}) must be below white_level ({white_level})")
-    if not (np.isfinite(exposure) and exposure > 0):
-        raise ValueError(f"argument 'exposure' must be > 0; got {exposure}")
-    raw = _validate_raw(raw, sensor, bit_depth, white_level)
-    shape = raw.shape
-    scale = 1.0 / ((white_level - black_level) * exposure)
-    saturated_raw = raw >= white_level
-    values = ((raw.astype(np.float32) - np.float32(black_level)) * np.float32(scale)).astype(np.float32)
-    lats = lattices(sensor, phase)
-    period = lats[0].period
+    return white_level
 
+
+def _repair_defects_in_place(
+    values: np.ndarray,
+    saturated_raw: np.ndarray,
+    lats: list[Lattice],
+    defect_mask: np.ndarray | None,
+    defect_threshold: float | None,
+) -> np.ndarray:
+    """Find dead/hot samples (given and detected) and replace them in ``values`` (float32 ``(H, W)``,
+    modified in place) by the median of their 3x3 same-filter neighbourhood; returns bool ``(H, W)``."""
+    shape = values.shape
+    period = lats[0].period
     defects = np.zeros(shape, dtype=bool)
     if defect_mask is not None:
         defect_mask = np.asarray(defect_mask, dtype=bool)
@@ -246,9 +268,20 @@ def demosaic(
             bad = defects[sl]
             if bad.any():
                 values[sl] = np.where(bad, cv2.medianBlur(np.ascontiguousarray(values[sl]), 3), values[sl])
+    return defects
 
-    support = 2 * period - 1
-    saturated = cv2.dilate(saturated_raw.astype(np.uint8), np.ones((support, support), np.uint8)) > 0
+
+def _interpolate_lattices(
+    values: np.ndarray,
+    saturated_raw: np.ndarray,
+    saturated: np.ndarray,
+    lats: list[Lattice],
+    method: DemosaicMethod,
+) -> np.ndarray:
+    """Full-resolution float32 ``(4, H, W[, 3])`` analyzer images from the normalised mosaic ``values``
+    (module docstring: bilinear, or residual interpolation with a bilinear fallback near saturation)."""
+    shape = values.shape
+    period = lats[0].period
     colour = lats[0].colour is not None
     out = np.empty((4, *shape, 3) if colour else (4, *shape), dtype=np.float32)
     guide = fallback = None
@@ -292,7 +325,7 @@ def demosaic(
             out[angle, ..., channel] = offset_sum
         else:
             out[angle] = offset_sum
-    return PolarizationStack(intensities=out, saturated=saturated, defects=defects)
+    return out
 
 
 def demosaic_camera(

@@ -3,7 +3,7 @@
 Observations (paper Sec. 4.2 and supplement "Polarimetric image formation detail"; incident
 Stokes [1, 1, 0, 0], so I0 is co-polarized and I90 cross-polarized):
 
-* ``i_sss = 2 I90``: unpolarized subsurface observation (see DESIGN.md: exactly ``K T+ (1 - psi xi)``);
+* ``i_sss = 2 I90``: unpolarized subsurface observation (what it holds exactly: ``docs/conventions.md``);
 * ``i_zeta = I135 - I45``: polarized subsurface observation;
 * ``i_s = I0 - I90``: specular-dominant polarization observation;
 * ``dop``: linear degree of polarization, ``aolp``: angle of linear polarization in [0, pi) rad,

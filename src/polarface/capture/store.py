@@ -32,13 +32,20 @@ import hashlib
 import json
 import os
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from polarface.capture.demosaic import DemosaicMethod, PolarizationStack, demosaic_camera
+from polarface.capture.manifest import (
+    FrameRecord,
+    frame_marker_path,
+    manifest_problems,
+    raw_bit_depth_ok,
+    read_manifest,
+    write_manifest,
+)
 from polarface.capture.observations import (
     OBSERVATION_NAMES,
     merge_six_channels,
@@ -46,53 +53,11 @@ from polarface.capture.observations import (
 )
 from polarface.capture.rig import Camera, Rig
 from polarface.io.atomic import write_json_atomic
-from polarface.io.images import image_header, read_png, write_png
+from polarface.io.images import read_png, write_png
 
-__all__ = ["CaptureStore", "FrameRecord", "raw_bit_depth_ok"]
+__all__ = ["CaptureStore"]
 
-FORMAT = "polarface-capture"
-VERSION = 1
 _POLARIZATION = ("mono-polarization", "color-polarization")
-
-
-@dataclass(frozen=True)
-class FrameRecord:
-    """One frame of the manifest.
-
-    Attributes:
-        index: frame index (>= 0), the slot along axis 0 of the derived arrays.
-        timestamp: seconds since the start of the sequence.
-        raw: camera id -> raw file path relative to the store root.
-        derived: True when the derived arrays of the polarimetric cameras are complete.
-    """
-
-    index: int
-    timestamp: float
-    raw: dict[str, str]
-    derived: bool
-
-
-def raw_bit_depth_ok(raw: np.ndarray, camera: Camera) -> None:
-    """Raise ``ValueError`` if ``raw`` does not fit ``camera`` (dtype, size, bit depth, range)."""
-    if not np.issubdtype(raw.dtype, np.integer):
-        raise ValueError(f"raw frame of camera '{camera.id}' must be integer counts; got dtype {raw.dtype}")
-    expected = (camera.height, camera.width) if camera.sensor != "rgb" else None
-    if expected and raw.shape != expected:
-        raise ValueError(f"raw frame of camera '{camera.id}' has shape {raw.shape}; rig declares {expected}")
-    if camera.sensor == "rgb" and raw.shape[:2] != (camera.height, camera.width):
-        raise ValueError(
-            f"image of camera '{camera.id}' has shape {raw.shape}; rig declares "
-            f"{(camera.height, camera.width)}"
-        )
-    if camera.bit_depth > 8 and raw.dtype == np.uint8:
-        raise ValueError(
-            f"raw frame of camera '{camera.id}' is 8-bit but the rig declares bit_depth {camera.bit_depth}"
-        )
-    if raw.size and (raw.min() < 0 or raw.max() > 2**camera.bit_depth - 1):
-        raise ValueError(
-            f"raw frame of camera '{camera.id}' has values up to {raw.max()}, "
-            f"beyond bit_depth {camera.bit_depth}"
-        )
 
 
 def _observation(intensities: np.ndarray, name: str) -> np.ndarray:
@@ -244,7 +209,7 @@ class CaptureStore:
         if not manifest_path.is_file():
             raise FileNotFoundError(f"'{root}' is not a capture store: no manifest.json")
         rig = Rig.load(root / "rig.json")
-        manifest = cls._read_manifest(manifest_path)
+        manifest = read_manifest(manifest_path)
         store = cls(root, rig, manifest["sequence"])
         if validate:
             store.validate()
@@ -253,7 +218,7 @@ class CaptureStore:
     @property
     def manifest(self) -> dict:
         """The parsed ``manifest.json``."""
-        return self._read_manifest(self.root / "manifest.json")
+        return read_manifest(self.root / "manifest.json")
 
     @property
     def frames(self) -> list[FrameRecord]:
@@ -273,57 +238,7 @@ class CaptureStore:
             ValueError: listing every problem (missing raw file or frame marker, camera not in the
                 rig, wrong image size or bit depth, raw files not in the manifest).
         """
-
-        problems: list[str] = []
-        listed: set[str] = set()
-        camera_sets = set()
-        for frame in self.frames:
-            if not self._marker(frame.index).is_file():
-                problems.append(
-                    f"frame {frame.index}: completion marker frames/{frame.index:06d}.json is missing"
-                )
-            camera_sets.add(tuple(sorted(frame.raw)))
-            for cam_id, relative in frame.raw.items():
-                listed.add(relative)
-                try:
-                    camera = self.rig.camera(cam_id)
-                except ValueError as exc:
-                    problems.append(f"frame {frame.index}: {exc}")
-                    continue
-                path = self.root / relative
-                if not path.is_file():
-                    problems.append(
-                        f"frame {frame.index}: raw file '{relative}' of camera '{cam_id}' is missing"
-                    )
-                    continue
-                try:
-                    width, height, channels, bits = image_header(path)
-                except ValueError as exc:
-                    problems.append(f"frame {frame.index}: raw file '{relative}' is not an image ({exc})")
-                    continue
-                if (height, width) != (camera.height, camera.width):
-                    problems.append(
-                        f"frame {frame.index}: '{relative}' is {width}x{height}, camera "
-                        f"'{cam_id}' declares {camera.width}x{camera.height}"
-                    )
-                if camera.bit_depth > 8 and bits <= 8:
-                    problems.append(
-                        f"frame {frame.index}: '{relative}' is {bits}-bit ({channels} channel(s)), "
-                        f"camera '{cam_id}' declares bit_depth {camera.bit_depth}"
-                    )
-                if deep:
-                    try:
-                        raw_bit_depth_ok(read_png(path), camera)
-                    except ValueError as exc:
-                        problems.append(f"frame {frame.index}: '{relative}': {exc}")
-        if len(camera_sets) > 1:
-            problems.append(f"frames hold different camera sets: {sorted(camera_sets)}")
-        raw_dir = self.root / "raw"
-        if raw_dir.is_dir():
-            for path in sorted(raw_dir.glob("*/*")):
-                relative = path.relative_to(self.root).as_posix()
-                if not path.name.startswith(".tmp-") and relative not in listed:
-                    problems.append(f"raw file '{relative}' is not in the manifest")
+        problems = manifest_problems(self.root, self.rig, self.frames, deep=deep)
         if problems:
             raise ValueError(f"capture store '{self.root}' is invalid:\n  " + "\n  ".join(problems))
 
@@ -363,7 +278,7 @@ class CaptureStore:
 
     # -------------------------------------------------------------------------------- internals
     def _marker(self, frame_index: int) -> Path:
-        return self.root / "frames" / f"{frame_index:06d}.json"
+        return frame_marker_path(self.root, frame_index)
 
     def _record(self, frame_index: int) -> FrameRecord:
         for frame in self.frames:
@@ -467,49 +382,4 @@ class CaptureStore:
         return stack
 
     def _write_manifest(self, *, complete: bool) -> dict:
-        frames = []
-        for path in sorted((self.root / "frames").glob("[0-9]*.json")):
-            marker = json.loads(path.read_text(encoding="utf-8"))
-            frames.append(
-                {
-                    "index": marker["frame_index"],
-                    "timestamp": marker["timestamp"],
-                    "raw": marker["raw"],
-                    "derived": marker["derived"],
-                    "method": marker.get("method"),
-                }
-            )
-        frames.sort(key=lambda f: f["index"])
-        manifest = {
-            "format": FORMAT,
-            "version": VERSION,
-            "sequence": self.sequence,
-            "complete": complete,
-            "frame_count": len(frames),
-            "cameras": [c.id for c in self.rig.cameras],
-            "derived_store": "derived.zarr",
-            "observations": list(OBSERVATION_NAMES),
-            "frames": frames,
-        }
-        write_json_atomic(self.root / "manifest.json", manifest)
-        return manifest
-
-    @staticmethod
-    def _read_manifest(path: Path) -> dict:
-        try:
-            manifest = json.loads(path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"manifest '{path}' is not valid JSON: {exc}") from exc
-        if manifest.get("format") != FORMAT:
-            raise ValueError(f"manifest '{path}': field 'format' must be {FORMAT!r}")
-        if manifest.get("sequence") not in ("static", "dynamic"):
-            raise ValueError(f"manifest '{path}': field 'sequence' must be 'static' or 'dynamic'")
-        frames = manifest.get("frames")
-        if not isinstance(frames, list) or any(not {"index", "timestamp", "raw"} <= set(f) for f in frames):
-            raise ValueError(
-                f"manifest '{path}': field 'frames' must list objects with index, timestamp, raw"
-            )
-        indices = [f["index"] for f in frames]
-        if len(set(indices)) != len(indices):
-            raise ValueError(f"manifest '{path}': duplicated frame indices")
-        return manifest
+        return write_manifest(self.root, self.rig, self.sequence, complete=complete)

@@ -75,7 +75,7 @@ def _load(result_dir: Path, gt_dir: Path):
 def polarimetric_metrics(result_dir: Path, gt_dir: Path) -> dict:
     """Per-map absolute/relative errors and the normal angular error (module docstring)."""
     from polarface.inverse.polarimetric import shading_normals
-    from polarface.texture.unwrap import UnwrapStore
+    from polarface.texture import UnwrapStore
 
     _, estimate, truth = _load(result_dir, gt_dir)
     if "mask" not in estimate:
@@ -118,7 +118,7 @@ def polarimetric_metrics(result_dir: Path, gt_dir: Path) -> dict:
 def rerender_metrics(result_dir: Path, gt_dir: Path) -> dict:
     """Held-out-view re-render RMSE of I_sss and I_s (module docstring)."""
     from polarface.inverse.polarimetric import shading_normals
-    from polarface.texture.unwrap import UnwrapStore
+    from polarface.texture import UnwrapStore
 
     _, estimate, _ = _load(result_dir, gt_dir)
     unwrap = UnwrapStore.open(result_dir / "unwrap.zarr")

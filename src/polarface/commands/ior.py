@@ -20,8 +20,6 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-
 NAME = "ior"
 HELP = "refractive index of a sphere from one polarization capture (paper's IOR validation)"
 
@@ -40,34 +38,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eta-range", type=float, nargs=2, default=(1.05, 3.0), metavar=("LO", "HI"))
 
 
-def _load_image(path: Path) -> np.ndarray:
-    from polarface.io import read_exr
-
-    if not path.is_file():
-        raise FileNotFoundError(f"image '{path}' does not exist")
-    channels = read_exr(path)
-    if "Y" in channels:
-        return np.asarray(channels["Y"], dtype=np.float64)
-    names = [n for n in ("R", "G", "B") if n in channels]
-    if not names:
-        names = sorted(channels)
-    return np.stack([np.asarray(channels[n], dtype=np.float64) for n in names], axis=-1)
-
-
 def run(args: argparse.Namespace) -> int:
-    from polarface.inverse.ior import SphereScene, estimate_ior, validate_paper_objects
+    """Estimate (:mod:`polarface.pipeline.ior`) and print the estimate or the validation table."""
+    from polarface.pipeline.ior import estimate_ior_from_folder, validate_ior
 
     if args.validate:
-        rows = validate_paper_objects(noise=args.noise)
-        summary = {
-            "rows": rows,
-            "mean_abs_error": float(np.mean([r["abs_error"] for r in rows])),
-            "noise": args.noise,
-        }
+        summary = validate_ior(noise=args.noise)
         if args.json:
             print(json.dumps(summary, indent=2))
         else:
-            for row in rows:
+            for row in summary["rows"]:
                 print(
                     f"{row['object']:>22s}  eta_gt {row['eta_gt']:.3f}  eta {row['eta']:.4f}  "
                     f"diff {row['abs_error']:.4f}"
@@ -76,19 +56,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.dir is None:
         raise ValueError("argument 'dir' is required (or pass --validate)")
-    folder = Path(args.dir)
-    if not folder.is_dir():
-        raise FileNotFoundError(f"folder '{folder}' does not exist")
-    scene_path = folder / "scene.json"
-    if not scene_path.is_file():
-        raise FileNotFoundError(f"'{scene_path}' does not exist")
-    try:
-        payload = json.loads(scene_path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"'{scene_path}' is not valid JSON: {exc}") from exc
-    scene = SphereScene.from_dict(payload)
-    images = {name: _load_image(folder / f"{name}.exr") for name in ("I0", "I45", "I90", "I135")}
-    result = estimate_ior(images, scene, eta_range=tuple(args.eta_range))
+    result = estimate_ior_from_folder(args.dir, eta_range=tuple(args.eta_range))
     if args.json:
         print(
             json.dumps(

@@ -174,7 +174,7 @@ def stage_prepare(ctx: ReconstructContext) -> dict:
     """Copy rig and mesh, write the result.json skeleton and unwrap the capture into ``unwrap.zarr``."""
     from polarface.geometry.mesh import save_obj
     from polarface.io import write_json_atomic
-    from polarface.texture.unwrap import UnwrapConfig, unwrap_capture
+    from polarface.texture import UnwrapConfig, unwrap_capture
 
     started = time.perf_counter()
     store, mesh, poses = _load_geometry(ctx)
@@ -214,7 +214,7 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict:
     """Fit the polarimetric maps and write ``maps/``, ``previews/`` (checkpoints in ``checkpoints/``)."""
     from polarface.device import resolve_device
     from polarface.inverse.polarimetric_fit import PolarimetricConfig, fit_polarimetric
-    from polarface.texture.unwrap import UnwrapStore
+    from polarface.texture import UnwrapStore
 
     started = time.perf_counter()
     device = resolve_device(ctx.device)

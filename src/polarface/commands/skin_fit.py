@@ -12,25 +12,17 @@ model constants), ``fit.png`` (measured vs fitted spectra) and ``fitted_spectra.
 from __future__ import annotations
 
 import argparse
-import csv
-import dataclasses
 import logging
-import time
 from pathlib import Path
 
 import numpy as np
-import torch
-from tqdm import tqdm
 
-from polarface.io import atomic_path, write_json_atomic
-from polarface.skin.chromophores import HAEMOGLOBIN_TABLE_RANGE_NM
-from polarface.skin.fitting import FIT_PARAMETER_NAMES, FitSettings, fit_reflectance_spectra
+from polarface.skin.fitting import FitSettings
 
 NAME = "skin-fit"
 HELP = "fit melanin/haemoglobin skin parameters to measured reflectance spectra (CSV)"
 
 log = logging.getLogger(__name__)
-_MIN_WAVELENGTHS = 8
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -51,180 +43,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--starts", type=int, default=FitSettings.starts, help="starting points per sample")
 
 
-def read_reflectance_csv(
-    path: Path, min_nm: float, max_nm: float
-) -> tuple[np.ndarray, list[str], np.ndarray]:
-    """Read and validate a spectra CSV; return (wavelengths in band (L,), names, reflectance (B, L)).
-
-    Raises:
-        FileNotFoundError: if the file is missing.
-        ValueError: naming the problem (missing column, percent values, NaN rows, band outside the
-            model's 250-1000 nm or not covered by the file, ...).
-    """
-    if not path.is_file():
-        raise FileNotFoundError(f"spectra file '{path}' does not exist")
-    low_model, high_model = HAEMOGLOBIN_TABLE_RANGE_NM
-    if not (min_nm < max_nm):
-        raise ValueError(f"fit band must have min-nm < max-nm; got {min_nm}-{max_nm}")
-    if min_nm < low_model or max_nm > high_model:
-        raise ValueError(
-            f"fit band {min_nm:g}-{max_nm:g} nm lies outside the model range {low_model:g}-{high_model:g} nm"
-        )
-    with path.open("r", encoding="utf-8-sig", newline="") as handle:
-        rows = list(csv.reader(handle))
-    if not rows:
-        raise ValueError(f"'{path}' is empty")
-    header = [h.strip() for h in rows[0]]
-    if "wavelength_nm" not in header:
-        raise ValueError(f"'{path}' has no 'wavelength_nm' column (columns: {', '.join(header[:8])}...)")
-    if len(set(header)) != len(header):
-        raise ValueError(f"'{path}' has duplicate column names")
-    names = [h for h in header if h != "wavelength_nm"]
-    if not names:
-        raise ValueError(f"'{path}' has no sample columns besides 'wavelength_nm'")
-    if any(not n for n in names):
-        raise ValueError(f"'{path}' has an unnamed column")
-    body = rows[1:]
-    if any(len(r) != len(header) for r in body):
-        bad = next(i for i, r in enumerate(body) if len(r) != len(header))
-        raise ValueError(f"'{path}' row {bad + 2} has {len(body[bad])} fields, expected {len(header)}")
-
-    def number(text: str) -> float:
-        try:
-            return float(text) if text.strip() else float("nan")
-        except ValueError:
-            return float("nan")
-
-    table = np.array([[number(v) for v in r] for r in body], dtype=np.float64).reshape(len(body), len(header))
-    wl_index = header.index("wavelength_nm")
-    wavelengths = table[:, wl_index]
-    values = np.delete(table, wl_index, axis=1)
-    if not np.isfinite(wavelengths).all():
-        raise ValueError(f"'{path}': column 'wavelength_nm' has missing or non-numeric values")
-    if np.any(np.diff(wavelengths) <= 0):
-        raise ValueError(f"'{path}': 'wavelength_nm' must be strictly increasing")
-    if wavelengths[0] > min_nm or wavelengths[-1] < max_nm:
-        raise ValueError(
-            f"'{path}' covers {wavelengths[0]:g}-{wavelengths[-1]:g} nm, which does not include the fit band "
-            f"{min_nm:g}-{max_nm:g} nm (model range {low_model:g}-{high_model:g} nm)"
-        )
-    band = (wavelengths >= min_nm) & (wavelengths <= max_nm)
-    if band.sum() < _MIN_WAVELENGTHS:
-        raise ValueError(f"'{path}' has only {int(band.sum())} wavelengths in {min_nm:g}-{max_nm:g} nm")
-    values = values[band]
-    bad_rows = ~np.isfinite(values).all(axis=1)
-    if bad_rows.any():
-        bad_nm = wavelengths[band][bad_rows]
-        bad_cols = [names[j] for j in np.flatnonzero(~np.isfinite(values).all(axis=0))]
-        raise ValueError(
-            f"'{path}' has NaN/missing values at {bad_rows.sum()} wavelength(s) in the fit band "
-            f"(first {bad_nm[0]:g} nm) in column(s) {', '.join(bad_cols[:5])}"
-        )
-    peak = float(values.max())
-    if peak > 1.5:
-        raise ValueError(
-            f"'{path}' values reach {peak:.4g}: they look like percent; give reflectance factors in [0, 1]"
-        )
-    if peak > 1.0 or float(values.min()) < 0.0:
-        raise ValueError(f"'{path}' values must lie in [0, 1]; got {float(values.min()):.4g}..{peak:.4g}")
-    return wavelengths[band], names, values.T.copy()
-
-
-def _plot(
-    path: Path,
-    wavelengths: np.ndarray,
-    names: list[str],
-    measured: np.ndarray,
-    fitted: np.ndarray,
-    rmse: np.ndarray,
-) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    shown = min(len(names), 64)
-    cols = min(8, shown)
-    rows = (shown + cols - 1) // cols
-    fig, axes = plt.subplots(
-        rows, cols, figsize=(2.2 * cols, 1.8 * rows), sharex=True, sharey=True, squeeze=False
-    )
-    for k, ax in enumerate(axes.flat):
-        if k >= shown:
-            ax.axis("off")
-            continue
-        ax.plot(wavelengths, measured[k], color="black", lw=1.0, label="measured")
-        ax.plot(wavelengths, fitted[k], color="tab:red", lw=1.0, ls="--", label="fit")
-        ax.set_title(f"{names[k]}  rmse {rmse[k]:.3f}", fontsize=6)
-        ax.tick_params(labelsize=5)
-    axes.flat[0].legend(fontsize=5)
-    note = "" if shown == len(names) else f" (first {shown} of {len(names)})"
-    fig.suptitle(f"two-layer skin model fit, median RMSE {np.median(rmse):.4f}{note}", fontsize=9)
-    fig.supxlabel("wavelength (nm)", fontsize=7)
-    fig.supylabel("reflectance factor", fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-
-
 def run(args: argparse.Namespace) -> int:
-    """Fit the spectra and write ``fit.json``, ``fit.png`` and ``fitted_spectra.csv``; returns 0."""
-    wavelengths, names, measured = read_reflectance_csv(args.spectra, args.min_nm, args.max_nm)
-    if args.iterations < 1 or args.starts < 1:
-        raise ValueError("--iterations and --starts must be >= 1")
-    if not 0.0 <= args.max_offset <= 0.5:
-        raise ValueError(f"--max-offset must lie in [0, 0.5]; got {args.max_offset}")
-    settings = FitSettings(max_surface_offset=args.max_offset, iterations=args.iterations, starts=args.starts)
-    start = time.perf_counter()
-    with tqdm(total=settings.iterations, desc=f"skin-fit {len(names)} spectra", unit="it") as bar:
-        fit = fit_reflectance_spectra(
-            torch.from_numpy(wavelengths), torch.from_numpy(measured), settings, bar.update
-        )
-    seconds = time.perf_counter() - start
-    parameters, fitted, rmse = fit.parameters.numpy(), fit.fitted.numpy(), fit.rmse.numpy()
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    samples = {
-        name: {
-            **{p: float(parameters[k, j]) for j, p in enumerate(FIT_PARAMETER_NAMES)},
-            "rmse": float(rmse[k]),
-        }
-        for k, name in enumerate(names)
-    }
-    payload = {
-        "model": "R = surface_offset + (1 - R0) R_bar(c_m, beta_m, c_h_in, c_h_out) (polarface.skin.fitting)",
-        "source": str(args.spectra),
-        "fit_band_nm": [float(args.min_nm), float(args.max_nm)],
-        "n_wavelengths": int(wavelengths.size),
-        "parameter_bounds": dict(zip(FIT_PARAMETER_NAMES, [list(b) for b in settings.bounds()], strict=True)),
-        "constants": dataclasses.asdict(settings.constants),
-        "settings": {"iterations": settings.iterations, "starts": settings.starts},
-        "summary": {
-            "n_samples": len(names),
-            "rmse_median": float(np.median(rmse)),
-            "rmse_p90": float(np.percentile(rmse, 90)),
-            "rmse_max": float(rmse.max()),
-            "worst_sample": names[int(rmse.argmax())],
-            "fit_seconds": seconds,
-        },
-        "samples": samples,
-    }
-    write_json_atomic(out / "fit.json", payload)
-    with (
-        atomic_path(out / "fitted_spectra.csv") as tmp,
-        tmp.open("w", encoding="utf-8", newline="") as handle,
-    ):
-        writer = csv.writer(handle)
-        writer.writerow(["wavelength_nm", *[f"{n}_measured" for n in names], *[f"{n}_fitted" for n in names]])
-        for i, w in enumerate(wavelengths):
-            writer.writerow(
-                [f"{w:g}", *[f"{v:.6f}" for v in measured[:, i]], *[f"{v:.6f}" for v in fitted[:, i]]]
-            )
-    _plot(out / "fit.png", wavelengths, names, measured, fitted, rmse)
-    log.info("skin-fit: %d spectra in %.1f s, median RMSE %.4f", len(names), seconds, np.median(rmse))
+    """Fit and write the outputs (:func:`polarface.pipeline.skin_fit.fit_spectra_file`); returns 0."""
+    from polarface.pipeline.skin_fit import fit_spectra_file
+
+    fit = fit_spectra_file(
+        args.spectra,
+        args.out,
+        min_nm=args.min_nm,
+        max_nm=args.max_nm,
+        max_offset=args.max_offset,
+        iterations=args.iterations,
+        starts=args.starts,
+    )
+    rmse = fit.rmse
+    log.info("skin-fit: %d spectra in %.1f s, median RMSE %.4f", len(fit.names), fit.seconds, np.median(rmse))
     print(
-        f"skin-fit: {len(names)} spectra, RMSE median {np.median(rmse):.4f} / "
-        f"p90 {np.percentile(rmse, 90):.4f} / max {rmse.max():.4f}, {seconds:.1f} s -> {out}"
+        f"skin-fit: {len(fit.names)} spectra, RMSE median {np.median(rmse):.4f} / "
+        f"p90 {np.percentile(rmse, 90):.4f} / max {rmse.max():.4f}, {fit.seconds:.1f} s -> {fit.out}"
     )
     return 0

@@ -11,8 +11,6 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-
 NAME = "stokes"
 HELP = "demosaic one raw polarization frame into I0/I45/I90/I135, DoP and AoLP images (EXR + PNG)"
 
@@ -41,63 +39,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--exposure", type=float, default=1.0, help="relative exposure to divide by")
 
 
-def _preview_intensity(image: np.ndarray, scale: float) -> np.ndarray:
-    shown = np.clip(image / scale, 0.0, 1.0) ** (1 / 2.2)
-    return shown
-
-
 def run(args: argparse.Namespace) -> int:
-    from polarface.capture.demosaic import demosaic
-    from polarface.capture.observations import observations_from_intensities
-    from polarface.io import colormap_png, read_png, write_exr, write_json_atomic, write_png
+    """Write the images (:func:`polarface.capture.stokes_images.write_stokes_images`), print the summary."""
+    from polarface.capture.stokes_images import write_stokes_images
 
-    raw = read_png(args.raw)
-    if raw.ndim != 2:
-        raise ValueError(f"raw file '{args.raw}' must be a single-channel mosaic; got shape {raw.shape}")
-    bit_depth = args.bit_depth or (8 if raw.dtype == np.uint8 else 16)
-    stack = demosaic(
-        raw,
+    summary = write_stokes_images(
+        args.raw,
+        args.out,
         args.sensor,
         method=args.method,
-        phase=tuple(args.phase),
+        bit_depth=args.bit_depth,
         black_level=args.black_level,
         white_level=args.white_level,
-        bit_depth=bit_depth,
+        phase=tuple(args.phase),
         exposure=args.exposure,
     )
-    obs = observations_from_intensities(*stack.intensities)
-    colour = stack.intensities.ndim == 4
-    names = ["R", "G", "B"] if colour else ["Y"]
-    valid = ~stack.saturated
-    finite = stack.intensities[:, valid] if valid.any() else stack.intensities
-    scale = float(np.percentile(finite, 99.5)) or 1.0
-    s0 = stack.intensities.sum(axis=0) / 2.0
-    summary_s0 = s0.mean(axis=-1) if colour else s0
-    grey = observations_from_intensities(*(stack.intensities.mean(axis=-1) if colour else stack.intensities))
-    tmp = Path(args.out)
-    tmp.mkdir(parents=True, exist_ok=True)
-    if True:  # every file below is written atomically
-        for label, image in zip(("i0", "i45", "i90", "i135"), stack.intensities, strict=True):
-            write_exr(tmp / f"{label}.exr", image, names)
-            write_png(tmp / f"{label}.png", _preview_intensity(image, scale))
-        write_exr(tmp / "dop.exr", obs["dop"], names)
-        write_exr(tmp / "aolp.exr", obs["aolp"], names)
-        colormap_png(tmp / "dop.png", grey["dop"], vmin=0.0, vmax=1.0, cmap="viridis", mask=valid)
-        colormap_png(tmp / "aolp.png", grey["aolp"], vmin=0.0, vmax=np.pi, cmap="twilight", mask=valid)
-        write_png(tmp / "saturated.png", stack.saturated.astype(np.uint8) * 255)
-        summary = {
-            "raw": str(args.raw),
-            "sensor": args.sensor,
-            "method": args.method,
-            "bit_depth": bit_depth,
-            "shape": list(raw.shape),
-            "saturated_fraction": float(stack.saturated.mean()),
-            "defects_repaired": int(stack.defects.sum()),
-            "median_dop": float(np.median(grey["dop"][valid])) if valid.any() else None,
-            "mean_s0": float(summary_s0[valid].mean()) if valid.any() else None,
-        }
-        write_json_atomic(tmp / "summary.json", summary)
     print(json.dumps(summary, indent=2))
-    if not valid.any():
+    if summary["median_dop"] is None:
         print(f"polarface stokes: warning: every pixel of '{args.raw}' is saturated")
     return 0

@@ -14,7 +14,12 @@ from polarface.geometry.deform import (
     smooth_falloff,
 )
 from polarface.geometry.head_asset import HeadAsset, load_head_asset, pick_landmark, srgb_to_linear
-from polarface.geometry.heights import height_gradients, normals_from_height_gradients, normals_from_heights
+from polarface.geometry.heights import (
+    HeightNormals,
+    height_gradients,
+    normals_from_height_gradients,
+    normals_from_heights,
+)
 from polarface.geometry.mesh import (
     TriangleMesh,
     face_areas,
@@ -51,6 +56,7 @@ __all__ = [
     "ExpressionConfig",
     "ExpressionRig",
     "HeadAsset",
+    "HeightNormals",
     "PinholeCamera",
     "RayCaster",
     "RayHits",

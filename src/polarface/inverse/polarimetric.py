@@ -26,7 +26,7 @@ from polarface.inverse.polarimetric_fit import (
 )
 from polarface.inverse.polarimetric_losses import LossWeights
 from polarface.inverse.polarimetric_model import render_samples
-from polarface.texture.unwrap import UnwrapStore
+from polarface.texture import UnwrapStore
 
 __all__ = [
     "PARAMETER_NAMES",

@@ -30,7 +30,7 @@ from polarface.inverse.polarimetric_fit import PolarimetricConfig, _PatchProblem
 from polarface.inverse.polarimetric_fused import build_fused_samples
 from polarface.inverse.polarimetric_losses import data_losses
 from polarface.inverse.polarimetric_model import SamplePrediction, precompute_samples, render_samples
-from polarface.texture.unwrap import TexelGeometry, build_views, texel_geometry
+from polarface.texture import TexelGeometry, build_views, texel_geometry
 
 __all__ = ["benchmark_problem", "run_benchmark"]
 

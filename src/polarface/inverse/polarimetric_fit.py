@@ -61,7 +61,7 @@ from polarface.inverse.polarimetric_losses import data_losses, laplacian_penalty
 from polarface.inverse.polarimetric_model import SampleBatch, precompute_samples, render_samples
 from polarface.inverse.polarimetric_refine import refine_patch_lobes
 from polarface.inverse.polarimetric_step import optimise_patch_fused
-from polarface.texture.unwrap import TexelGeometry, UnwrapStore, ViewSpec
+from polarface.texture import TexelGeometry, UnwrapStore, ViewSpec
 
 __all__ = [
     "PARAMETER_NAMES",

@@ -33,7 +33,7 @@ def write_report(result_dir: str | Path, extra_sections: Sequence[Callable] = ()
     from polarface.inverse.polarimetric import render_view_texture, shading_normals
     from polarface.io import colormap_png
     from polarface.report.html import HtmlPage, ImageItem
-    from polarface.texture.unwrap import UnwrapStore
+    from polarface.texture import UnwrapStore
 
     out = Path(result_dir)
     result = json.loads((out / "result.json").read_text(encoding="utf-8"))

@@ -6,6 +6,7 @@ Physics modules (``optics``, ``skin``) never import from here.
 from polarface.io.atomic import atomic_directory, atomic_path, write_json_atomic
 from polarface.io.images import (
     colormap_png,
+    image_header,
     read_exr,
     read_png,
     write_exr,
@@ -16,6 +17,7 @@ __all__ = [
     "atomic_directory",
     "atomic_path",
     "colormap_png",
+    "image_header",
     "read_exr",
     "read_png",
     "write_exr",

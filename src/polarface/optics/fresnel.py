@@ -10,7 +10,7 @@ Conventions (``docs/conventions.md``):
   parallel (p) to the plane of incidence (Born & Wolf, *Principles of Optics*, Sec. 1.5.3).
 * Transmission is the energy-conserving power transmittance ``T = 1 - R``. The paper (supplement,
   Sec. "Fresnel Equation") prints squared amplitude coefficients without the
-  ``eta2 cos(theta2) / (eta1 cos(theta1))`` factor; DESIGN.md records this as a misprint. DoP ratios
+  ``eta2 cos(theta2) / (eta1 cos(theta1))`` factor, a misprint (``docs/conventions.md``). DoP ratios
   ``T-/T+`` are unaffected.
 * Light leaving the skin: by reciprocity (Stokes relations, Born & Wolf Sec. 1.6.4) the power
   transmittance from inside at the internal angle ``theta_t`` equals the transmittance from outside at

@@ -13,6 +13,10 @@ Physics only: nothing here imports :mod:`polarface.io`.
 
 from polarface.skin import spectral
 from polarface.skin.chromophores import (
+    HAEMOGLOBIN_TABLE_RANGE_NM,
+    HB_CONCENTRATION_G_PER_L,
+    HB_MOLAR_MASS_G_PER_MOL,
+    interpolate_table,
     sigma_a_baseline,
     sigma_a_deoxy_haemoglobin,
     sigma_a_eumelanin,
@@ -20,7 +24,13 @@ from polarface.skin.chromophores import (
     sigma_a_pheomelanin,
     sigma_s_prime_outer,
 )
-from polarface.skin.fitting import FIT_PARAMETER_NAMES, FitSettings, SpectrumFit, fit_reflectance_spectra
+from polarface.skin.fitting import (
+    FIT_PARAMETER_NAMES,
+    FitSettings,
+    SpectrumFit,
+    fit_reflectance_spectra,
+    reflectance_model,
+)
 from polarface.skin.heterogeneous import ProfileShapes, fit_layer_shapes, render_layered_subsurface
 from polarface.skin.layers import (
     PARAMETER_RANGES,
@@ -54,9 +64,13 @@ from polarface.skin.sog import (
 from polarface.skin.spectral import (
     CHANNEL_NAMES,
     DEFAULT_WAVELENGTHS_NM,
+    DOLBY_LOWER_BANDS_NM,
+    DOLBY_UPPER_BANDS_NM,
     SpectralCalibration,
+    cie_illuminant,
     default_spectral_calibration,
     default_wavelengths,
+    load_spectral_table,
     spectrum_to_srgb,
 )
 
@@ -64,7 +78,12 @@ __all__ = [
     "CHANNEL_NAMES",
     "DEFAULT_N_POLES",
     "DEFAULT_WAVELENGTHS_NM",
+    "DOLBY_LOWER_BANDS_NM",
+    "DOLBY_UPPER_BANDS_NM",
     "FIT_PARAMETER_NAMES",
+    "HAEMOGLOBIN_TABLE_RANGE_NM",
+    "HB_CONCENTRATION_G_PER_L",
+    "HB_MOLAR_MASS_G_PER_MOL",
     "PARAMETER_RANGES",
     "SOG_COUNT",
     "SOG_V0_MM2",
@@ -76,6 +95,7 @@ __all__ = [
     "SoGFit",
     "SpectralCalibration",
     "SpectrumFit",
+    "cie_illuminant",
     "compose_total_reflectance",
     "default_radial_grid",
     "default_spectral_calibration",
@@ -86,8 +106,11 @@ __all__ = [
     "fresnel_diffuse_reflectance",
     "gaussian_2d",
     "gaussian_blur",
+    "interpolate_table",
     "layer_optics",
     "layer_totals",
+    "load_spectral_table",
+    "reflectance_model",
     "render_layered_subsurface",
     "sigma_a_baseline",
     "sigma_a_deoxy_haemoglobin",

@@ -60,7 +60,7 @@ __all__ = [
 
 @dataclasses.dataclass(frozen=True)
 class SkinLayerConstants:
-    """Fixed constants of the two-layer skin model (literature defaults, ``DESIGN.md``).
+    """Fixed constants of the two-layer skin model (literature defaults, cited per attribute).
 
     Attributes:
         outer_thickness_mm: outer-layer thickness, mm (0.25; Donner & Jensen 2006/2008).

@@ -14,7 +14,7 @@ supplement Eqs. reflectance / transmittance:
 with ``l = 1 / sigma_t'``, ``D = 1 / (3 sigma_t')``, ``z_b = 2 A D``, ``A = (1 + F_dr) / (1 - F_dr)``
 and ``F_dr`` the Egan & Hilgeman (1979) polynomial. Their totals ``2 pi int R(r) r dr`` have the closed
 form ``(alpha' / 2) sum_k sign(z) exp(-sigma_tr |z|)`` (terms as above). The supplement omits the
-factor ``alpha' / 2`` (erratum, ``DESIGN.md``; the tests verify it by numerical integration).
+factor ``alpha' / 2`` (erratum, ``docs/conventions.md``; the tests verify it by numerical integration).
 
 The *backward* variant (light entering from below) swaps the two surfaces. A semi-infinite layer
 (``thickness_mm = inf``) keeps only the ``k = 0`` pair (the dipole of Jensen et al. 2001) and

@@ -10,22 +10,25 @@ zarr group chunked by texture patch (:class:`UnwrapStore`), one view at a time, 
 bounded for any texture size and view count.
 """
 
-from polarface.texture.unwrap import (
-    OBSERVATION_NAMES,
+from polarface.texture.footprint import footprint_sees_surface
+from polarface.texture.unwrap import UnwrapConfig, sample_view, unwrap_capture
+from polarface.texture.unwrap_store import (
+    TEXTURE_OBSERVATION_NAMES,
     TexelGeometry,
-    UnwrapConfig,
     UnwrapStore,
-    ViewSpec,
     texel_geometry,
-    unwrap_capture,
 )
+from polarface.texture.views import ViewSpec, build_views
 
 __all__ = [
-    "OBSERVATION_NAMES",
+    "TEXTURE_OBSERVATION_NAMES",
     "TexelGeometry",
     "UnwrapConfig",
     "UnwrapStore",
     "ViewSpec",
+    "build_views",
+    "footprint_sees_surface",
+    "sample_view",
     "texel_geometry",
     "unwrap_capture",
 ]

@@ -1,0 +1,196 @@
+"""The capture store's manifest and frame markers: schema, reading, writing and checks against the files.
+
+``manifest.json`` lists the completed frames (index, timestamp, raw file per camera, derived state,
+demosaicing method); ``frames/<frame:06d>.json`` is the completion marker of one frame, written last.
+The manifest is rebuilt from the markers after every frame. Layout: ``docs/capture_store.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from polarface.capture.observations import OBSERVATION_NAMES
+from polarface.capture.rig import Camera, Rig
+from polarface.io.atomic import write_json_atomic
+from polarface.io.images import image_header, read_png
+
+__all__ = [
+    "MANIFEST_FORMAT",
+    "MANIFEST_VERSION",
+    "FrameRecord",
+    "frame_marker_path",
+    "manifest_problems",
+    "raw_bit_depth_ok",
+    "read_manifest",
+    "write_manifest",
+]
+
+#: ``format`` field of ``manifest.json``.
+MANIFEST_FORMAT = "polarface-capture"
+#: ``version`` field of ``manifest.json``.
+MANIFEST_VERSION = 1
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One frame of the manifest.
+
+    Attributes:
+        index: frame index (>= 0), the slot along axis 0 of the derived arrays.
+        timestamp: seconds since the start of the sequence.
+        raw: camera id -> raw file path relative to the store root.
+        derived: True when the derived arrays of the polarimetric cameras are complete.
+    """
+
+    index: int
+    timestamp: float
+    raw: dict[str, str]
+    derived: bool
+
+
+def raw_bit_depth_ok(raw: np.ndarray, camera: Camera) -> None:
+    """Raise ``ValueError`` if ``raw`` does not fit ``camera`` (dtype, size, bit depth, range)."""
+    if not np.issubdtype(raw.dtype, np.integer):
+        raise ValueError(f"raw frame of camera '{camera.id}' must be integer counts; got dtype {raw.dtype}")
+    expected = (camera.height, camera.width) if camera.sensor != "rgb" else None
+    if expected and raw.shape != expected:
+        raise ValueError(f"raw frame of camera '{camera.id}' has shape {raw.shape}; rig declares {expected}")
+    if camera.sensor == "rgb" and raw.shape[:2] != (camera.height, camera.width):
+        raise ValueError(
+            f"image of camera '{camera.id}' has shape {raw.shape}; rig declares "
+            f"{(camera.height, camera.width)}"
+        )
+    if camera.bit_depth > 8 and raw.dtype == np.uint8:
+        raise ValueError(
+            f"raw frame of camera '{camera.id}' is 8-bit but the rig declares bit_depth {camera.bit_depth}"
+        )
+    if raw.size and (raw.min() < 0 or raw.max() > 2**camera.bit_depth - 1):
+        raise ValueError(
+            f"raw frame of camera '{camera.id}' has values up to {raw.max()}, "
+            f"beyond bit_depth {camera.bit_depth}"
+        )
+
+
+def frame_marker_path(root: str | os.PathLike[str], frame_index: int) -> Path:
+    """Path of the completion marker ``frames/<frame:06d>.json`` of a frame of the store at ``root``."""
+    return Path(root) / "frames" / f"{frame_index:06d}.json"
+
+
+def write_manifest(root: str | os.PathLike[str], rig: Rig, sequence: str, *, complete: bool) -> dict:
+    """Rebuild ``manifest.json`` from the frame markers (in index order), write it atomically, return it."""
+    root = Path(root)
+    frames = []
+    for path in sorted((root / "frames").glob("[0-9]*.json")):
+        marker = json.loads(path.read_text(encoding="utf-8"))
+        frames.append(
+            {
+                "index": marker["frame_index"],
+                "timestamp": marker["timestamp"],
+                "raw": marker["raw"],
+                "derived": marker["derived"],
+                "method": marker.get("method"),
+            }
+        )
+    frames.sort(key=lambda f: f["index"])
+    manifest = {
+        "format": MANIFEST_FORMAT,
+        "version": MANIFEST_VERSION,
+        "sequence": sequence,
+        "complete": complete,
+        "frame_count": len(frames),
+        "cameras": [c.id for c in rig.cameras],
+        "derived_store": "derived.zarr",
+        "observations": list(OBSERVATION_NAMES),
+        "frames": frames,
+    }
+    write_json_atomic(root / "manifest.json", manifest)
+    return manifest
+
+
+def read_manifest(path: str | os.PathLike[str]) -> dict:
+    """The parsed ``manifest.json`` at ``path``.
+
+    Raises:
+        ValueError: invalid JSON, wrong format or sequence, malformed or duplicated frames.
+    """
+    path = Path(path)
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"manifest '{path}' is not valid JSON: {exc}") from exc
+    if manifest.get("format") != MANIFEST_FORMAT:
+        raise ValueError(f"manifest '{path}': field 'format' must be {MANIFEST_FORMAT!r}")
+    if manifest.get("sequence") not in ("static", "dynamic"):
+        raise ValueError(f"manifest '{path}': field 'sequence' must be 'static' or 'dynamic'")
+    frames = manifest.get("frames")
+    if not isinstance(frames, list) or any(not {"index", "timestamp", "raw"} <= set(f) for f in frames):
+        raise ValueError(f"manifest '{path}': field 'frames' must list objects with index, timestamp, raw")
+    indices = [f["index"] for f in frames]
+    if len(set(indices)) != len(indices):
+        raise ValueError(f"manifest '{path}': duplicated frame indices")
+    return manifest
+
+
+def manifest_problems(
+    root: str | os.PathLike[str], rig: Rig, frames: list[FrameRecord], *, deep: bool = False
+) -> list[str]:
+    """Every disagreement between the manifest's ``frames`` and the files of the store at ``root``.
+
+    Missing raw file or frame marker, camera not in the rig, wrong image size or bit depth, raw files
+    not in the manifest; ``deep`` also reads every raw frame's values (:func:`raw_bit_depth_ok`).
+    """
+    root = Path(root)
+    problems: list[str] = []
+    listed: set[str] = set()
+    camera_sets = set()
+    for frame in frames:
+        if not frame_marker_path(root, frame.index).is_file():
+            problems.append(
+                f"frame {frame.index}: completion marker frames/{frame.index:06d}.json is missing"
+            )
+        camera_sets.add(tuple(sorted(frame.raw)))
+        for cam_id, relative in frame.raw.items():
+            listed.add(relative)
+            try:
+                camera = rig.camera(cam_id)
+            except ValueError as exc:
+                problems.append(f"frame {frame.index}: {exc}")
+                continue
+            path = root / relative
+            if not path.is_file():
+                problems.append(f"frame {frame.index}: raw file '{relative}' of camera '{cam_id}' is missing")
+                continue
+            try:
+                width, height, channels, bits = image_header(path)
+            except ValueError as exc:
+                problems.append(f"frame {frame.index}: raw file '{relative}' is not an image ({exc})")
+                continue
+            if (height, width) != (camera.height, camera.width):
+                problems.append(
+                    f"frame {frame.index}: '{relative}' is {width}x{height}, camera "
+                    f"'{cam_id}' declares {camera.width}x{camera.height}"
+                )
+            if camera.bit_depth > 8 and bits <= 8:
+                problems.append(
+                    f"frame {frame.index}: '{relative}' is {bits}-bit ({channels} channel(s)), "
+                    f"camera '{cam_id}' declares bit_depth {camera.bit_depth}"
+                )
+            if deep:
+                try:
+                    raw_bit_depth_ok(read_png(path), camera)
+                except ValueError as exc:
+                    problems.append(f"frame {frame.index}: '{relative}': {exc}")
+    if len(camera_sets) > 1:
+        problems.append(f"frames hold different camera sets: {sorted(camera_sets)}")
+    raw_dir = root / "raw"
+    if raw_dir.is_dir():
+        for path in sorted(raw_dir.glob("*/*")):
+            relative = path.relative_to(root).as_posix()
+            if not path.name.startswith(".tmp-") and relative not in listed:
+                problems.append(f"raw file '{relative}' is not in the manifest")
+    return problems

@@ -1,1 +1,0 @@
-"""polarface.export"""

@@ -1,0 +1,234 @@
+"""The unwrap store: per texel geometry and per texel x view samples of an unwrapped capture.
+
+Layout of the zarr group written by :func:`polarface.texture.unwrap.unwrap_capture` (``UNWRAP.zarr``;
+zarr v3)::
+
+    texel/position, texel/normal, texel/tangent_u, texel/tangent_v   float32 (Ht, Wt, 3), model frame, mm
+    texel/texel_size_u, texel/texel_size_v                            float32 (Ht, Wt), mm per texel step
+    texel/mask                                                        bool (Ht, Wt) atlas coverage
+    obs     float32 (V, Ht, Wt, 3, 3)  per view: :data:`TEXTURE_OBSERVATION_NAMES` [I_sss = 2 I90,
+                                       I_zeta = I135 - I45, I_s = I0 - I90] x the view's 3 channels
+                                       (radiance, bilinear samples; 0 where invalid)
+    valid   bool (V, Ht, Wt)           texel seen by the view: inside the image, unoccluded (ray cast,
+                                       0.5 mm tolerance), n.v > ``cos_view_min``, no saturated neighbour,
+                                       every pixel of its sampling footprint sees the texel's own surface
+    lit     bool (V, Ht, Wt, K)        each LED module's shadow ray from the texel is free
+    attrs:  format "polarface-unwrap", version, resolution, patch, views (list of :class:`ViewSpec` dicts),
+            done (view indices written), complete
+
+Chunks are ``(1, patch, patch, ...)``: a texture patch of all views is read without touching the rest,
+and each view is written (and resumed) independently. View geometry (camera centre and up, light
+positions) is stored in the *model* frame: for rigid poses the texel positions and base frames are
+those of the rest mesh and only the per-view vectors move (exact, and H-dependent normals need no
+per-view recomputation). Texture layout: :mod:`polarface.geometry.uv_raster` (row 0 = v 1).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from polarface.capture.observations import OBSERVATION_NAMES
+from polarface.geometry.uv_raster import UVRaster
+from polarface.texture.views import ViewSpec
+
+__all__ = ["TEXTURE_OBSERVATION_NAMES", "TexelGeometry", "UnwrapStore", "texel_geometry"]
+
+#: The observations sampled into texture space (axis -2 of ``obs``): the first three capture
+#: observations; DoP and AoLP are not unwrapped.
+TEXTURE_OBSERVATION_NAMES = OBSERVATION_NAMES[:3]
+_FORMAT = "polarface-unwrap"
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TexelGeometry:
+    """Per-texel base geometry of the rest mesh (model frame): numpy float32, see module docstring."""
+
+    position: np.ndarray
+    normal: np.ndarray
+    tangent_u: np.ndarray
+    tangent_v: np.ndarray
+    texel_size_u: np.ndarray
+    texel_size_v: np.ndarray
+    mask: np.ndarray
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        return int(self.mask.shape[0]), int(self.mask.shape[1])
+
+    def crop(self, rows: slice, cols: slice) -> TexelGeometry:
+        return TexelGeometry(*(getattr(self, f.name)[rows, cols] for f in dataclasses.fields(self)))
+
+
+def texel_geometry(raster: UVRaster) -> TexelGeometry:
+    """The :class:`TexelGeometry` of a rest-pose raster."""
+    return TexelGeometry(
+        raster.position.astype(np.float32),
+        raster.normal.astype(np.float32),
+        raster.tangent_u.astype(np.float32),
+        raster.tangent_v.astype(np.float32),
+        raster.texel_size_u.astype(np.float32),
+        raster.texel_size_v.astype(np.float32),
+        raster.mask.copy(),
+    )
+
+
+class UnwrapStore:
+    """Reader/writer of an unwrapped capture (layout in the module docstring)."""
+
+    def __init__(self, path: str | Path, root) -> None:
+        self.path = Path(path)
+        self.root = root
+
+    # ----------------------------------------------------------------------------- creation
+    @classmethod
+    def create(
+        cls, path: str | Path, geometry: TexelGeometry, views: Sequence[ViewSpec], patch: int
+    ) -> UnwrapStore:
+        import zarr
+
+        path = Path(path)
+        root = zarr.open_group(str(path), mode="w")
+        height, width = geometry.resolution
+        chunk = (min(patch, height), min(patch, width))
+        for field in dataclasses.fields(geometry):
+            value = getattr(geometry, field.name)
+            array = root.create_array(
+                f"texel/{field.name}", shape=value.shape, dtype=value.dtype, chunks=(*chunk, *value.shape[2:])
+            )
+            array[...] = value
+        count = len(views)
+        light_count = len(views[0].light_positions) if views else 0
+        root.create_array(
+            "obs",
+            shape=(count, height, width, 3, 3),
+            dtype="float32",
+            chunks=(1, *chunk, 3, 3),
+            fill_value=0.0,
+        )
+        root.create_array(
+            "valid", shape=(count, height, width), dtype="bool", chunks=(1, *chunk), fill_value=False
+        )
+        root.create_array(
+            "lit",
+            shape=(count, height, width, light_count),
+            dtype="bool",
+            chunks=(1, *chunk, light_count),
+            fill_value=False,
+        )
+        root.attrs.update(
+            {
+                "format": _FORMAT,
+                "version": 1,
+                "resolution": [height, width],
+                "patch": int(patch),
+                "views": [v.to_dict() for v in views],
+                "done": [],
+                "complete": False,
+            }
+        )
+        return cls(path, root)
+
+    @classmethod
+    def open(cls, path: str | Path, mode: str = "r") -> UnwrapStore:
+        """Open an unwrap store; ValueError if it is not one."""
+        import zarr
+
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"unwrap store '{path}' does not exist")
+        root = zarr.open_group(str(path), mode=mode)
+        if root.attrs.get("format") != _FORMAT:
+            raise ValueError(f"'{path}' is not a polarface unwrap store")
+        return cls(path, root)
+
+    # ----------------------------------------------------------------------------- metadata
+    @property
+    def views(self) -> list[ViewSpec]:
+        return [ViewSpec.from_dict(v) for v in self.root.attrs["views"]]
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        height, width = self.root.attrs["resolution"]
+        return int(height), int(width)
+
+    @property
+    def patch(self) -> int:
+        return int(self.root.attrs["patch"])
+
+    @property
+    def complete(self) -> bool:
+        return bool(self.root.attrs.get("complete", False))
+
+    def done(self) -> set[int]:
+        return {int(v) for v in self.root.attrs.get("done", [])}
+
+    def geometry(self, rows: slice = slice(None), cols: slice = slice(None)) -> TexelGeometry:
+        names = [f.name for f in dataclasses.fields(TexelGeometry)]
+        return TexelGeometry(*(np.asarray(self.root[f"texel/{n}"][rows, cols]) for n in names))
+
+    # ----------------------------------------------------------------------------- data
+    def write_view(self, index: int, obs: np.ndarray, valid: np.ndarray, lit: np.ndarray) -> None:
+        self.root["obs"][index] = obs
+        self.root["valid"][index] = valid
+        self.root["lit"][index] = lit
+        stats = dict(self.root.attrs.get("stats", {}))
+        stats[str(int(index))] = [float(obs[..., 0, :][valid].sum()), int(valid.sum()) * 3]
+        self.root.attrs["stats"] = stats
+        done = sorted(self.done() | {int(index)})
+        self.root.attrs["done"] = done
+
+    def mark_complete(self) -> None:
+        self.root.attrs["complete"] = True
+
+    def read(self, rows: slice, cols: slice, views: Sequence[int] | None = None) -> tuple[np.ndarray, ...]:
+        """``obs (V', h, w, 3, 3)``, ``valid (V', h, w)``, ``lit (V', h, w, K)`` of a texture region."""
+        selection = slice(None) if views is None else np.asarray(list(views), dtype=np.int64)
+        if views is not None and len(selection) == 0:
+            height = len(range(*rows.indices(self.resolution[0])))
+            width = len(range(*cols.indices(self.resolution[1])))
+            light_count = self.root["lit"].shape[-1]
+            return (
+                np.zeros((0, height, width, 3, 3), np.float32),
+                np.zeros((0, height, width), bool),
+                np.zeros((0, height, width, light_count), bool),
+            )
+        if views is None:
+            return (
+                np.asarray(self.root["obs"][:, rows, cols]),
+                np.asarray(self.root["valid"][:, rows, cols]),
+                np.asarray(self.root["lit"][:, rows, cols]),
+            )
+        obs = np.stack([np.asarray(self.root["obs"][int(v), rows, cols]) for v in selection])
+        valid = np.stack([np.asarray(self.root["valid"][int(v), rows, cols]) for v in selection])
+        lit = np.stack([np.asarray(self.root["lit"][int(v), rows, cols]) for v in selection])
+        return obs, valid, lit
+
+    def patches(self, patch: int | None = None) -> Iterator[tuple[slice, slice]]:
+        """Row/column slices of the texture patches that contain atlas texels (row-major order)."""
+        size = patch or self.patch
+        height, width = self.resolution
+        mask = np.asarray(self.root["texel/mask"][...])
+        for r in range(0, height, size):
+            for c in range(0, width, size):
+                if mask[r : r + size, c : c + size].any():
+                    yield slice(r, min(r + size, height)), slice(c, min(c + size, width))
+
+    def mean_i_sss(self, views: Sequence[int] | None = None) -> float:
+        """Mean observed ``I_sss`` over the valid samples of ``views`` (default all); 0 if none."""
+        stats = self.root.attrs.get("stats", {})
+        keys = [str(v) for v in (range(len(self.views)) if views is None else views)]
+        total = sum(stats[k][0] for k in keys if k in stats)
+        count = sum(stats[k][1] for k in keys if k in stats)
+        return total / count if count else 0.0
+
+    def visible_count(self) -> np.ndarray:
+        """``(Ht, Wt)`` number of fitting (not held-out) views that see each texel."""
+        fitting = [i for i, v in enumerate(self.views) if not v.held_out]
+        total = np.zeros(self.resolution, np.int32)
+        for i in fitting:
+            total += np.asarray(self.root["valid"][i]).astype(np.int32)
+        return total
