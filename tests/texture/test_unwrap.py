@@ -97,7 +97,6 @@ def test_config_errors(field, value):
 
 
 def test_nan_observations_raise(capture):
-    from polarface.geometry.camera import camera_from_rig
     from polarface.geometry.raycast import RayCaster
     from polarface.geometry.uv_raster import rasterize_uv
     from polarface.texture.unwrap import sample_view, texel_geometry
@@ -114,7 +113,7 @@ def test_nan_observations_raise(capture):
             geometry,
             world,
             RayCaster(world),
-            camera_from_rig(camera),
+            camera.pinhole(),
             poses[0],
             stack,
             np.zeros(stack.shape[1:3], bool),

@@ -4,7 +4,7 @@ normals from heights (torch, differentiable), rigid poses and expression deforma
 Units mm, angles radians; cameras in the OpenCV convention; UVs v up (``docs/geometry.md``).
 """
 
-from polarface.geometry.camera import PinholeCamera, distort_normalized, undistort_normalized
+from polarface.geometry.camera import PinholeCamera, distort_normalized, look_at, undistort_normalized
 from polarface.geometry.deform import (
     EXPRESSIONS,
     ExpressionConfig,
@@ -71,6 +71,7 @@ __all__ = [
     "load_head_asset",
     "load_mesh",
     "load_poses",
+    "look_at",
     "normals_from_height_gradients",
     "normals_from_heights",
     "pick_landmark",

@@ -135,18 +135,6 @@ class ResultAppearance:
         return cls(maps, mask, load_mesh(root / "mesh.obj"), rig, shapes)
 
 
-def _pinhole(camera):
-    from polarface.geometry.camera import PinholeCamera
-
-    return PinholeCamera(
-        K=np.asarray(camera.K, dtype=np.float64),
-        world_to_camera=np.asarray(camera.world_to_camera, dtype=np.float64),
-        width=camera.width,
-        height=camera.height,
-        distortion=np.asarray(camera.distortion, dtype=np.float64) if camera.distortion else np.zeros(5),
-    )
-
-
 @dataclasses.dataclass(frozen=True, eq=False)
 class RenderedResult:
     """One rendered view.
@@ -205,7 +193,7 @@ def render_result_view(
 
     rig = appearance.rig
     camera = rig.camera(camera_id) if camera_id else rig.polarimetric_cameras()[0]
-    pinhole = _pinhole(camera)
+    pinhole = camera.pinhole()
     transform = head_placement() if pose is None else np.asarray(pose, dtype=np.float64)
     if transform.shape != (4, 4) or not np.isfinite(transform).all():
         raise ValueError(f"argument 'pose' must be a finite 4x4 matrix; got shape {transform.shape}")
@@ -228,7 +216,7 @@ def render_result_view(
     lights = np.array([light.position_mm for light in rig.lights], dtype=np.float64)
     first = rig.lights[0].radiant_intensity
     intensity = float(first if np.ndim(first) == 0 else first[0])
-    reference = _pinhole(rig.polarimetric_cameras()[0])
+    reference = rig.polarimetric_cameras()[0].pinhole()
     eta = np.where(mask, maps["eta"], 1.4).astype(np.float32)
     flux = entering_flux(caster, raster, shading, eta, lights, intensity, reference.up_vector)
     chromophores = apply_edits({k: maps[k] for k in ("c_m", "beta_m", "c_h_in", "c_h_out")}, edits or {})

@@ -39,7 +39,7 @@ from tqdm import tqdm
 from polarface.capture.rig import Camera, Rig, paper_rig
 from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
 from polarface.capture.store import CaptureStore
-from polarface.geometry.camera import PinholeCamera, camera_from_rig
+from polarface.geometry.camera import PinholeCamera
 from polarface.geometry.deform import ExpressionRig, dynamic_sequence_weights
 from polarface.geometry.head_asset import HeadAsset, load_head_asset
 from polarface.geometry.heights import normals_from_heights
@@ -201,7 +201,7 @@ def render_frame(
         if np.ndim(scene.rig.lights[0].radiant_intensity) == 0
         else scene.rig.lights[0].radiant_intensity[0]
     )
-    reference = camera_from_rig(scene.rig.polarimetric_cameras()[0])
+    reference = scene.rig.polarimetric_cameras()[0].pinhole()
     flux = entering_flux(caster, raster, shading, maps.eta, lights, intensity, reference.up_vector)
     exitance = texture_space_exitance(flux, subsurface, scene.calibration, blur=scene.config.subsurface_blur)
     textures = FrameTextures.build(
@@ -222,7 +222,7 @@ def render_frame(
         views[camera.id] = render_view(
             caster,
             mesh_world,
-            camera_from_rig(camera),
+            camera.pinhole(),
             textures,
             lights,
             intensity,
@@ -373,7 +373,7 @@ class _ObservationWriter:
                 self._array(f"{prefix}/{name}", (count, h, w, 3), "float32", 0.0)[index] = image
             self._array(f"{prefix}/mask", (count, h, w), "bool", False)[index] = view.mask
             self._array(f"{prefix}/uv", (count, h, w, 2), "float32", 0.0)[index] = view.uv
-            visible, pixel = _texel_visibility(frame.caster, frame.raster, camera_from_rig(camera))
+            visible, pixel = _texel_visibility(frame.caster, frame.raster, camera.pinhole())
             self._array(f"{prefix}/texel_visible", (count, height, width), "bool", False)[index] = visible
             self._array(f"{prefix}/texel_pixel", (count, height, width, 2), "float32", -1.0)[index] = pixel
         self.root.attrs[f"{sequence}/{index}"] = True

@@ -26,7 +26,6 @@ import torch
 from polarface.capture.rig import Rig, paper_rig
 from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
 from polarface.capture.store import CaptureStore
-from polarface.geometry.camera import camera_from_rig
 from polarface.geometry.heights import normals_from_heights
 from polarface.geometry.mesh import TriangleMesh, save_obj
 from polarface.geometry.poses import rigid_transform, save_poses
@@ -139,7 +138,7 @@ def make_sphere_capture(out: str | Path, config: SphereCaptureConfig | None = No
     intensity = float(rig.lights[0].radiant_intensity)
     yaws = np.radians(np.linspace(-config.yaw_range_deg, config.yaw_range_deg, config.frames))
     poses = np.stack([_placement(float(yaw)) for yaw in yaws])
-    reference_up = camera_from_rig(cameras[0]).up_vector
+    reference_up = cameras[0].pinhole().up_vector
     renders = []
     for pose in poses:
         mesh_world = mesh.transformed(pose)
@@ -167,7 +166,7 @@ def make_sphere_capture(out: str | Path, config: SphereCaptureConfig | None = No
         for camera in cameras:
             channels = tuple(camera.colour_channels[c] for c in ("R", "G", "B"))
             views[camera.id] = render_view(
-                caster, mesh_world, camera_from_rig(camera), textures, lights, intensity, channels
+                caster, mesh_world, camera.pinhole(), textures, lights, intensity, channels
             )
         renders.append(views)
     peak = max(

@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from polarface.capture.rig import Rig
 from polarface.capture.store import CaptureStore
-from polarface.geometry.camera import PinholeCamera, camera_from_rig
+from polarface.geometry.camera import PinholeCamera
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster, rasterize_uv
@@ -215,7 +215,7 @@ def build_views(rig: Rig, frames: Sequence[int], poses: np.ndarray, holdout_ever
     if not cameras:
         raise ValueError("the rig has no polarimetric camera")
     _check_lights(rig)
-    reference_up_world = camera_from_rig(cameras[0]).up_vector
+    reference_up_world = cameras[0].pinhole().up_vector
     lights_world = np.array([light.position_mm for light in rig.lights], dtype=np.float64)
     views = []
     for frame, pose in zip(frames, poses, strict=True):
@@ -223,7 +223,7 @@ def build_views(rig: Rig, frames: Sequence[int], poses: np.ndarray, holdout_ever
         rotation_inv, translation_inv = inverse[:3, :3], inverse[:3, 3]
         held = holdout_every >= 2 and frame % holdout_every == holdout_every - 1
         for camera in cameras:
-            cam = camera_from_rig(camera)
+            cam = camera.pinhole()
             channels = tuple(int(camera.colour_channels[c]) for c in ("R", "G", "B"))
             views.append(
                 ViewSpec(
@@ -612,7 +612,7 @@ def unwrap_capture(
         writer = UnwrapStore.create(partial, geometry, views, config.patch)
     done = writer.done()
     lights_world = np.array([light.position_mm for light in store.rig.lights], dtype=np.float64)
-    cameras = {c.id: camera_from_rig(c) for c in store.rig.polarimetric_cameras()}
+    cameras = {c.id: c.pinhole() for c in store.rig.polarimetric_cameras()}
     frame_pose = dict(zip(frames, poses, strict=True))
     seen_any = False
     bar = tqdm(total=len(views), desc="unwrap views", unit="view", disable=not progress)
