@@ -15,7 +15,7 @@ from polarface.inverse.polarimetric_fused import build_fused_samples, fused_data
 from polarface.inverse.polarimetric_kernel import fused_loss_and_grad
 from polarface.inverse.polarimetric_losses import LossWeights, data_losses
 from polarface.inverse.polarimetric_model import precompute_samples, render_samples
-from polarface.texture.synthetic import _placement
+from polarface.simulate.sphere_capture import sphere_placement as _placement
 from polarface.texture.unwrap import build_views
 
 NAMES = ("normal", "eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "rho_sss_bar")

@@ -11,8 +11,8 @@ from polarface.geometry.mesh import TriangleMesh, load_mesh
 from polarface.geometry.poses import load_poses
 from polarface.geometry.raycast import RayCaster
 from polarface.inverse.polarimetric import render_view_texture
+from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
 from polarface.texture import UnwrapConfig, UnwrapStore, unwrap_capture
-from polarface.texture.synthetic import SphereCaptureConfig, make_sphere_capture
 from polarface.texture.unwrap import footprint_sees_surface
 
 

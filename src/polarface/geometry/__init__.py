@@ -13,7 +13,13 @@ from polarface.geometry.deform import (
     flipped_faces,
     smooth_falloff,
 )
-from polarface.geometry.head_asset import HeadAsset, load_head_asset, pick_landmark, srgb_to_linear
+from polarface.geometry.head_asset import (
+    HeadAsset,
+    head_placement,
+    load_head_asset,
+    pick_landmark,
+    srgb_to_linear,
+)
 from polarface.geometry.heights import height_gradients, normals_from_height_gradients, normals_from_heights
 from polarface.geometry.mesh import (
     TriangleMesh,
@@ -66,6 +72,7 @@ __all__ = [
     "face_areas",
     "face_normals",
     "flipped_faces",
+    "head_placement",
     "height_gradients",
     "invert_rigid",
     "load_head_asset",
