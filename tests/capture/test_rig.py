@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from polarface.capture.rig import Camera, LightModule, Rig, SpectralModel, look_at, paper_rig
+from polarface.capture.rig import Camera, LightModule, Rig, SpectralModel, paper_rig
+from polarface.geometry.camera import look_at
 
 
 def _camera(**overrides):

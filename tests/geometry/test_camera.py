@@ -7,8 +7,10 @@ import math
 import cv2
 import numpy as np
 import pytest
+import torch
 
-from polarface.geometry import PinholeCamera, undistort_normalized
+from polarface.capture.rig import paper_rig
+from polarface.geometry import PinholeCamera, look_at, undistort_normalized
 
 DIST = np.array([-0.21, 0.08, 0.0012, -0.0008, -0.015])
 
@@ -107,3 +109,36 @@ def test_dict_round_trip_and_behind_camera():
     assert depth < 0 and np.isnan(pixels).all()
     with pytest.raises(ValueError, match="lacks"):
         PinholeCamera.from_dict({"K": np.eye(3).tolist()})
+
+
+def test_look_at_default_up_is_world_minus_y():
+    pose = look_at([0.0, 0.0, 0.0], [0.0, 0.0, 10.0])
+    np.testing.assert_allclose(pose, np.eye(4), atol=1e-12)
+    cam = PinholeCamera.look_at([0.0, 0.0, 0.0], [0.0, 0.0, 10.0], width=8, height=6, focal=10.0)
+    np.testing.assert_allclose(cam.world_to_camera, pose)
+    np.testing.assert_allclose(cam.up_vector, [0.0, -1.0, 0.0])
+
+
+def test_torch_interop_matches_numpy_frame():
+    cam = PinholeCamera.look_at([300.0, 100.0, 900.0], [0.0, 0.0, 0.0], [0, 1, 0],
+        width=16, height=12, focal=20
+    )
+    _, directions = cam.pixel_rays()
+    rays = cam.ray_directions_tensor(torch.float64)
+    assert rays.shape == (12, 16, 3)
+    np.testing.assert_allclose(rays.numpy(), directions, atol=1e-12)
+    np.testing.assert_allclose(cam.center_tensor(torch.float64).numpy(), cam.center, atol=1e-9)
+    np.testing.assert_allclose(cam.up_tensor(torch.float64).numpy(), cam.up_vector, atol=1e-12)
+    np.testing.assert_allclose(cam.forward_tensor(torch.float64).numpy(), cam.viewing_axis, atol=1e-12)
+    assert cam.rotation_tensor().dtype == torch.float32
+
+
+def test_centred_camera_and_rig_pinhole():
+    cam = PinholeCamera.centred(4, 2, 100.0)
+    np.testing.assert_allclose(cam.K[:2, 2], [1.5, 0.5])
+    with pytest.raises(ValueError, match="focal"):
+        PinholeCamera.centred(4, 4, -1.0)
+    rig_camera = paper_rig(width=64, height=48).polarimetric_cameras()[0]
+    pinhole = rig_camera.pinhole()
+    np.testing.assert_allclose(pinhole.world_to_camera, rig_camera.pose)
+    np.testing.assert_allclose(pinhole.center, rig_camera.centre_mm)

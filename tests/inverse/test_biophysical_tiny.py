@@ -12,7 +12,8 @@ from polarface.inverse.biophysical import BiophysicalConfig
 from polarface.inverse.biophysical_stage import evaluate_biophysical, run_biophysical_stage
 from polarface.io import write_exr, write_png
 from polarface.render.relight import ResultAppearance, render_result_view
-from polarface.simulate.pipeline import SimulationConfig, SimulationScene, render_frame, static_poses
+from polarface.simulate.pipeline import SimulationConfig, SimulationScene, render_frame
+from polarface.simulate.sequences import static_poses
 
 
 @pytest.fixture(scope="module")

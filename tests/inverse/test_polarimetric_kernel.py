@@ -15,8 +15,8 @@ from polarface.inverse.polarimetric_fused import build_fused_samples, fused_data
 from polarface.inverse.polarimetric_kernel import fused_loss_and_grad
 from polarface.inverse.polarimetric_losses import LossWeights, data_losses
 from polarface.inverse.polarimetric_model import precompute_samples, render_samples
+from polarface.simulate.sphere_capture import sphere_placement
 from polarface.texture import build_views
-from polarface.texture.synthetic import _placement
 
 NAMES = ("normal", "eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "rho_sss_bar")
 
@@ -35,7 +35,7 @@ def _problem(seed: int = 0, texels: int = 30, frames: int = 5, empty_texels: int
     without samples) seen by both polarimetric cameras; noisy observations of the model itself."""
     rng = np.random.default_rng(seed)
     rig = paper_rig(width=256, height=212)
-    poses = np.stack([_placement(float(y)) for y in np.radians(np.linspace(-40, 40, frames))])
+    poses = np.stack([sphere_placement(float(y)) for y in np.radians(np.linspace(-40, 40, frames))])
     views = build_views(rig, list(range(frames)), poses)
     table = {a: np.array([getattr(v, a) for v in views], dtype=np.float64) for a in (
         "camera_center", "camera_up", "reference_up", "light_positions", "light_intensity"

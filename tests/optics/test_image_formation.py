@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from polarface.geometry.camera import PinholeCamera
 from polarface.optics import (
     PolarimetricImages,
     fresnel_terms,
@@ -15,7 +16,7 @@ from polarface.optics import (
     subsurface_entry_flux,
     subsurface_exit_stokes,
 )
-from polarface.render.scene import PinholeCamera, ring_light_positions, trace_sphere
+from polarface.render.scene import ring_light_positions, trace_sphere
 
 F64 = torch.float64
 SKIN = {"eta": 1.44, "alpha_s": 0.45, "alpha_ss": 0.95, "rho_s": 1.0, "rho_ss": 0.3, "rho_sss_bar": 0.5}
@@ -157,20 +158,22 @@ def test_radiometry_local_subsurface():
 def test_exact_coaxial_cross_polarized_has_no_specular():
     """A light at the camera centre: the specular lobes stay [k, k, 0, 0], so I90 is subsurface only and
     2 I90 = K (T+^2 - T-^2 xi^2) exactly (DESIGN.md: the shortcut drops T- T- xi^2)."""
-    cam = PinholeCamera(48, 48, 300.0)
+    cam = PinholeCamera.centred(48, 48, 300.0)
     geometry = trace_sphere(cam, (0.0, 0.0, 1000.0), 80.0, F64)
     normal, position = geometry.normal[geometry.mask], geometry.position[geometry.mask]
     out = render_polarimetric(
-        normal, position, cam.center(F64), cam.up(F64), cam.center(F64)[None], 1e6, **SKIN
+        normal, position, cam.center_tensor(F64), cam.up_tensor(F64), cam.center_tensor(F64)[None], 1e6,
+        **SKIN,
     )
     spec = out.specular + out.single_scattering
     torch.testing.assert_close(spec[..., 1], spec[..., 0], atol=1e-15, rtol=1e-12)
     torch.testing.assert_close(spec[..., 2], torch.zeros_like(spec[..., 2]), atol=1e-15, rtol=0)
-    w_o = torch.nn.functional.normalize(cam.center(F64) - position, dim=-1)
+    w_o = torch.nn.functional.normalize(cam.center_tensor(F64) - position, dim=-1)
+    up = cam.up_tensor(F64)
     cos = (normal * w_o).sum(-1)
     terms = fresnel_terms(cos, 1.44)
     x_axis = torch.linalg.cross(
-        torch.nn.functional.normalize(cam.up(F64) - (w_o @ cam.up(F64))[:, None] * w_o, dim=-1), w_o
+        torch.nn.functional.normalize(up - (w_o @ up)[:, None] * w_o, dim=-1), w_o
     )
     y_axis = torch.linalg.cross(w_o, x_axis)
     a, b = (normal * x_axis).sum(-1), (normal * y_axis).sum(-1)
@@ -182,7 +185,7 @@ def test_exact_coaxial_cross_polarized_has_no_specular():
 
 
 def _rig(size=96, dtype=F64):
-    cam = PinholeCamera(size, size, 600.0 * size / 96)
+    cam = PinholeCamera.centred(size, size, 600.0 * size / 96)
     geometry = trace_sphere(cam, (0.0, 0.0, 1000.0), 80.0, dtype)
     lights = ring_light_positions(cam, 100.0, 8, dtype=dtype)
     return cam, geometry.normal[geometry.mask], geometry.position[geometry.mask], lights
@@ -197,7 +200,7 @@ def test_paper_coaxial_simplification_error_at_rig_angle():
     rho_sss_bar 0.5): I_sss 0.40 %, I_s 3.2 %, I_zeta 4.2 % (whole disc: 0.53 %, 4.7 %, 6.1 %).
     """
     cam, normal, position, lights = _rig()
-    up, center = cam.up(F64), cam.center(F64)
+    up, center = cam.up_tensor(F64), cam.center_tensor(F64)
     intensity = torch.full((8, 1), math.pi * 1e6 / 8, dtype=F64)
     full = render_polarimetric(normal, position, center, up, lights, intensity, **SKIN)
     assert abs(math.degrees(math.atan2(100.0, 1000.0)) - 5.71) < 0.01
@@ -227,7 +230,8 @@ def test_paper_coaxial_simplification_error_at_rig_angle():
 def test_specular_leak_into_cross_polarized_image_at_rig():
     """Near-coaxial polarized LEDs: specular in I90 stays below 1 % of the specular in I0."""
     cam, normal, position, lights = _rig(64)
-    out = render_polarimetric(normal, position, cam.center(F64), cam.up(F64), lights, 1e6, **SKIN)
+    center, up = cam.center_tensor(F64), cam.up_tensor(F64)
+    out = render_polarimetric(normal, position, center, up, lights, 1e6, **SKIN)
     spec = out.specular + out.single_scattering
     spec_i0 = 0.5 * (spec[..., 0] + spec[..., 1])
     spec_i90 = 0.5 * (spec[..., 0] - spec[..., 1])
@@ -386,24 +390,24 @@ def test_aolp_convention_end_to_end():
     the plane of exit, Atkinson & Hancock 2006), so I45 > I135 where the normal points up-right."""
     from polarface.optics import aolp
 
-    cam = PinholeCamera(40, 40, 250.0)
+    cam = PinholeCamera.centred(40, 40, 250.0)
     geometry = trace_sphere(cam, (0.0, 0.0, 1000.0), 80.0, F64)
     normal, position = geometry.normal[geometry.mask], geometry.position[geometry.mask]
     unpolarized = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=F64)
     out = render_polarimetric(
         normal,
         position,
-        cam.center(F64),
-        cam.up(F64),
-        cam.center(F64)[None],
+        cam.center_tensor(F64),
+        cam.up_tensor(F64),
+        cam.center_tensor(F64)[None],
         1e6,
         **SKIN,
         light_stokes=unpolarized,
     )
     from polarface.optics import plane_azimuth, stokes_frame
 
-    w_o = torch.nn.functional.normalize(cam.center(F64) - position, dim=-1)
-    x_axis, y_axis = stokes_frame(w_o, cam.up(F64))
+    w_o = torch.nn.functional.normalize(cam.center_tensor(F64) - position, dim=-1)
+    x_axis, y_axis = stokes_frame(w_o, cam.up_tensor(F64))
     # near the optical axis the frame is image x / camera up (world -y): the image azimuth of the normal
     image_azimuth = torch.atan2(-normal[:, 1], normal[:, 0])
     azimuth = plane_azimuth(normal, x_axis, y_axis)

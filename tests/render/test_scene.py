@@ -5,23 +5,24 @@ import math
 import pytest
 import torch
 
+from polarface.geometry.camera import PinholeCamera
 from polarface.render.demo import DemoParameters, render_demo
-from polarface.render.scene import PinholeCamera, ring_light_positions, trace_sphere
+from polarface.render.scene import ring_light_positions, trace_sphere
 
 
 def test_camera_rays_and_up():
-    cam = PinholeCamera(4, 2, 100.0)
-    rays = cam.ray_directions(torch.float64)
+    cam = PinholeCamera.centred(4, 2, 100.0)
+    rays = cam.ray_directions_tensor(torch.float64)
     assert rays.shape == (2, 4, 3)
     torch.testing.assert_close(rays.norm(dim=-1), torch.ones(2, 4, dtype=torch.float64))
     assert rays[0, 0, 0] < 0 and rays[0, 0, 1] < 0  # top-left pixel looks left and up (y down)
-    torch.testing.assert_close(cam.up(), torch.tensor([0.0, -1.0, 0.0]))
-    with pytest.raises(ValueError, match="focal_px"):
-        PinholeCamera(4, 4, -1.0)
+    torch.testing.assert_close(cam.up_tensor(), torch.tensor([0.0, -1.0, 0.0]))
+    with pytest.raises(ValueError, match="focal"):
+        PinholeCamera.centred(4, 4, -1.0)
 
 
 def test_sphere_intersection_analytic():
-    cam = PinholeCamera(128, 128, 800.0)
+    cam = PinholeCamera.centred(128, 128, 800.0)
     geometry = trace_sphere(cam, (0.0, 0.0, 1000.0), 80.0, torch.float64)
     hit = geometry.mask
     points = geometry.position[hit]
@@ -39,7 +40,7 @@ def test_sphere_intersection_analytic():
 
 
 def test_ring_lights_at_paper_angle():
-    cam = PinholeCamera()
+    cam = PinholeCamera.centred(256, 256, 1400.0)
     lights = ring_light_positions(cam, 100.0, 8, dtype=torch.float64)
     assert lights.shape == (8, 3)
     torch.testing.assert_close(lights[:, :2].norm(dim=-1), torch.full((8,), 100.0, dtype=torch.float64))

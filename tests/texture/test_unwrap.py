@@ -11,8 +11,8 @@ from polarface.geometry.mesh import TriangleMesh, load_mesh
 from polarface.geometry.poses import load_poses
 from polarface.geometry.raycast import RayCaster
 from polarface.inverse.polarimetric import render_view_texture
+from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
 from polarface.texture import UnwrapConfig, UnwrapStore, footprint_sees_surface, unwrap_capture
-from polarface.texture.synthetic import SphereCaptureConfig, make_sphere_capture
 
 
 @pytest.fixture(scope="module")
@@ -96,7 +96,6 @@ def test_config_errors(field, value):
 
 
 def test_nan_observations_raise(capture):
-    from polarface.geometry.camera import camera_from_rig
     from polarface.geometry.raycast import RayCaster
     from polarface.geometry.uv_raster import rasterize_uv
     from polarface.texture import sample_view, texel_geometry
@@ -113,7 +112,7 @@ def test_nan_observations_raise(capture):
             geometry,
             world,
             RayCaster(world),
-            camera_from_rig(camera),
+            camera.pinhole(),
             poses[0],
             stack,
             np.zeros(stack.shape[1:3], bool),

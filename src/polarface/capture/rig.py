@@ -22,6 +22,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from polarface.geometry.camera import PinholeCamera, look_at
 from polarface.io.atomic import write_json_atomic
 
 __all__ = [
@@ -30,7 +31,6 @@ __all__ = [
     "LightModule",
     "Rig",
     "SpectralModel",
-    "look_at",
     "paper_rig",
 ]
 
@@ -207,6 +207,10 @@ class Camera(_Model):
         pose = self.pose
         return -pose[:3, :3].T @ pose[:3, 3]
 
+    def pinhole(self) -> PinholeCamera:
+        """This camera as a :class:`polarface.geometry.camera.PinholeCamera` (K, pose, size, distortion)."""
+        return PinholeCamera.from_dict(self.model_dump())
+
 
 class LightModule(_Model):
     """One polarized LED module, treated as a point light.
@@ -307,26 +311,6 @@ class Rig(_Model):
         return write_json_atomic(path, self.model_dump(mode="json"))
 
 
-def look_at(centre_mm: np.ndarray, target_mm: np.ndarray, up: np.ndarray = (0.0, -1.0, 0.0)) -> np.ndarray:
-    """4x4 OpenCV ``world_to_camera`` of a camera at ``centre_mm`` looking at ``target_mm``.
-
-    ``up`` is the world direction that should appear up in the image (image -y); world frame of
-    :func:`paper_rig`: x right, y down, z from the rig towards the face.
-    """
-    centre = np.asarray(centre_mm, dtype=np.float64)
-    forward = np.asarray(target_mm, dtype=np.float64) - centre
-    forward /= np.linalg.norm(forward)
-    down = -np.asarray(up, dtype=np.float64)
-    right = np.cross(down, forward)
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    rotation = np.stack([right, down, forward])
-    pose = np.eye(4)
-    pose[:3, :3] = rotation
-    pose[:3, 3] = -rotation @ centre
-    return pose
-
-
 def _default_spectral() -> SpectralModel | None:
     try:
         from polarface.skin.spectral import default_spectral_calibration
@@ -369,6 +353,7 @@ def paper_rig(scale: float = 1.0, width: int = 2448, height: int = 2048) -> Rig:
     focal = 4.0 * width
     K = [[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
     target = np.array([0.0, 0.0, distance])
+    world_up = (0.0, -1.0, 0.0)  # the rig world has y down
     cameras = []
     for cam_id, x_mm, channels in (
         ("pol_upper", -30.0, {"R": 0, "G": 1, "B": 2}),
@@ -382,7 +367,7 @@ def paper_rig(scale: float = 1.0, width: int = 2448, height: int = 2048) -> Rig:
                 width=width,
                 height=height,
                 K=K,
-                world_to_camera=look_at(np.array([x_mm * scale, 0.0, 0.0]), target).tolist(),
+                world_to_camera=look_at(np.array([x_mm * scale, 0.0, 0.0]), target, up=world_up).tolist(),
                 bit_depth=12,
                 colour_channels=channels,
             )
@@ -398,7 +383,7 @@ def paper_rig(scale: float = 1.0, width: int = 2448, height: int = 2048) -> Rig:
                     width=width,
                     height=height,
                     K=K,
-                    world_to_camera=look_at(centre, target).tolist(),
+                    world_to_camera=look_at(centre, target, up=world_up).tolist(),
                     bit_depth=12,
                 )
             )

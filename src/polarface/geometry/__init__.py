@@ -4,7 +4,7 @@ normals from heights (torch, differentiable), rigid poses and expression deforma
 Units mm, angles radians; cameras in the OpenCV convention; UVs v up (``docs/geometry.md``).
 """
 
-from polarface.geometry.camera import PinholeCamera, distort_normalized, undistort_normalized
+from polarface.geometry.camera import PinholeCamera, distort_normalized, look_at, undistort_normalized
 from polarface.geometry.deform import (
     EXPRESSIONS,
     ExpressionConfig,
@@ -13,7 +13,13 @@ from polarface.geometry.deform import (
     flipped_faces,
     smooth_falloff,
 )
-from polarface.geometry.head_asset import HeadAsset, load_head_asset, pick_landmark, srgb_to_linear
+from polarface.geometry.head_asset import (
+    HeadAsset,
+    head_placement,
+    load_head_asset,
+    pick_landmark,
+    srgb_to_linear,
+)
 from polarface.geometry.heights import (
     HeightNormals,
     height_gradients,
@@ -72,11 +78,13 @@ __all__ = [
     "face_areas",
     "face_normals",
     "flipped_faces",
+    "head_placement",
     "height_gradients",
     "invert_rigid",
     "load_head_asset",
     "load_mesh",
     "load_poses",
+    "look_at",
     "normals_from_height_gradients",
     "normals_from_heights",
     "pick_landmark",

@@ -10,7 +10,13 @@ Distortion (OpenCV's 5-parameter model, Brown 1966 / Conrady 1919): for normalis
     x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2)
     y_d = y (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y
 
-Geometry here is numpy float64 (not differentiated).
+Geometry here is numpy float64 (not differentiated); the ``*_tensor`` methods give torch copies of the
+frame (rotation, centre, up and viewing axes, per-pixel ray directions) in a chosen dtype and device
+for the torch renderers (:mod:`polarface.render`).
+
+:func:`look_at` is the one look-at construction of the project: ``up`` is the world direction that
+appears upwards in the image (image -y) and defaults to world -y, the "up" of the rig world
+(:func:`polarface.capture.rig.paper_rig`: x right, y down, z towards the face).
 """
 
 from __future__ import annotations
@@ -19,10 +25,44 @@ import dataclasses
 import math
 
 import numpy as np
+import torch
 
 from polarface.geometry.poses import check_rigid, invert_rigid
 
-__all__ = ["PinholeCamera", "distort_normalized", "undistort_normalized"]
+__all__ = ["PinholeCamera", "distort_normalized", "look_at", "undistort_normalized"]
+
+#: World direction that appears upwards in the image by default (the rig world has y down).
+DEFAULT_UP = (0.0, -1.0, 0.0)
+
+Device = torch.device | str | None
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = DEFAULT_UP) -> np.ndarray:
+    """``(4, 4)`` float64 OpenCV ``world_to_camera`` of a camera at ``eye`` (mm) looking at ``target``.
+
+    ``up`` (world) appears upwards in the image (image -y). Camera axes in world:
+    z = normalise(target - eye), x = normalise(z x up), y = z x x (down).
+
+    Raises:
+        ValueError: if eye == target or up is parallel to the viewing axis.
+    """
+    eye = np.asarray(eye, dtype=np.float64).reshape(3)
+    target = np.asarray(target, dtype=np.float64).reshape(3)
+    up = np.asarray(up, dtype=np.float64).reshape(3)
+    forward = target - eye
+    if np.linalg.norm(forward) < 1e-12:
+        raise ValueError("arguments 'eye' and 'target' must differ")
+    z_axis = forward / np.linalg.norm(forward)
+    x_axis = np.cross(z_axis, up)
+    if np.linalg.norm(x_axis) < 1e-9 * max(np.linalg.norm(up), 1e-300):
+        raise ValueError("argument 'up' must not be parallel to the viewing direction")
+    x_axis /= np.linalg.norm(x_axis)
+    y_axis = np.cross(z_axis, x_axis)
+    rotation = np.stack([x_axis, y_axis, z_axis])  # rows: camera axes in world
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = -rotation @ eye
+    return pose
 
 
 def distort_normalized(points: np.ndarray, distortion: np.ndarray) -> np.ndarray:
@@ -114,7 +154,7 @@ class PinholeCamera:
         cls,
         eye: np.ndarray,
         target: np.ndarray,
-        up: np.ndarray = (0.0, 1.0, 0.0),
+        up: np.ndarray = DEFAULT_UP,
         *,
         width: int,
         height: int,
@@ -124,25 +164,14 @@ class PinholeCamera:
     ) -> PinholeCamera:
         """Camera at ``eye`` (mm) looking at ``target`` with ``up`` (world) appearing upwards in the image.
 
-        Exactly one of ``fov_y`` (vertical field of view, radians) or ``focal`` (pixels, fx = fy) is
-        given; the principal point is the image centre ``((W - 1) / 2, (H - 1) / 2)``.
-        Camera axes in world: z = normalise(target - eye), x = normalise(z x up), y = z x x (down).
+        The pose is :func:`look_at`. Exactly one of ``fov_y`` (vertical field of view, radians) or
+        ``focal`` (pixels, fx = fy) is given; the principal point is the image centre
+        ``((W - 1) / 2, (H - 1) / 2)``.
 
         Raises:
             ValueError: if eye == target, up is parallel to the viewing axis, or the focal spec is bad.
         """
-        eye = np.asarray(eye, dtype=np.float64).reshape(3)
-        target = np.asarray(target, dtype=np.float64).reshape(3)
-        up = np.asarray(up, dtype=np.float64).reshape(3)
-        forward = target - eye
-        if np.linalg.norm(forward) < 1e-12:
-            raise ValueError("arguments 'eye' and 'target' must differ")
-        z_axis = forward / np.linalg.norm(forward)
-        x_axis = np.cross(z_axis, up)
-        if np.linalg.norm(x_axis) < 1e-9 * max(np.linalg.norm(up), 1e-300):
-            raise ValueError("argument 'up' must not be parallel to the viewing direction")
-        x_axis /= np.linalg.norm(x_axis)
-        y_axis = np.cross(z_axis, x_axis)
+        pose = look_at(eye, target, up)
         if (fov_y is None) == (focal is None):
             raise ValueError("give exactly one of 'fov_y' (radians) or 'focal' (pixels)")
         if fov_y is not None:
@@ -151,11 +180,24 @@ class PinholeCamera:
             focal = 0.5 * height / math.tan(0.5 * fov_y)
         if not focal > 0:
             raise ValueError(f"argument 'focal' must be > 0 pixels; got {focal}")
+        return cls.centred(width, height, focal, pose, distortion)
+
+    @classmethod
+    def centred(
+        cls,
+        width: int,
+        height: int,
+        focal: float,
+        world_to_camera: np.ndarray | None = None,
+        distortion: np.ndarray | None = None,
+    ) -> PinholeCamera:
+        """Square-pixel camera (``fx = fy = focal`` px) with its principal point at the image centre
+        ``((W - 1) / 2, (H - 1) / 2)``; ``world_to_camera`` defaults to the identity (camera at the world
+        origin looking along +z, world -y up)."""
+        if not (focal > 0 and math.isfinite(focal)):
+            raise ValueError(f"argument 'focal' must be a positive finite number of pixels; got {focal}")
         K = np.array([[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
-        rotation = np.stack([x_axis, y_axis, z_axis])  # rows: camera axes in world
-        pose = np.eye(4)
-        pose[:3, :3] = rotation
-        pose[:3, 3] = -rotation @ eye
+        pose = np.eye(4) if world_to_camera is None else world_to_camera
         return cls(K, pose, width, height, np.zeros(5) if distortion is None else distortion)
 
     # ---- frame queries -----------------------------------------------------------------------------
@@ -188,6 +230,40 @@ class PinholeCamera:
     @property
     def has_distortion(self) -> bool:
         return bool(np.any(self.distortion != 0))
+
+    # ---- torch interop -----------------------------------------------------------------------------
+    def rotation_tensor(self, dtype: torch.dtype = torch.float32, device: Device = None) -> torch.Tensor:
+        """``(3, 3)`` camera-to-world rotation; its columns are the camera x (right), y (down) and z
+        (forward) axes in world coordinates."""
+        return torch.tensor(self.world_to_camera[:3, :3].T.tolist(), dtype=dtype, device=device)
+
+    def center_tensor(self, dtype: torch.dtype = torch.float32, device: Device = None) -> torch.Tensor:
+        """``(3,)`` camera centre in world mm (:attr:`center`)."""
+        return torch.tensor(self.center.tolist(), dtype=dtype, device=device)
+
+    def up_tensor(self, dtype: torch.dtype = torch.float32, device: Device = None) -> torch.Tensor:
+        """``(3,)`` world direction appearing upwards in the image (minus the camera y axis)."""
+        return -self.rotation_tensor(dtype, device)[:, 1]
+
+    def forward_tensor(self, dtype: torch.dtype = torch.float32, device: Device = None) -> torch.Tensor:
+        """``(3,)`` optical axis (camera z) in world."""
+        return self.rotation_tensor(dtype, device)[:, 2]
+
+    def ray_directions_tensor(
+        self, dtype: torch.dtype = torch.float32, device: Device = None
+    ) -> torch.Tensor:
+        """``(H, W, 3)`` unit world directions through the pixel centres, computed in ``dtype``.
+
+        Ideal pinhole (skew and distortion are ignored): the pixel ``(col, row)`` looks along camera
+        ``((col - cx) / fx, (row - cy) / fy, 1)``.
+        """
+        fx, fy = float(self.K[0, 0]), float(self.K[1, 1])
+        rows = torch.arange(self.height, dtype=dtype, device=device) + 0.5 - (float(self.K[1, 2]) + 0.5)
+        cols = torch.arange(self.width, dtype=dtype, device=device) + 0.5 - (float(self.K[0, 2]) + 0.5)
+        v, u = torch.meshgrid(rows, cols, indexing="ij")
+        local = torch.stack([u / fx, v / fy, torch.ones_like(u)], dim=-1)
+        world = local @ self.rotation_tensor(dtype, device).T
+        return world / torch.linalg.vector_norm(world, dim=-1, keepdim=True)
 
     # ---- projection --------------------------------------------------------------------------------
     def world_to_camera_points(self, points: np.ndarray) -> np.ndarray:
@@ -310,7 +386,3 @@ def _as_points(points: np.ndarray, name: str, size: int = 3) -> np.ndarray:
         raise ValueError(f"argument '{name}' contains NaN or infinite values")
     return array
 
-
-def camera_from_rig(camera) -> PinholeCamera:
-    """The :class:`PinholeCamera` of a rig camera (:class:`polarface.capture.rig.Camera`)."""
-    return PinholeCamera.from_dict(camera.model_dump())

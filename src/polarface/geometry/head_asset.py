@@ -56,6 +56,7 @@ __all__ = [
     "MM_PER_SOURCE_UNIT",
     "HeadAsset",
     "head_data_dir",
+    "head_placement",
     "load_head_asset",
     "pick_landmark",
     "srgb_to_linear",
@@ -97,6 +98,19 @@ LANDMARKS_XY_MM: dict[str, tuple[float, float]] = {
     "cheek_left": (42.0, -28.0),
     "cheek_right": (-42.0, -28.0),
 }
+
+
+def head_placement(distance_mm: float = 1000.0) -> np.ndarray:
+    """Model -> rig-world transform placing the head in front of the polarimetric module.
+
+    The rig world (:func:`polarface.capture.rig.paper_rig`) has y down and z towards the subject;
+    the model frame has y up and the face towards +z. A half turn about x makes the face look at the
+    cameras; the translation puts the face (about 90 mm in front of the model origin, 10 mm below it)
+    at ``distance_mm`` on the optical axis.
+    """
+    placement = np.diag([1.0, -1.0, -1.0, 1.0])
+    placement[:3, 3] = (0.0, -10.0, distance_mm + 90.0)
+    return placement
 
 
 def head_data_dir() -> Path:

@@ -43,7 +43,8 @@ def benchmark_problem(
     ``fused_problem`` with the fused numba kernel (same samples)."""
     from polarface.capture.rig import paper_rig
     from polarface.geometry.uv_raster import rasterize_uv
-    from polarface.texture.synthetic import _placement, sphere_cap_mesh
+    from polarface.simulate.sphere_capture import sphere_cap_mesh
+    from polarface.simulate.sphere_capture import sphere_placement as _placement
 
     mesh = sphere_cap_mesh(80.0, 60.0, segments=64)
     raster = rasterize_uv(mesh, side)

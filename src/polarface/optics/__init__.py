@@ -7,8 +7,8 @@ Modules: :mod:`~polarface.optics.stokes` (analyzer images, DoP, AoLP), :mod:`~po
 :mod:`~polarface.optics.mueller` (rotator, polarizer, depolarizer, Fresnel matrices, Stokes frames),
 :mod:`~polarface.optics.microfacet` (GGX, Smith), :mod:`~polarface.optics.dop` (diffuse/specular DoP and
 inverses), :mod:`~polarface.optics.pbssrdf` (full Mueller matrices P_s, P_ss, P_sss, coaxial model) and
-:mod:`~polarface.optics.image_formation` (fast per-pixel forward model) and
-:mod:`~polarface.optics.precomputed` (the same with the geometry precomputed, for inverse rendering).
+:mod:`~polarface.optics.image_formation` (fast per-pixel forward model, the one definition of the
+image formation used by the renderers and the inverse stages).
 """
 
 from polarface.optics.dop import (
@@ -52,7 +52,6 @@ from polarface.optics.pbssrdf import (
     pbssrdf_specular_mueller,
     pbssrdf_subsurface_mueller,
 )
-from polarface.optics.precomputed import PrecomputedGeometry, precompute_geometry, render_precomputed
 from polarface.optics.stokes import (
     ANALYZER_ANGLES,
     analyzer_intensity,
@@ -67,7 +66,6 @@ __all__ = [
     "DEFAULT_LIGHT_STOKES",
     "FresnelTerms",
     "PolarimetricImages",
-    "PrecomputedGeometry",
     "analyzer_intensity",
     "aolp",
     "brewster_angle",
@@ -92,9 +90,7 @@ __all__ = [
     "pbssrdf_specular_mueller",
     "pbssrdf_subsurface_mueller",
     "plane_azimuth",
-    "precompute_geometry",
     "render_polarimetric",
-    "render_precomputed",
     "rotator",
     "smith_g",
     "smith_g1",

@@ -13,8 +13,9 @@ from dataclasses import dataclass, field
 
 import torch
 
+from polarface.geometry.camera import PinholeCamera
 from polarface.optics.image_formation import PolarimetricImages, render_polarimetric
-from polarface.render.scene import PinholeCamera, SphereGeometry, ring_light_positions, trace_sphere
+from polarface.render.scene import SphereGeometry, ring_light_positions, trace_sphere
 
 __all__ = ["DemoParameters", "DemoRender", "render_demo"]
 
@@ -84,13 +85,14 @@ def render_demo(params: DemoParameters | None = None, *, dtype: torch.dtype = to
     params = params or DemoParameters()
     if overrides:
         params = DemoParameters(**{**params.__dict__, **overrides})
-    camera = PinholeCamera(width=params.width, height=params.height, focal_px=params.focal_px)
+    camera = PinholeCamera.centred(params.width, params.height, params.focal_px)
     geometry = trace_sphere(camera, (0.0, 0.0, params.subject_distance_mm), params.sphere_radius_mm, dtype)
     lights = ring_light_positions(camera, params.ring_radius_mm, params.light_count, dtype=dtype)
     mask = geometry.mask
     intensity = torch.tensor(params.light_intensity, dtype=dtype).expand(params.light_count, -1)
     hit = render_polarimetric(
-        geometry.normal[mask], geometry.position[mask], camera.center(dtype), camera.up(dtype), lights,
+        geometry.normal[mask], geometry.position[mask], camera.center_tensor(dtype), camera.up_tensor(dtype),
+        lights,
         intensity, params.eta, params.alpha_s, params.alpha_ss, params.rho_s, params.rho_ss,
         torch.tensor(params.rho_sss_bar, dtype=dtype),
     )

@@ -1,7 +1,7 @@
 """Render reconstructed appearance maps: polarimetric views, Mueller images, strip light, editing.
 
-Paper Figs. "Mueller", "strip" and "editing". The renderer is the simulator's
-(:mod:`polarface.simulate.render`, :mod:`polarface.simulate.texture_sss`): Embree ray casting of the
+Paper Figs. "Mueller", "strip" and "editing". The renderer is :mod:`polarface.render.renderer`
+(with :mod:`polarface.render.subsurface`, the simulator's too): Embree ray casting of the
 (posed) rest mesh, entry flux per texel under the rig's polarized LEDs, heterogeneous two-layer
 texture-space diffusion with the RESULT's SoG shapes (``maps/sog.json``) and chromophore maps, exit
 Fresnel with polarization, GGX specular and single-scattering lobes through full Mueller matrices.
@@ -31,6 +31,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from polarface.geometry.head_asset import head_placement
+from polarface.geometry.raycast import RayCaster
+from polarface.geometry.uv_raster import UVRaster, rasterize_uv, reposition
+from polarface.optics.image_formation import subsurface_exit_stokes
+from polarface.render.renderer import render_view, rig_lighting, shading_normals
+from polarface.render.shading import FrameTextures, fragment_material, lobe_stokes
+from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
 from polarface.skin.layers import PARAMETER_RANGES
 
 __all__ = [
@@ -135,26 +142,14 @@ class ResultAppearance:
         return cls(maps, mask, load_mesh(root / "mesh.obj"), rig, shapes)
 
 
-def _pinhole(camera):
-    from polarface.geometry.camera import PinholeCamera
-
-    return PinholeCamera(
-        K=np.asarray(camera.K, dtype=np.float64),
-        world_to_camera=np.asarray(camera.world_to_camera, dtype=np.float64),
-        width=camera.width,
-        height=camera.height,
-        distortion=np.asarray(camera.distortion, dtype=np.float64) if camera.distortion else np.zeros(5),
-    )
-
-
 @dataclasses.dataclass(frozen=True, eq=False)
 class RenderedResult:
     """One rendered view.
 
     Attributes:
         images: ``i0``, ``i45``, ``i90``, ``i135`` ``(h, w, 6)`` float32 analyzer images (all six channels).
-        mask, uv, face_id, depth: as :class:`polarface.simulate.render.ViewRender`.
-        textures: the :class:`polarface.simulate.render.FrameTextures` used (for Mueller images).
+        mask, uv, face_id, depth: as :class:`polarface.render.renderer.ViewRender`.
+        textures: the :class:`polarface.render.shading.FrameTextures` used (for Mueller images).
         mesh_world, caster, camera, lights, intensity: the scene.
         spectral_albedo: ``(L, Ht, Wt)`` float32 diffused subsurface exitance per unit flux (texture).
     """
@@ -187,7 +182,7 @@ def render_result_view(
         appearance: :class:`ResultAppearance`.
         camera_id: a camera of the rig (default: the first polarimetric camera).
         pose: ``(4, 4)`` model -> rig-world transform (default: the simulator's rest placement facing
-            the polarimetric module, :func:`polarface.simulate.pipeline.head_placement`).
+            the polarimetric module, :func:`polarface.geometry.head_asset.head_placement`).
         edits: chromophore scale factors (:func:`parse_edits`).
         strip_width_mm: if given, light enters only within this band (mm) around the plane through the
             head centre spanned by the camera's up and viewing axes (shifted by ``strip_offset_mm``
@@ -196,61 +191,20 @@ def render_result_view(
     Returns:
         :class:`RenderedResult` with six-channel analyzer images.
     """
-    from polarface.geometry.heights import normals_from_heights
-    from polarface.geometry.raycast import RayCaster
-    from polarface.geometry.uv_raster import rasterize_uv, reposition
-    from polarface.simulate.pipeline import head_placement
-    from polarface.simulate.render import FrameTextures, render_view
-    from polarface.simulate.texture_sss import SubsurfaceModel, entering_flux, texture_space_exitance
-
     rig = appearance.rig
     camera = rig.camera(camera_id) if camera_id else rig.polarimetric_cameras()[0]
-    pinhole = _pinhole(camera)
+    pinhole = camera.pinhole()
     transform = head_placement() if pose is None else np.asarray(pose, dtype=np.float64)
     if transform.shape != (4, 4) or not np.isfinite(transform).all():
         raise ValueError(f"argument 'pose' must be a finite 4x4 matrix; got shape {transform.shape}")
-    maps = appearance.maps
-    shape = appearance.mask.shape
+    if strip_width_mm is not None and not strip_width_mm > 0:
+        raise ValueError(f"argument 'strip_width_mm' must be > 0; got {strip_width_mm}")
     mesh_world = appearance.mesh.transformed(transform)
     caster = RayCaster(mesh_world)
-    raster = reposition(rasterize_uv(appearance.mesh, shape), mesh_world)
-    mask = raster.mask & appearance.mask
-    to_t = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float64))  # noqa: E731
-    shading = normals_from_heights(
-        to_t(maps["displacement_mm"]),
-        to_t(raster.tangent_u),
-        to_t(raster.tangent_v),
-        to_t(raster.normal),
-        to_t(raster.texel_size_u),
-        to_t(raster.texel_size_v),
-        torch.from_numpy(raster.mask),
-    ).numpy()
-    lights = np.array([light.position_mm for light in rig.lights], dtype=np.float64)
-    first = rig.lights[0].radiant_intensity
-    intensity = float(first if np.ndim(first) == 0 else first[0])
-    reference = _pinhole(rig.polarimetric_cameras()[0])
-    eta = np.where(mask, maps["eta"], 1.4).astype(np.float32)
-    flux = entering_flux(caster, raster, shading, eta, lights, intensity, reference.up_vector)
-    chromophores = apply_edits({k: maps[k] for k in ("c_m", "beta_m", "c_h_in", "c_h_out")}, edits or {})
-    calibration = rig.spectral.to_calibration()
-    params = {
-        k: np.where(mask, maps[k], 0.0).astype(np.float32) for k in ("alpha_s", "alpha_ss", "rho_s", "rho_ss")
-    }
-    params["eta"] = eta
-    if strip_width_mm is not None:
-        if not strip_width_mm > 0:
-            raise ValueError(f"argument 'strip_width_mm' must be > 0; got {strip_width_mm}")
-        centre = raster.position[mask].mean(axis=0)
-        offset = (raster.position - centre) @ pinhole.right_vector - strip_offset_mm
-        flux = np.where(np.abs(offset) <= 0.5 * strip_width_mm, flux, 0.0).astype(np.float32)
-        params["rho_s"] = np.zeros_like(params["rho_s"])
-        params["rho_ss"] = np.zeros_like(params["rho_ss"])
-    raster_masked = dataclasses.replace(raster, mask=mask) if dataclasses.is_dataclass(raster) else raster
-    model = SubsurfaceModel.build(
-        chromophores, raster_masked, calibration.wavelengths_nm, shapes=appearance.shapes
-    )
-    exitance = texture_space_exitance(flux, model, calibration, blur=True)
-    textures = FrameTextures.build(params, shading, exitance, mask)
+    raster = reposition(rasterize_uv(appearance.mesh, appearance.mask.shape), mesh_world)
+    lights, intensity = rig_lighting(rig)
+    strip = None if strip_width_mm is None else (pinhole.right_vector, strip_width_mm, strip_offset_mm)
+    textures = _result_textures(appearance, caster, raster, lights, intensity, edits or {}, strip)
     view = render_view(
         caster, mesh_world, pinhole, textures, lights, intensity, tuple(range(6)), polarization=True
     )
@@ -269,16 +223,54 @@ def render_result_view(
     )
 
 
+def _result_textures(
+    appearance: ResultAppearance,
+    caster: RayCaster,
+    raster: UVRaster,
+    lights: np.ndarray,
+    intensity: float,
+    edits: dict[str, float],
+    strip: tuple[np.ndarray, float, float] | None,
+) -> FrameTextures:
+    """The frame textures of a RESULT on the posed ``raster``: entry flux under the rig's LEDs (only
+    in the band ``strip = (right vector, width mm, offset mm)`` when given, without specular lobes),
+    diffused with the (edited) chromophores and the RESULT's SoG shapes."""
+    maps = appearance.maps
+    rig = appearance.rig
+    mask = raster.mask & appearance.mask
+    shading = shading_normals(raster, maps["displacement_mm"])
+    reference = rig.polarimetric_cameras()[0].pinhole()
+    eta = np.where(mask, maps["eta"], 1.4).astype(np.float32)
+    flux = entering_flux(caster, raster, shading, eta, lights, intensity, reference.up_vector)
+    chromophores = apply_edits({k: maps[k] for k in ("c_m", "beta_m", "c_h_in", "c_h_out")}, edits)
+    calibration = rig.spectral.to_calibration()
+    params = {
+        k: np.where(mask, maps[k], 0.0).astype(np.float32) for k in ("alpha_s", "alpha_ss", "rho_s", "rho_ss")
+    }
+    params["eta"] = eta
+    if strip is not None:
+        right_vector, width_mm, offset_mm = strip
+        centre = raster.position[mask].mean(axis=0)
+        offset = (raster.position - centre) @ right_vector - offset_mm
+        flux = np.where(np.abs(offset) <= 0.5 * width_mm, flux, 0.0).astype(np.float32)
+        params["rho_s"] = np.zeros_like(params["rho_s"])
+        params["rho_ss"] = np.zeros_like(params["rho_ss"])
+    raster_masked = dataclasses.replace(raster, mask=mask) if dataclasses.is_dataclass(raster) else raster
+    model = SubsurfaceModel.build(
+        chromophores, raster_masked, calibration.wavelengths_nm, shapes=appearance.shapes
+    )
+    exitance = texture_space_exitance(flux, model, calibration, blur=True)
+    return FrameTextures.build(params, shading, exitance, mask)
+
+
 def mueller_images(rendered: RenderedResult, chunk_pixels: int = 131072) -> np.ndarray:
     """Per-pixel 3x3 linear Mueller matrices ``(h, w, 6, 3, 3)`` float32 of a rendered view.
 
     Columns from the lobes under incident states ``[1, 1, 0]``, ``[1, -1, 0]``, ``[1, 0, 1]`` (camera
     frame convention of each LED, see module docstring); the diffused subsurface term (depolarised on
-    entry) adds ``exit_stokes * exitance`` to the first column. Zero where no surface.
+    entry) adds ``exit_stokes * exitance`` to the first column. Zero where no surface. Shaded in
+    float64 with :mod:`polarface.render.shading`.
     """
-    from polarface.geometry.uv_raster import sample_texture
-    from polarface.optics.image_formation import render_polarimetric, subsurface_exit_stokes
-
     camera, mesh = rendered.camera, rendered.mesh_world
     height, width = rendered.mask.shape
     out = np.zeros((height * width, 6, 3, 3), np.float32)
@@ -290,52 +282,37 @@ def mueller_images(rendered: RenderedResult, chunk_pixels: int = 131072) -> np.n
     states = torch.tensor(
         [[1.0, 1.0, 0.0, 0.0], [1.0, -1.0, 0.0, 0.0], [1.0, 0.0, 1.0, 0.0]], dtype=torch.float64
     )
+    intensity = torch.full((1, 6), rendered.intensity, dtype=torch.float64)
     face_normals = mesh.face_normals()
     for start in range(0, hit_index.size, chunk_pixels):
         index = hit_index[start : start + chunk_pixels]
         points = origins[index] + directions[index] * rendered.depth.reshape(-1)[index, None].astype(
             np.float64
         )
-        uv = torch.from_numpy(rendered.uv.reshape(-1, 2)[index])
-        sampled = sample_texture(rendered.textures.stack, uv).double()
         position = torch.from_numpy(points)
-        to_camera = centre - position
-        to_camera = to_camera / to_camera.norm(dim=-1, keepdim=True)
-        normal = sampled[:, 5:8] / sampled[:, 5:8].norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        geometric = torch.from_numpy(face_normals[rendered.face_id.reshape(-1)[index]].astype(np.float64))
-        geometric = geometric * torch.where((geometric * to_camera).sum(-1, keepdim=True) < 0, -1.0, 1.0)
-        normal = torch.where((normal * to_camera).sum(-1, keepdim=True) > 1e-3, normal, geometric)
-        eta = sampled[:, 0:1].clamp_min(1.0 + 1e-6)
-        exitance = sampled[:, 8:14]
-        visible = rendered.caster.shadow_rays(points, geometric.numpy(), rendered.lights)
+        material = fragment_material(
+            rendered.textures,
+            torch.from_numpy(rendered.uv.reshape(-1, 2)[index]),
+            torch.from_numpy(face_normals[rendered.face_id.reshape(-1)[index]].astype(np.float64)),
+            position,
+            centre,
+            tuple(range(6)),
+            trusted=False,
+        )
+        visible = rendered.caster.shadow_rays(points, material.geometric_normal.numpy(), rendered.lights)
         columns = []
         for state in states:
-            total = torch.zeros(len(index), 6, 4, dtype=torch.float64)
-            for k in range(rendered.lights.shape[0]):
-                lit = torch.from_numpy(visible[:, k].astype(np.float64))[:, None, None]
-                images = render_polarimetric(
-                    normal,
-                    position,
-                    centre,
-                    up,
-                    torch.from_numpy(rendered.lights[k : k + 1]),
-                    torch.full((1, 6), rendered.intensity, dtype=torch.float64),
-                    eta,
-                    sampled[:, 1:2].clamp_min(1e-3),
-                    sampled[:, 2:3].clamp_min(1e-3),
-                    sampled[:, 3:4].clamp_min(0.0),
-                    sampled[:, 4:5].clamp_min(0.0),
-                    0.0,
-                    light_stokes=state,
-                    diffused_exitance=torch.zeros_like(exitance),
-                )
-                total = total + lit * images.stokes
+            zero = torch.zeros(len(index), 6, 4, dtype=torch.float64)
+            total = lobe_stokes(
+                material, position, centre, up, rendered.lights, visible, intensity, zero,
+                light_stokes=state, skip_unlit=False,
+            )
             columns.append(total[..., :3])
         m0 = 0.5 * (columns[0] + columns[1])
         m1 = 0.5 * (columns[0] - columns[1])
         m2 = columns[2] - m0
-        sss = exitance[..., None] * subsurface_exit_stokes(normal, position, centre, up, eta)[..., :3]
-        m0 = m0 + sss
+        exit_stokes = subsurface_exit_stokes(material.normal, position, centre, up, material.eta)
+        m0 = m0 + material.exitance[..., None] * exit_stokes[..., :3]
         out[index] = torch.stack([m0, m1, m2], dim=-1).float().numpy()
     return out.reshape(height, width, 6, 3, 3)
 

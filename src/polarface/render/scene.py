@@ -1,8 +1,9 @@
-"""Analytic demo scene: a pinhole camera, the rig's ring of polarized LEDs and a sphere (ray-traced).
+"""Analytic demo scene: the rig's ring of polarized LEDs and a ray-traced sphere, seen by a
+:class:`polarface.geometry.camera.PinholeCamera`.
 
 Frames (``docs/conventions.md``): world coordinates in mm; the camera follows OpenCV (x right, y down,
-z forward) and sits at the world origin looking along +z unless given otherwise, so its up vector is
-world -y. The LED modules sit on a circle of radius ``ring_radius_mm`` around the lens in the image
+z forward); :meth:`PinholeCamera.centred` puts it at the world origin looking along +z, so its up
+vector is world -y. The LED modules sit on a circle of radius ``ring_radius_mm`` around the lens in the image
 plane; at the default 100 mm radius and 1000 mm subject distance they are atan(0.1) = 5.71 deg off axis
 (the paper's "5.72 deg").
 """
@@ -10,67 +11,14 @@ plane; at the default 100 mm radius and 1000 mm subject distance they are atan(0
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 
 from polarface._validation import check_finite
+from polarface.geometry.camera import PinholeCamera
 
-__all__ = ["PinholeCamera", "SphereGeometry", "ring_light_positions", "trace_sphere"]
-
-Device = torch.device | str | None
-
-
-@dataclass(frozen=True)
-class PinholeCamera:
-    """An ideal pinhole camera (OpenCV intrinsics, no distortion).
-
-    Attributes:
-        width, height: image size in pixels.
-        focal_px: focal length in pixels (square pixels).
-        center_mm: ``(3,)`` camera centre in world mm.
-        rotation: ``(3, 3)`` camera-to-world rotation whose columns are the camera x (right), y (down)
-            and z (forward) axes in world coordinates; identity by default.
-    """
-
-    width: int = 256
-    height: int = 256
-    focal_px: float = 1400.0
-    center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    rotation: tuple[tuple[float, float, float], ...] = field(
-        default=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-    )
-
-    def __post_init__(self) -> None:
-        if self.width < 1 or self.height < 1:
-            raise ValueError(f"argument 'width'/'height' must be >= 1; got {self.width}x{self.height}")
-        if not (self.focal_px > 0 and math.isfinite(self.focal_px)):
-            raise ValueError(f"argument 'focal_px' must be a positive finite number; got {self.focal_px}")
-
-    def rotation_tensor(self, dtype: torch.dtype = torch.float32, device: Device = None) -> torch.Tensor:
-        """``(3, 3)`` camera-to-world rotation."""
-        return torch.tensor(self.rotation, dtype=dtype, device=device)
-
-    def center(self, dtype: torch.dtype = torch.float32, device: Device = None) -> torch.Tensor:
-        """``(3,)`` camera centre in mm."""
-        return torch.tensor(self.center_mm, dtype=dtype, device=device)
-
-    def up(self, dtype: torch.dtype = torch.float32, device: Device = None) -> torch.Tensor:
-        """``(3,)`` camera up vector in world (= minus the camera y axis, OpenCV)."""
-        return -self.rotation_tensor(dtype, device)[:, 1]
-
-    def forward(self, dtype: torch.dtype = torch.float32, device: Device = None) -> torch.Tensor:
-        """``(3,)`` optical axis in world."""
-        return self.rotation_tensor(dtype, device)[:, 2]
-
-    def ray_directions(self, dtype: torch.dtype = torch.float32, device: Device = None) -> torch.Tensor:
-        """``(H, W, 3)`` unit world directions through pixel centres."""
-        rows = torch.arange(self.height, dtype=dtype, device=device) + 0.5 - self.height / 2
-        cols = torch.arange(self.width, dtype=dtype, device=device) + 0.5 - self.width / 2
-        v, u = torch.meshgrid(rows, cols, indexing="ij")
-        local = torch.stack([u / self.focal_px, v / self.focal_px, torch.ones_like(u)], dim=-1)
-        world = local @ self.rotation_tensor(dtype, device).T
-        return world / torch.linalg.vector_norm(world, dim=-1, keepdim=True)
+__all__ = ["SphereGeometry", "ring_light_positions", "trace_sphere"]
 
 
 def ring_light_positions(
@@ -92,7 +40,7 @@ def ring_light_positions(
     rotation = camera.rotation_tensor(dtype)
     right, up = rotation[:, 0], -rotation[:, 1]
     offsets = ring_radius_mm * (torch.cos(angles)[:, None] * right + torch.sin(angles)[:, None] * up)
-    return camera.center(dtype) + offsets
+    return camera.center_tensor(dtype) + offsets
 
 
 @dataclass(frozen=True)
@@ -124,8 +72,8 @@ def trace_sphere(
         raise ValueError(f"argument 'radius_mm' must be > 0; got {radius_mm}")
     center = torch.tensor(center_mm, dtype=dtype)
     check_finite(center, "center_mm")
-    origin = camera.center(dtype)
-    directions = camera.ray_directions(dtype)
+    origin = camera.center_tensor(dtype)
+    directions = camera.ray_directions_tensor(dtype)
     offset = origin - center
     b = (directions * offset).sum(-1)
     c = (offset * offset).sum() - radius_mm**2

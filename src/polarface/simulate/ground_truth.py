@@ -222,6 +222,49 @@ def chromophore_multipliers_from_albedo(
     return a, b
 
 
+def _regional_chromophore_means(
+    regions: dict[str, np.ndarray], skin_type: SkinTypePreset
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(c_m, beta_m, c_h_in, c_h_out)`` float64 ``(H, W)`` base maps: forehead values on the forehead,
+    cheek values on cheeks and lips, their mean elsewhere (blended by the region weights)."""
+    forehead_values = np.array([skin_type.c_m, skin_type.beta_m, skin_type.c_h_in, skin_type.c_h_out])
+    cheek_values = np.array(skin_type.cheek) if any(skin_type.cheek) else forehead_values
+    w_forehead = regions["forehead"] + regions["nose"]
+    w_cheek = np.maximum(regions["cheeks"], regions["lips"])
+    total = w_forehead + w_cheek + 0.3
+    blend = (
+        w_forehead[..., None] * forehead_values
+        + w_cheek[..., None] * cheek_values
+        + 0.3 * 0.5 * (forehead_values + cheek_values)
+    ) / total[..., None]
+    return tuple(blend[..., i].astype(np.float64) for i in range(4))  # type: ignore[return-value]
+
+
+def _six_channel_albedo(
+    c_m: np.ndarray,
+    beta_m: np.ndarray,
+    c_h_in: np.ndarray,
+    c_h_out: np.ndarray,
+    mask: np.ndarray,
+    calibration,
+) -> np.ndarray:
+    """``(H, W, 6)`` float32 subsurface albedo rho_sss_bar of the chromophore maps (0 outside ``mask``)."""
+    from polarface.skin import spectral
+    from polarface.skin.layers import subsurface_albedo
+
+    wavelengths = torch.as_tensor(spectral.DEFAULT_WAVELENGTHS_NM, dtype=torch.float64)
+    r_bar = subsurface_albedo(
+        torch.from_numpy(c_m[mask]),
+        torch.from_numpy(beta_m[mask]),
+        torch.from_numpy(c_h_in[mask]),
+        torch.from_numpy(c_h_out[mask]),
+        wavelengths,
+    )
+    rho_sss_bar = np.zeros((*mask.shape, 6), np.float32)
+    rho_sss_bar[mask] = calibration.integrate(r_bar).numpy()
+    return rho_sss_bar
+
+
 def build_appearance_maps(
     *,
     albedo_linear: np.ndarray,
@@ -250,25 +293,11 @@ def build_appearance_maps(
     Returns:
         :class:`AppearanceMaps` with zeros outside ``mask`` (and eta = 1.4 there, so it stays valid).
     """
-    from polarface.skin import spectral
-    from polarface.skin.layers import subsurface_albedo
-
     shape = mask.shape
     rng = np.random.default_rng(seed)
     regions = facial_region_weights(positions, mask, landmarks)
     oily = regions["oily"]
-    # Forehead values on the forehead, cheek values on cheeks and lips, their mean elsewhere.
-    forehead_values = np.array([skin_type.c_m, skin_type.beta_m, skin_type.c_h_in, skin_type.c_h_out])
-    cheek_values = np.array(skin_type.cheek) if any(skin_type.cheek) else forehead_values
-    w_forehead = regions["forehead"] + regions["nose"]
-    w_cheek = np.maximum(regions["cheeks"], regions["lips"])
-    total = w_forehead + w_cheek + 0.3
-    blend = (
-        w_forehead[..., None] * forehead_values
-        + w_cheek[..., None] * cheek_values
-        + 0.3 * 0.5 * (forehead_values + cheek_values)
-    ) / total[..., None]
-    base_c_m, base_beta_m, base_c_h_in, base_c_h_out = (blend[..., i].astype(np.float64) for i in range(4))
+    base_c_m, base_beta_m, base_c_h_in, base_c_h_out = _regional_chromophore_means(regions, skin_type)
     # Low-frequency variations (correlation ~1/16 of the atlas).
     corr = shape[0] / 16.0
     beta_m = np.clip(base_beta_m + 0.015 * smooth_random_field(shape, corr, rng), 0.0, 1.0)
@@ -299,16 +328,7 @@ def build_appearance_maps(
     rho_ss = np.clip(0.25 + 0.05 * smooth_random_field(shape, corr, rng), 0.1, 0.4)
     displacement_mm = displacement_mm.astype(np.float64) - float(np.median(displacement_mm[mask]))
 
-    wavelengths = torch.as_tensor(spectral.DEFAULT_WAVELENGTHS_NM, dtype=torch.float64)
-    r_bar = subsurface_albedo(
-        torch.from_numpy(c_m[mask]),
-        torch.from_numpy(beta_m[mask]),
-        torch.from_numpy(c_h_in[mask]),
-        torch.from_numpy(c_h_out[mask]),
-        wavelengths,
-    )
-    rho_sss_bar = np.zeros((*shape, 6), np.float32)
-    rho_sss_bar[mask] = calibration.integrate(r_bar).numpy()
+    rho_sss_bar = _six_channel_albedo(c_m, beta_m, c_h_in, c_h_out, mask, calibration)
 
     def finish(values: np.ndarray, outside: float = 0.0) -> np.ndarray:
         return np.where(mask, values, outside).astype(np.float32)

@@ -26,10 +26,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import resource
 import time
-from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -39,24 +37,22 @@ from tqdm import tqdm
 from polarface.capture.rig import Camera, Rig, paper_rig
 from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
 from polarface.capture.store import CaptureStore
-from polarface.geometry.camera import PinholeCamera, camera_from_rig
-from polarface.geometry.deform import ExpressionRig, dynamic_sequence_weights
-from polarface.geometry.head_asset import HeadAsset, load_head_asset
-from polarface.geometry.heights import normals_from_heights
-from polarface.geometry.mesh import TriangleMesh, save_obj, save_ply
-from polarface.geometry.poses import StaticSequenceConfig, save_poses, static_sequence_poses
+from polarface.geometry.head_asset import HeadAsset, head_placement, load_head_asset
+from polarface.geometry.mesh import TriangleMesh, save_ply
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster, rasterize_uv, reposition
-from polarface.io import write_exr, write_json_atomic, write_png
-from polarface.simulate.ground_truth import AppearanceMaps, blood_flow_factor, build_appearance_maps
+from polarface.io import write_exr, write_json_atomic
+from polarface.render.renderer import render_view, rig_lighting, shading_normals
+from polarface.render.shading import FrameTextures
+from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
+from polarface.simulate.ground_truth import AppearanceMaps, build_appearance_maps
+from polarface.simulate.ground_truth_store import ObservationWriter, write_static_ground_truth
 from polarface.simulate.presets import SimulationPreset, get_preset, get_skin_type
-from polarface.simulate.render import FrameTextures, render_view
-from polarface.simulate.texture_sss import SubsurfaceModel, entering_flux, texture_space_exitance
+from polarface.simulate.sequences import FRAME_RATE_HZ, chromophore_maps, sequence_frames, static_poses
 
-__all__ = ["SimulationConfig", "SimulationScene", "head_placement", "simulate"]
+__all__ = ["SimulationConfig", "SimulationScene", "render_frame", "simulate"]
 
 LOGGER = logging.getLogger(__name__)
-FRAME_RATE_HZ = 20.0
 #: Seed of the ground-truth map variations (fixed, so the simulation seed changes the noise only).
 MAP_SEED = 2024
 
@@ -98,19 +94,6 @@ class SimulationConfig:
             )
         if not 0 < self.exposure_fill <= 1:
             raise ValueError(f"argument 'exposure_fill' must lie in (0, 1]; got {self.exposure_fill}")
-
-
-def head_placement(distance_mm: float = 1000.0) -> np.ndarray:
-    """Model -> rig-world transform placing the head in front of the polarimetric module.
-
-    The rig world (:func:`polarface.capture.rig.paper_rig`) has y down and z towards the subject;
-    the model frame has y up and the face towards +z. A half turn about x makes the face look at the
-    cameras; the translation puts the face (about 90 mm in front of the model origin, 10 mm below it)
-    at ``distance_mm`` on the optical axis.
-    """
-    placement = np.diag([1.0, -1.0, -1.0, 1.0])
-    placement[:3, 3] = (0.0, -10.0, distance_mm + 90.0)
-    return placement
 
 
 @dataclasses.dataclass
@@ -155,13 +138,9 @@ class SimulationScene:
             seed=MAP_SEED,
         )
         subsurface = SubsurfaceModel.build(
-            _chromophores(maps), raster, calibration.wavelengths_nm, per_texel_stretch=config.texel_stretch
+            chromophore_maps(maps), raster, calibration.wavelengths_nm, per_texel_stretch=config.texel_stretch
         )
         return cls(config, preset, rig, asset, raster, maps, calibration, subsurface, head_placement())
-
-
-def _chromophores(maps: AppearanceMaps) -> dict[str, np.ndarray]:
-    return {"c_m": maps.c_m, "beta_m": maps.beta_m, "c_h_in": maps.c_h_in, "c_h_out": maps.c_h_out}
 
 
 def _camera_channels(camera: Camera) -> tuple[int, int, int]:
@@ -185,23 +164,9 @@ def render_frame(
     """Render every camera of the rig for one posed/deformed head (noise-free radiance)."""
     caster = RayCaster(mesh_world)
     raster = reposition(scene.raster, mesh_world)
-    mask_t = torch.from_numpy(raster.mask)
-    shading = normals_from_heights(
-        torch.from_numpy(maps.displacement_mm.astype(np.float64)),
-        torch.from_numpy(raster.tangent_u.astype(np.float64)),
-        torch.from_numpy(raster.tangent_v.astype(np.float64)),
-        torch.from_numpy(raster.normal.astype(np.float64)),
-        torch.from_numpy(raster.texel_size_u.astype(np.float64)),
-        torch.from_numpy(raster.texel_size_v.astype(np.float64)),
-        mask_t,
-    ).numpy()
-    lights = np.array([light.position_mm for light in scene.rig.lights], dtype=np.float64)
-    intensity = float(
-        scene.rig.lights[0].radiant_intensity
-        if np.ndim(scene.rig.lights[0].radiant_intensity) == 0
-        else scene.rig.lights[0].radiant_intensity[0]
-    )
-    reference = camera_from_rig(scene.rig.polarimetric_cameras()[0])
+    shading = shading_normals(raster, maps.displacement_mm)
+    lights, intensity = rig_lighting(scene.rig)
+    reference = scene.rig.polarimetric_cameras()[0].pinhole()
     flux = entering_flux(caster, raster, shading, maps.eta, lights, intensity, reference.up_vector)
     exitance = texture_space_exitance(flux, subsurface, scene.calibration, blur=scene.config.subsurface_blur)
     textures = FrameTextures.build(
@@ -222,7 +187,7 @@ def render_frame(
         views[camera.id] = render_view(
             caster,
             mesh_world,
-            camera_from_rig(camera),
+            camera.pinhole(),
             textures,
             lights,
             intensity,
@@ -295,157 +260,8 @@ def _exposure_from(frame: RenderedFrame, scene: SimulationScene) -> float:
     return scene.config.exposure_fill / max(level, 1e-12)
 
 
-def _texel_visibility(
-    caster: RayCaster, raster: UVRaster, camera: PinholeCamera
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(visible (Ht, Wt) bool, pixel (Ht, Wt, 2) float32)`` of every texel in one camera.
-
-    A texel is visible when it faces the camera, projects inside the image and the camera ray towards
-    it first hits the surface within 0.5 mm of it.
-    """
-    mask = raster.mask
-    points = raster.position[mask].astype(np.float64)
-    centre = camera.center
-    rays = points - centre
-    distance = np.linalg.norm(rays, axis=1)
-    directions = rays / distance[:, None]
-    facing = np.einsum("nc,nc->n", raster.normal[mask], -directions) > 0.0
-    pixels, depth = camera.project(points)
-    inside = (
-        (depth > 0)
-        & (pixels[:, 0] >= -0.5)
-        & (pixels[:, 0] <= camera.width - 0.5)
-        & (pixels[:, 1] >= -0.5)
-        & (pixels[:, 1] <= camera.height - 0.5)
-    )
-    hits = caster.first_hits(np.repeat(centre[None], len(points), axis=0), directions)
-    unoccluded = hits.hit & (np.abs(hits.distance - distance) < 0.5)
-    visible = np.zeros(mask.shape, bool)
-    visible[mask] = facing & inside & unoccluded
-    pixel_map = np.full((*mask.shape, 2), -1.0, np.float32)
-    pixel_map[mask] = pixels.astype(np.float32)
-    return visible, pixel_map
-
-
-def _write_static_ground_truth(root: Path, scene: SimulationScene, poses: np.ndarray) -> None:
-    """Maps, rest mesh, poses and the channel description (once per simulation)."""
-    maps_dir = root / "maps"
-    names = list(scene.calibration.channel_names)
-    for name, values in scene.maps.scalar_maps().items():
-        write_exr(maps_dir / f"{name}.exr", {"Y": values})
-    write_exr(maps_dir / "rho_sss_bar.exr", {n: scene.maps.rho_sss_bar[..., i] for i, n in enumerate(names)})
-    write_png(maps_dir / "mask.png", scene.maps.mask.astype(np.uint8) * 255)
-    save_obj(root / "mesh_rest.obj", scene.asset.mesh)
-    save_poses(root / "static" / "poses.json", poses)
-
-
-class _ObservationWriter:
-    """Noise-free observations and texel visibility per view in ``observations.zarr`` (resumable)."""
-
-    def __init__(self, path: Path, scene: SimulationScene, counts: dict[str, int]) -> None:
-        import zarr
-
-        self.root = zarr.open_group(str(path), mode="a")
-        self.scene = scene
-        self.counts = counts
-
-    def _array(self, name: str, shape: tuple[int, ...], dtype: str, fill):
-        chunks = (1, *shape[1:])
-        return self.root.require_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill)
-
-    def done(self, sequence: str, index: int) -> bool:
-        return bool(self.root.attrs.get(f"{sequence}/{index}", False))
-
-    def write(self, sequence: str, index: int, frame: RenderedFrame) -> None:
-        count = self.counts[sequence]
-        height, width = self.scene.raster.mask.shape
-        for camera in self.scene.rig.polarimetric_cameras():
-            view = frame.views[camera.id]
-            h, w = view.mask.shape
-            prefix = f"{sequence}/{camera.id}"
-            images = view.images
-            values = {
-                "i_sss": 2.0 * images["i90"],
-                "i_zeta": images["i135"] - images["i45"],
-                "i_s": images["i0"] - images["i90"],
-            }
-            for name, image in values.items():
-                self._array(f"{prefix}/{name}", (count, h, w, 3), "float32", 0.0)[index] = image
-            self._array(f"{prefix}/mask", (count, h, w), "bool", False)[index] = view.mask
-            self._array(f"{prefix}/uv", (count, h, w, 2), "float32", 0.0)[index] = view.uv
-            visible, pixel = _texel_visibility(frame.caster, frame.raster, camera_from_rig(camera))
-            self._array(f"{prefix}/texel_visible", (count, height, width), "bool", False)[index] = visible
-            self._array(f"{prefix}/texel_pixel", (count, height, width, 2), "float32", -1.0)[index] = pixel
-        self.root.attrs[f"{sequence}/{index}"] = True
-
-
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def _frames(
-    scene: SimulationScene, sequence: str
-) -> Iterable[tuple[int, float, TriangleMesh, AppearanceMaps, SubsurfaceModel]]:
-    """Yield ``(index, timestamp s, mesh in rig world, maps, subsurface model)`` of a sequence."""
-    preset = scene.preset
-    asset = scene.asset
-    if sequence == "static":
-        poses = static_poses(scene)
-        for index, pose in enumerate(poses):
-            yield index, index / FRAME_RATE_HZ, asset.mesh.transformed(pose), scene.maps, scene.subsurface
-        return
-    rig = ExpressionRig(asset.mesh, asset.landmarks)
-    weights = dynamic_sequence_weights(preset.dynamic_frames)
-    pressed = _pressed_patch(scene)
-    for index in range(preset.dynamic_frames):
-        time_s = index * preset.dynamic_frame_step / FRAME_RATE_HZ
-        mesh = rig.deform(weights[index]).transformed(scene.placement)
-        lowered = 0.8 * (1.0 - float(blood_flow_factor(time_s)))
-        c_h_out = (scene.maps.c_h_out * (1.0 - lowered * pressed)).astype(np.float32)
-        maps = _with_c_h_out(scene, c_h_out)
-        subsurface = SubsurfaceModel.build(
-            _chromophores(maps),
-            scene.raster,
-            scene.calibration.wavelengths_nm,
-            shapes=scene.subsurface.shapes,
-            per_texel_stretch=scene.config.texel_stretch,
-        )
-        yield index, time_s, mesh, maps, subsurface
-
-
-def static_poses(scene: SimulationScene) -> np.ndarray:
-    """Model -> rig-world poses ``(N, 4, 4)`` of the static sequence (chair rotation, then placement)."""
-    config = StaticSequenceConfig(
-        frame_count=scene.preset.static_frames,
-        yaw_range=math.radians(scene.preset.yaw_range_deg),
-        pitch_amplitude=math.radians(scene.preset.pitch_range_deg / 2.0),
-        pivot=tuple(float(v) for v in scene.asset.neck_pivot),
-    )
-    return np.stack([scene.placement @ pose for pose in static_sequence_poses(config)])
-
-
-def _pressed_patch(scene: SimulationScene) -> np.ndarray:
-    """``(Ht, Wt)`` weight of the pressed forehead patch (Gaussian, sigma 10 mm, 15 mm above the brows)."""
-    centre = scene.asset.landmark_position("forehead") + np.array([0.0, -15.0, 0.0])
-    distance2 = ((np.where(scene.raster.mask[..., None], scene.raster.position, 0.0) - centre) ** 2).sum(-1)
-    return np.where(scene.raster.mask, np.exp(-0.5 * distance2 / 10.0**2), 0.0)
-
-
-def _with_c_h_out(scene: SimulationScene, c_h_out: np.ndarray) -> AppearanceMaps:
-    """Maps with a new outer haemoglobin map and the matching six-channel rho_sss_bar."""
-    from polarface.skin.layers import subsurface_albedo
-
-    mask = scene.maps.mask
-    r_bar = subsurface_albedo(
-        torch.from_numpy(scene.maps.c_m[mask].astype(np.float64)),
-        torch.from_numpy(scene.maps.beta_m[mask].astype(np.float64)),
-        torch.from_numpy(scene.maps.c_h_in[mask].astype(np.float64)),
-        torch.from_numpy(c_h_out[mask].astype(np.float64)),
-        scene.calibration.wavelengths_nm,
-    )
-    rho = np.zeros_like(scene.maps.rho_sss_bar)
-    rho[mask] = scene.calibration.integrate(r_bar).float().numpy()
-    return scene.maps.replace(c_h_out=c_h_out, rho_sss_bar=rho)
 
 
 def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = True) -> dict:
@@ -472,9 +288,9 @@ def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = 
     setup_s = time.perf_counter() - started
     poses = static_poses(scene)
     gt = out / "ground_truth"
-    _write_static_ground_truth(gt, scene, poses)
+    write_static_ground_truth(gt, scene, poses)
     counts = {"static": scene.preset.static_frames, "dynamic": scene.preset.dynamic_frames}
-    writer = _ObservationWriter(gt / "observations.zarr", scene, counts)
+    writer = ObservationWriter(gt / "observations.zarr", scene, counts)
     timings: dict[str, float] = {"setup_s": setup_s}
     for sequence in config.sequences:
         seq_started = time.perf_counter()
@@ -485,7 +301,7 @@ def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = 
             )
             scene.rig = store.rig
             scene.exposure = float(store.rig.cameras[0].exposure)
-        frames = _frames(scene, sequence)
+        frames = sequence_frames(scene, sequence)
         bar = tqdm(
             frames, total=counts[sequence], desc=f"simulate {sequence}", unit="frame", disable=not progress
         )

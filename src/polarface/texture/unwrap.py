@@ -22,7 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from polarface.capture.store import CaptureStore
-from polarface.geometry.camera import PinholeCamera, camera_from_rig
+from polarface.geometry.camera import PinholeCamera
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import rasterize_uv
@@ -235,7 +235,7 @@ def _write_views(
     """Sample and write every view not yet in ``writer``; True if some texel is seen by some view."""
     done = writer.done()
     lights_world = np.array([light.position_mm for light in store.rig.lights], dtype=np.float64)
-    cameras = {c.id: camera_from_rig(c) for c in store.rig.polarimetric_cameras()}
+    cameras = {c.id: c.pinhole() for c in store.rig.polarimetric_cameras()}
     seen_any = False
     bar = tqdm(total=len(views), desc="unwrap views", unit="view", disable=not progress)
     caster_frame, caster = None, None

@@ -13,7 +13,6 @@ from collections.abc import Sequence
 import numpy as np
 
 from polarface.capture.rig import Rig
-from polarface.geometry.camera import camera_from_rig
 
 __all__ = ["ViewSpec", "build_views"]
 
@@ -92,7 +91,7 @@ def build_views(rig: Rig, frames: Sequence[int], poses: np.ndarray, holdout_ever
     if not cameras:
         raise ValueError("the rig has no polarimetric camera")
     _check_lights(rig)
-    reference_up_world = camera_from_rig(cameras[0]).up_vector
+    reference_up_world = cameras[0].pinhole().up_vector
     lights_world = np.array([light.position_mm for light in rig.lights], dtype=np.float64)
     views = []
     for frame, pose in zip(frames, poses, strict=True):
@@ -100,7 +99,7 @@ def build_views(rig: Rig, frames: Sequence[int], poses: np.ndarray, holdout_ever
         rotation_inv, translation_inv = inverse[:3, :3], inverse[:3, 3]
         held = holdout_every >= 2 and frame % holdout_every == holdout_every - 1
         for camera in cameras:
-            cam = camera_from_rig(camera)
+            cam = camera.pinhole()
             channels = tuple(int(camera.colour_channels[c]) for c in ("R", "G", "B"))
             views.append(
                 ViewSpec(

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from polarface.simulate.texture_sss import SubsurfaceModel, texture_space_exitance
+from polarface.render.subsurface import SubsurfaceModel, texture_space_exitance
 from polarface.skin.spectral import default_spectral_calibration
 
 

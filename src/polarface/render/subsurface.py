@@ -1,4 +1,4 @@
-"""Texture-space subsurface scattering of the simulator (paper supplement Eq. simple_sss).
+"""Texture-space subsurface transport of the renderer (paper supplement Eq. simple_sss).
 
 Per frame:
 
@@ -16,7 +16,7 @@ Per frame:
    spectral calibration (white-normalised: a unit exitance at every wavelength gives 1).
 
 The exit Fresnel transmission and its polarization are applied per camera pixel
-(:mod:`polarface.simulate.render`). Light does not cross UV seams (a documented limitation of
+(:mod:`polarface.render.shading`). Light does not cross UV seams (a documented limitation of
 texture-space diffusion; the seams of the bundled head lie behind the ears and under the chin).
 """
 

@@ -9,8 +9,9 @@ import torch
 from polarface.geometry.camera import PinholeCamera
 from polarface.geometry.raycast import RayCaster
 from polarface.optics import fresnel_transmittance, render_polarimetric
-from polarface.simulate.render import FrameTextures, fill_empty_texels, render_view
-from polarface.simulate.texture_sss import SubsurfaceModel, entering_flux, texture_space_exitance
+from polarface.render.renderer import render_view
+from polarface.render.shading import FrameTextures, fill_empty_texels
+from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
 from polarface.skin.spectral import default_spectral_calibration
 
 PARAMS = {"eta": 1.44, "alpha_s": 0.4, "alpha_ss": 0.95, "rho_s": 0.5, "rho_ss": 0.2}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from polarface.geometry.uv_raster import rasterize_uv
-from polarface.texture.synthetic import sphere_cap_mesh, sphere_maps
+from polarface.simulate.sphere_capture import sphere_cap_mesh, sphere_maps
 
 
 def test_sphere_cap_mesh_is_a_valid_uv_chart():

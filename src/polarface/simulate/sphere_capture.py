@@ -4,7 +4,7 @@ For tests, benchmarks and examples of the polarimetric stage without the full he
 cap (radius ``radius_mm``, orthographic UV chart) is posed in front of :func:`polarface.capture.rig.paper_rig`
 (small image), its parameter maps are smooth fields, the subsurface term is *local*
 (``E = rho_sss_bar Phi``, the polarimetric stage's own model), and the frames are rendered with the
-simulator's ray-cast renderer (:func:`polarface.simulate.render.render_view`: shadow rays, full Mueller
+renderer (:func:`polarface.render.renderer.render_view`: shadow rays, full Mueller
 specular), mosaicked, quantised (optionally with shot/read noise) and stored with
 :class:`polarface.capture.store.CaptureStore` (demosaiced on ingest), exactly as real data would be.
 
@@ -26,15 +26,22 @@ import torch
 from polarface.capture.rig import Rig, paper_rig
 from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
 from polarface.capture.store import CaptureStore
-from polarface.geometry.camera import camera_from_rig
-from polarface.geometry.heights import normals_from_heights
 from polarface.geometry.mesh import TriangleMesh, save_obj
 from polarface.geometry.poses import rigid_transform, save_poses
 from polarface.geometry.raycast import RayCaster
-from polarface.geometry.uv_raster import rasterize_uv, reposition
+from polarface.geometry.uv_raster import UVRaster, rasterize_uv, reposition
 from polarface.io import write_exr, write_png
+from polarface.render.renderer import ViewRender, render_view, rig_lighting, shading_normals
+from polarface.render.shading import FrameTextures
+from polarface.render.subsurface import entering_flux
 
-__all__ = ["SphereCaptureConfig", "make_sphere_capture", "sphere_cap_mesh", "sphere_maps"]
+__all__ = [
+    "SphereCaptureConfig",
+    "make_sphere_capture",
+    "sphere_cap_mesh",
+    "sphere_maps",
+    "sphere_placement",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,8 +117,9 @@ def sphere_maps(
     return out
 
 
-def _placement(yaw: float) -> np.ndarray:
-    """Model -> rig world: face the cameras (half turn about x), turn by ``yaw``, put it at 1 m."""
+def sphere_placement(yaw: float) -> np.ndarray:
+    """``(4, 4)`` model -> rig world: face the cameras (half turn about x), turn by ``yaw`` (radians),
+    put it at 1 m."""
     flip = np.diag([1.0, -1.0, -1.0, 1.0])
     turn = rigid_transform(yaw=yaw)
     move = np.eye(4)
@@ -119,42 +127,19 @@ def _placement(yaw: float) -> np.ndarray:
     return move @ flip @ turn
 
 
-def make_sphere_capture(out: str | Path, config: SphereCaptureConfig | None = None) -> dict:
-    """Render and store the synthetic capture (layout in the module docstring); returns a summary.
-
-    Returns:
-        ``{"capture": path, "ground_truth": path, "maps": maps, "mask": mask, "rig": Rig}``.
-    """
-    from polarface.simulate.render import FrameTextures, render_view
-    from polarface.simulate.texture_sss import entering_flux
-
-    config = config or SphereCaptureConfig()
-    out = Path(out)
-    mesh = sphere_cap_mesh(config.radius_mm, config.cap_deg)
-    raster = rasterize_uv(mesh, config.texture_resolution)
-    maps = sphere_maps(config.texture_resolution, raster.mask, config.seed, config.heights)
-    rig = paper_rig(width=config.width, height=config.height)
+def _render_frames(
+    mesh: TriangleMesh, raster: UVRaster, maps: dict[str, np.ndarray], rig: Rig, poses: np.ndarray
+) -> list[dict[str, ViewRender]]:
+    """Noise-free renders of the polarimetric cameras, one ``camera id -> ViewRender`` per pose."""
     cameras = rig.polarimetric_cameras()
-    lights = np.array([light.position_mm for light in rig.lights])
-    intensity = float(rig.lights[0].radiant_intensity)
-    yaws = np.radians(np.linspace(-config.yaw_range_deg, config.yaw_range_deg, config.frames))
-    poses = np.stack([_placement(float(yaw)) for yaw in yaws])
-    reference_up = camera_from_rig(cameras[0]).up_vector
+    lights, intensity = rig_lighting(rig)
+    reference_up = cameras[0].pinhole().up_vector
     renders = []
     for pose in poses:
         mesh_world = mesh.transformed(pose)
         caster = RayCaster(mesh_world)
         posed = reposition(raster, mesh_world)
-        t = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float64))  # noqa: E731
-        shading = normals_from_heights(
-            t(maps["displacement_mm"]),
-            t(posed.tangent_u),
-            t(posed.tangent_v),
-            t(posed.normal),
-            t(posed.texel_size_u),
-            t(posed.texel_size_v),
-            torch.from_numpy(posed.mask),
-        ).numpy()
+        shading = shading_normals(posed, maps["displacement_mm"])
         flux = entering_flux(caster, posed, shading, maps["eta"], lights, intensity, reference_up)
         exitance = maps["rho_sss_bar"] * flux[..., None]
         textures = FrameTextures.build(
@@ -167,9 +152,16 @@ def make_sphere_capture(out: str | Path, config: SphereCaptureConfig | None = No
         for camera in cameras:
             channels = tuple(camera.colour_channels[c] for c in ("R", "G", "B"))
             views[camera.id] = render_view(
-                caster, mesh_world, camera_from_rig(camera), textures, lights, intensity, channels
+                caster, mesh_world, camera.pinhole(), textures, lights, intensity, channels
             )
         renders.append(views)
+    return renders
+
+
+def _store_frames(
+    out: Path, rig: Rig, renders: list[dict[str, ViewRender]], config: SphereCaptureConfig
+) -> Rig:
+    """Expose, mosaic, quantise and store the renders in ``out/static``; returns the exposed rig."""
     peak = max(
         float(np.percentile(v.images["i0"][v.mask], 99.5))
         for r in renders
@@ -207,6 +199,24 @@ def make_sphere_capture(out: str | Path, config: SphereCaptureConfig | None = No
                 raws[camera.id] = simulate_raw(signal, noise, seed=rng, noiseless=not config.noise)
         store.add_frame(index, index / 20.0, raws)
     store.finalize()
+    return rig
+
+
+def make_sphere_capture(out: str | Path, config: SphereCaptureConfig | None = None) -> dict:
+    """Render and store the synthetic capture (layout in the module docstring); returns a summary.
+
+    Returns:
+        ``{"capture": path, "ground_truth": path, "maps": maps, "mask": mask, "rig": Rig}``.
+    """
+    config = config or SphereCaptureConfig()
+    out = Path(out)
+    mesh = sphere_cap_mesh(config.radius_mm, config.cap_deg)
+    raster = rasterize_uv(mesh, config.texture_resolution)
+    maps = sphere_maps(config.texture_resolution, raster.mask, config.seed, config.heights)
+    rig = paper_rig(width=config.width, height=config.height)
+    yaws = np.radians(np.linspace(-config.yaw_range_deg, config.yaw_range_deg, config.frames))
+    poses = np.stack([sphere_placement(float(yaw)) for yaw in yaws])
+    rig = _store_frames(out, rig, _render_frames(mesh, raster, maps, rig, poses), config)
     gt = out / "ground_truth"
     for name, value in maps.items():
         if name == "rho_sss_bar":

@@ -1,0 +1,216 @@
+"""Polarimetric shading of surface fragments with the pBSSRDF image formation.
+
+The last stage of the renderer (:mod:`polarface.render.renderer`). Per fragment
+(:class:`polarface.render.fragments.SurfaceFragments`) the texture stack of the frame
+(:class:`FrameTextures`: pBSSRDF parameters, shading normal, diffused subsurface exitance) is read
+bilinearly at the fragment's ``uv`` (:func:`fragment_material`);
+:func:`polarface.optics.subsurface_exit_stokes` applies the exit Fresnel transmission with its
+polarization to the exitance, and
+:func:`polarface.optics.render_polarimetric` evaluates the specular and single-scattering lobes through
+the full Mueller matrices for each LED module times its shadow-ray visibility (:func:`lobe_stokes`;
+the image formation is linear in the lights). The physics itself lives in
+:mod:`polarface.optics.image_formation`.
+
+Frames and units: world mm; Stokes vectors in the camera frame (``docs/conventions.md``); radiance in
+LED intensity units per mm^2 per sr.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+from polarface._validation import trusted_inputs
+from polarface.geometry.uv_raster import sample_texture
+from polarface.optics.image_formation import render_polarimetric
+
+__all__ = [
+    "PARAMETER_ORDER",
+    "FragmentMaterial",
+    "FrameTextures",
+    "facing_shading_normal",
+    "fill_empty_texels",
+    "fragment_material",
+    "lobe_stokes",
+]
+
+#: Order of the parameter channels stacked in :attr:`FrameTextures.stack`.
+PARAMETER_ORDER = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss")
+#: First channel of the shading normal and of the exitance in :attr:`FrameTextures.stack`.
+NORMAL_CHANNEL = len(PARAMETER_ORDER)
+EXITANCE_CHANNEL = NORMAL_CHANNEL + 3
+
+
+def fill_empty_texels(texture: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Copy of ``texture`` ``(H, W[, C])`` whose texels outside ``mask`` take their nearest valid value.
+
+    Keeps bilinear lookups near atlas seams from blending in empty (zero) texels.
+    """
+    if mask.all():
+        return texture.copy()
+    _, (rows, cols) = ndimage.distance_transform_edt(~mask, return_indices=True)
+    return texture[rows, cols]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FrameTextures:
+    """Everything a camera needs per texel for one frame, as one stacked float32 tensor.
+
+    Attributes:
+        stack: ``(Ht, Wt, 5 + 3 + 6)``: the parameters in :data:`PARAMETER_ORDER`, the world-space
+            unit shading normal of the posed frame (from the displacement map), and the six-channel
+            diffused subsurface exitance (light intensity unit per mm^2) — empty texels filled.
+    """
+
+    stack: torch.Tensor
+
+    @classmethod
+    def build(
+        cls,
+        parameters: dict[str, np.ndarray],
+        shading_normal: np.ndarray,
+        exitance: np.ndarray,
+        mask: np.ndarray,
+    ) -> FrameTextures:
+        """Stack and fill ``parameters`` (name -> ``(Ht, Wt)``), normals ``(Ht, Wt, 3)`` and the
+        exitance ``(Ht, Wt, 6)``."""
+        layers = [parameters[name][..., None] for name in PARAMETER_ORDER]
+        stack = np.concatenate([*layers, shading_normal, exitance], axis=-1).astype(np.float32)
+        return cls(torch.from_numpy(fill_empty_texels(stack, mask)))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FragmentMaterial:
+    """The material of ``N`` fragments, in the dtype of the shading (float32 or float64).
+
+    Attributes:
+        normal: ``(N, 3)`` unit shading normal, world frame, facing the camera
+            (:func:`facing_shading_normal`).
+        geometric_normal: ``(N, 3)`` unit geometric normal flipped towards the camera, world frame.
+        eta: ``(N, 1)`` refractive index, at least ``1 + 1e-6``.
+        alpha_s, alpha_ss: ``(N, 1)`` GGX roughness of the specular and single-scattering lobes, >= 1e-3.
+        rho_s, rho_ss: ``(N, 1)`` lobe albedos, >= 0.
+        exitance: ``(N, C)`` diffused subsurface exitance of the rendered channels (intensity per mm^2).
+    """
+
+    normal: torch.Tensor
+    geometric_normal: torch.Tensor
+    eta: torch.Tensor
+    alpha_s: torch.Tensor
+    alpha_ss: torch.Tensor
+    rho_s: torch.Tensor
+    rho_ss: torch.Tensor
+    exitance: torch.Tensor
+
+
+def facing_shading_normal(
+    raw_normal: torch.Tensor, geometric: torch.Tensor, position: torch.Tensor, camera_center: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(shading normal, geometric normal)``, each ``(N, 3)`` unit, world frame, facing the camera.
+
+    ``raw_normal`` (the bilinear read of the normal map, not unit) is normalised; where it tilts past
+    the view direction (silhouettes: ``n . w_o <= 1e-3``) the geometric normal, flipped towards the
+    camera, replaces it. ``position`` ``(N, 3)`` and ``camera_center`` ``(3,)`` in mm.
+    """
+    normal = raw_normal / raw_normal.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    to_camera = camera_center - position
+    to_camera = to_camera / to_camera.norm(dim=-1, keepdim=True)
+    facing = (normal * to_camera).sum(-1, keepdim=True)
+    geometric = geometric * torch.where((geometric * to_camera).sum(-1, keepdim=True) < 0, -1.0, 1.0)
+    return torch.where(facing > 1e-3, normal, geometric), geometric
+
+
+def fragment_material(
+    textures: FrameTextures,
+    uv: torch.Tensor,
+    geometric_normal: torch.Tensor,
+    position: torch.Tensor,
+    camera_center: torch.Tensor,
+    channels: tuple[int, ...],
+    *,
+    trusted: bool = True,
+) -> FragmentMaterial:
+    """Read ``textures`` at ``uv`` ``(N, 2)`` and build the fragments' material.
+
+    The texture stack is read in float32 and cast to the dtype of ``position`` ``(N, 3)`` (mm).
+    ``channels`` index the six exitance channels to render. ``trusted`` skips the value checks of the
+    texture read (the stack is built and filled by :meth:`FrameTextures.build`).
+    """
+    if trusted:
+        with trusted_inputs():
+            sampled = sample_texture(textures.stack, uv)
+    else:
+        sampled = sample_texture(textures.stack, uv)
+    sampled = sampled.to(position.dtype)
+    normal, geometric = facing_shading_normal(
+        sampled[:, NORMAL_CHANNEL : NORMAL_CHANNEL + 3], geometric_normal, position, camera_center
+    )
+    params = {name: sampled[:, i : i + 1] for i, name in enumerate(PARAMETER_ORDER)}
+    exitance = sampled[:, torch.tensor([EXITANCE_CHANNEL + c for c in channels])]
+    return FragmentMaterial(
+        normal=normal,
+        geometric_normal=geometric,
+        eta=params["eta"].clamp_min(1.0 + 1e-6),
+        alpha_s=params["alpha_s"].clamp_min(1e-3),
+        alpha_ss=params["alpha_ss"].clamp_min(1e-3),
+        rho_s=params["rho_s"].clamp_min(0.0),
+        rho_ss=params["rho_ss"].clamp_min(0.0),
+        exitance=exitance,
+    )
+
+
+def lobe_stokes(
+    material: FragmentMaterial,
+    position: torch.Tensor,
+    camera_center: torch.Tensor,
+    camera_up: torch.Tensor,
+    light_positions: np.ndarray,
+    visible: np.ndarray,
+    intensity: torch.Tensor,
+    stokes: torch.Tensor,
+    *,
+    light_stokes: torch.Tensor | None = None,
+    skip_unlit: bool = True,
+) -> torch.Tensor:
+    """``stokes`` plus the specular and single-scattering Stokes ``(N, C, 4)`` of every visible LED.
+
+    Args:
+        material: the fragments' material; position: ``(N, 3)`` mm.
+        camera_center: ``(3,)`` mm; camera_up: ``(3,)`` world up of the camera (Stokes frame).
+        light_positions: ``(K, 3)`` float64 LED module positions, mm.
+        visible: ``(N, K)`` bool shadow-ray visibility of each module.
+        intensity: ``(1, C)`` radiant intensity of a module (``(1, 1)`` broadcasts over channels).
+        stokes: ``(N, C, 4)`` the Stokes to add to (e.g. the subsurface term).
+        light_stokes: incident Stokes vector of the LEDs (default: the image formation's default).
+        skip_unlit: skip modules that no fragment sees (they add zero).
+    """
+    dtype = position.dtype
+    numpy_dtype = np.float32 if dtype == torch.float32 else np.float64
+    extra = {} if light_stokes is None else {"light_stokes": light_stokes}
+    no_exitance = torch.zeros_like(material.exitance[:, : intensity.shape[-1]])
+    for k in range(light_positions.shape[0]):
+        lit = torch.from_numpy(visible[:, k].astype(numpy_dtype))[:, None, None]
+        if skip_unlit and not bool(lit.any()):
+            continue
+        images = render_polarimetric(
+            material.normal,
+            position,
+            camera_center,
+            camera_up,
+            torch.from_numpy(light_positions[k : k + 1].astype(numpy_dtype)),
+            intensity,
+            material.eta,
+            material.alpha_s,
+            material.alpha_ss,
+            material.rho_s,
+            material.rho_ss,
+            0.0,
+            diffused_exitance=no_exitance,
+            **extra,
+        )
+        stokes = stokes + lit * images.stokes
+    return stokes
+

@@ -1,0 +1,107 @@
+"""The simulated sequences: static chair rotations and the dynamic expression + blood-flow frames.
+
+:func:`sequence_frames` yields, per frame of a sequence, the head mesh in the rig world and the maps
+and subsurface model of that frame; the static sequence turns the rest head on the chair
+(:func:`static_poses`), the dynamic one deforms it with the expression rig and lowers the outer
+haemoglobin under a pressed forehead patch that refills over time (:func:`pressed_patch`,
+:func:`with_c_h_out`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from polarface.geometry.deform import ExpressionRig, dynamic_sequence_weights
+from polarface.geometry.mesh import TriangleMesh
+from polarface.geometry.poses import StaticSequenceConfig, static_sequence_poses
+from polarface.render.subsurface import SubsurfaceModel
+from polarface.simulate.ground_truth import AppearanceMaps, blood_flow_factor
+
+if TYPE_CHECKING:
+    from polarface.simulate.pipeline import SimulationScene
+
+__all__ = [
+    "FRAME_RATE_HZ",
+    "chromophore_maps",
+    "pressed_patch",
+    "sequence_frames",
+    "static_poses",
+    "with_c_h_out",
+]
+
+FRAME_RATE_HZ = 20.0
+
+
+def chromophore_maps(maps: AppearanceMaps) -> dict[str, np.ndarray]:
+    """The four chromophore maps ``(Ht, Wt)`` of ``maps``: ``c_m``, ``beta_m``, ``c_h_in``, ``c_h_out``."""
+    return {"c_m": maps.c_m, "beta_m": maps.beta_m, "c_h_in": maps.c_h_in, "c_h_out": maps.c_h_out}
+
+
+def sequence_frames(
+    scene: SimulationScene, sequence: str
+) -> Iterable[tuple[int, float, TriangleMesh, AppearanceMaps, SubsurfaceModel]]:
+    """Yield ``(index, timestamp s, mesh in rig world, maps, subsurface model)`` of a sequence."""
+    preset = scene.preset
+    asset = scene.asset
+    if sequence == "static":
+        poses = static_poses(scene)
+        for index, pose in enumerate(poses):
+            yield index, index / FRAME_RATE_HZ, asset.mesh.transformed(pose), scene.maps, scene.subsurface
+        return
+    rig = ExpressionRig(asset.mesh, asset.landmarks)
+    weights = dynamic_sequence_weights(preset.dynamic_frames)
+    pressed = pressed_patch(scene)
+    for index in range(preset.dynamic_frames):
+        time_s = index * preset.dynamic_frame_step / FRAME_RATE_HZ
+        mesh = rig.deform(weights[index]).transformed(scene.placement)
+        lowered = 0.8 * (1.0 - float(blood_flow_factor(time_s)))
+        c_h_out = (scene.maps.c_h_out * (1.0 - lowered * pressed)).astype(np.float32)
+        maps = with_c_h_out(scene, c_h_out)
+        subsurface = SubsurfaceModel.build(
+            chromophore_maps(maps),
+            scene.raster,
+            scene.calibration.wavelengths_nm,
+            shapes=scene.subsurface.shapes,
+            per_texel_stretch=scene.config.texel_stretch,
+        )
+        yield index, time_s, mesh, maps, subsurface
+
+
+def static_poses(scene: SimulationScene) -> np.ndarray:
+    """Model -> rig-world poses ``(N, 4, 4)`` of the static sequence (chair rotation, then placement)."""
+    config = StaticSequenceConfig(
+        frame_count=scene.preset.static_frames,
+        yaw_range=math.radians(scene.preset.yaw_range_deg),
+        pitch_amplitude=math.radians(scene.preset.pitch_range_deg / 2.0),
+        pivot=tuple(float(v) for v in scene.asset.neck_pivot),
+    )
+    return np.stack([scene.placement @ pose for pose in static_sequence_poses(config)])
+
+
+def pressed_patch(scene: SimulationScene) -> np.ndarray:
+    """``(Ht, Wt)`` weight of the pressed forehead patch (Gaussian, sigma 10 mm, 15 mm above the brows)."""
+    centre = scene.asset.landmark_position("forehead") + np.array([0.0, -15.0, 0.0])
+    distance2 = ((np.where(scene.raster.mask[..., None], scene.raster.position, 0.0) - centre) ** 2).sum(-1)
+    return np.where(scene.raster.mask, np.exp(-0.5 * distance2 / 10.0**2), 0.0)
+
+
+def with_c_h_out(scene: SimulationScene, c_h_out: np.ndarray) -> AppearanceMaps:
+    """Maps with a new outer haemoglobin map and the matching six-channel rho_sss_bar."""
+    from polarface.skin.layers import subsurface_albedo
+
+    mask = scene.maps.mask
+    r_bar = subsurface_albedo(
+        torch.from_numpy(scene.maps.c_m[mask].astype(np.float64)),
+        torch.from_numpy(scene.maps.beta_m[mask].astype(np.float64)),
+        torch.from_numpy(scene.maps.c_h_in[mask].astype(np.float64)),
+        torch.from_numpy(c_h_out[mask].astype(np.float64)),
+        scene.calibration.wavelengths_nm,
+    )
+    rho = np.zeros_like(scene.maps.rho_sss_bar)
+    rho[mask] = scene.calibration.integrate(r_bar).float().numpy()
+    return scene.maps.replace(c_h_out=c_h_out, rho_sss_bar=rho)
