@@ -6,7 +6,7 @@ optimisation only (no file I/O; the RESULT-folder stage is :mod:`polarface.inver
 Stages (:func:`fit_biophysical`):
 
 1. **Coarse** - the maps are area-averaged ``coarse_factor`` times; per texel the local (blur-free)
-   totals model of :func:`~polarface.inverse.biophysical_model.local_channel_albedo` (15 wavelengths
+   totals model of :func:`~polarface.inverse.biophysical.model.local_channel_albedo` (15 wavelengths
    -> 6 channels through the rig's calibration) is fitted to ``rho_sss_bar`` by a batched, box-bounded
    Levenberg-Marquardt from several starts (the paper uses gradient descent; LM on four unknowns per
    texel converges in tens of iterations instead of thousands). At coarse resolution the blur between
@@ -38,7 +38,7 @@ Stages (:func:`fit_biophysical`):
    and ``gamut_floor_rmse`` (the input's own distance to the gamut) say how much of it is the input's.
 
 All tensors channels-last: ``rho_sss_bar`` ``(H, W, 6)`` in [0, 1]; parameters ``(H, W, 4)`` in
-:data:`~polarface.inverse.biophysical_model.PARAMETER_ORDER` (volume fractions); mask ``(H, W)`` bool.
+:data:`~polarface.inverse.biophysical.model.PARAMETER_ORDER` (volume fractions); mask ``(H, W)`` bool.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ import torch
 import torch.nn.functional as nnf
 
 from polarface._validation import array_api, as_float_tensor, broadcast_named, check_range
-from polarface.inverse.biophysical_model import (
+from polarface.inverse.biophysical.model import (
     PARAMETER_ORDER,
     TotalsTable,
     blurred_channel_albedo,

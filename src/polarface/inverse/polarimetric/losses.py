@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch.nn import functional
 
-from polarface.inverse.polarimetric_model import SamplePrediction
+from polarface.inverse.polarimetric.model import SamplePrediction
 
 __all__ = ["LossWeights", "data_losses", "laplacian_penalty", "laplacian_support", "smoothness_penalty"]
 

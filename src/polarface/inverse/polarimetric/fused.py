@@ -1,7 +1,7 @@
 """Compact patch samples and the autograd wrapper of the fused CPU data loss.
 
 :class:`FusedSamples` holds one patch's samples in the layout of
-:func:`polarface.inverse.polarimetric_kernel.fused_loss_and_grad` (sorted by texel, 44 bytes per
+:func:`polarface.inverse.polarimetric.kernel.fused_loss_and_grad` (sorted by texel, 44 bytes per
 sample, view geometry in per-view tables); :func:`fused_data_loss` evaluates the weighted data loss of
 the polarimetric stage on it as a differentiable torch scalar whose backward pass returns the
 kernel's analytic gradient. Same value and gradient as
@@ -15,8 +15,8 @@ import dataclasses
 import numpy as np
 import torch
 
-from polarface.inverse.polarimetric_kernel import PARAM_COUNT, fused_loss_and_grad
-from polarface.inverse.polarimetric_losses import LossWeights
+from polarface.inverse.polarimetric.kernel import PARAM_COUNT, fused_loss_and_grad
+from polarface.inverse.polarimetric.losses import LossWeights
 
 __all__ = ["FusedSamples", "build_fused_samples", "fused_data_loss", "pack_parameters"]
 
@@ -184,7 +184,7 @@ def fused_data_loss(
         params: ``(T, 14)`` from :func:`pack_parameters` (float32 or float64; CPU tensor, or any device
             — evaluated on the CPU).
         samples: :class:`FusedSamples` of the same ``T`` texels.
-        weights: :class:`~polarface.inverse.polarimetric_losses.LossWeights`; scale: observation scale > 0.
+        weights: :class:`~polarface.inverse.polarimetric.losses.LossWeights`; scale: observation scale > 0.
     """
     if params.ndim != 2 or params.shape[1] != PARAM_COUNT:
         raise ValueError(f"argument 'params' must have shape (T, {PARAM_COUNT}); got {tuple(params.shape)}")

@@ -7,8 +7,8 @@ Computes, for every texel of a patch, the summed data loss of its samples (texel
 and its exact gradient with respect to the texel's shading normal, eta, alpha_s, alpha_ss, rho_s,
 rho_ss and six-channel rho_sss_bar, in one pass over the samples (forward, then reverse mode by hand,
 per sample in registers). The mathematics is *identical* to
-:func:`polarface.inverse.polarimetric_model.render_samples` followed by
-:func:`polarface.inverse.polarimetric_losses.data_losses` (the reference implementation, differentiated
+:func:`polarface.inverse.polarimetric.model.render_samples` followed by
+:func:`polarface.inverse.polarimetric.losses.data_losses` (the reference implementation, differentiated
 by autograd, against which the tests check value and gradient in float64): exact image formation with
 all K LED modules (real positions, shadowed modules removed), specular + single scattering through the
 Fresnel reflection Mueller matrix, entry Fresnel with its polarization term, local subsurface albedo and
@@ -48,7 +48,7 @@ import types
 import numba
 import numpy as np
 
-from polarface.inverse.polarimetric_kernel_math import (  # noqa: F401 (compiled by _compile)
+from polarface.inverse.polarimetric.kernel_math import (  # noqa: F401 (compiled by _compile)
     _INV_PI,
     F,
     _cos2_sin2,
