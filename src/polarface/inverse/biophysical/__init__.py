@@ -3,18 +3,17 @@
 :func:`fit_biophysical` fits the four parameters ``(c_m, beta_m, c_h_in, c_h_out)`` per texel to the
 ``rho_sss_bar`` map of the polarimetric stage with the skin-layer model of
 :mod:`~polarface.inverse.biophysical.model` (:class:`TotalsTable`, :func:`local_channel_albedo`,
-:func:`blurred_channel_albedo`). Modules: ``model`` (forward model and its Jacobian), ``fit``
-(bounded Levenberg-Marquardt, coarse-to-fine, gamut screen).
+:func:`blurred_channel_albedo`). Modules: ``model`` (forward model and its Jacobian), ``local_fit``
+(bounded Levenberg-Marquardt per texel, gamut distance), ``fit`` (coarse-to-fine stages).
 """
 
 from polarface.inverse.biophysical.fit import (
     BiophysicalConfig,
     BiophysicalFit,
     fit_biophysical,
-    fit_local_parameters,
-    gamut_distance,
     median_shapes,
 )
+from polarface.inverse.biophysical.local_fit import fit_local_parameters, gamut_distance
 from polarface.inverse.biophysical.model import (
     PARAMETER_ORDER,
     TotalsTable,
