@@ -31,10 +31,10 @@ from polarface.inverse.polarimetric.fused import (
     FusedSamples,
     build_fused_samples,
     fused_data_loss,
+    fused_loss_and_grad,
     pack_parameters,
 )
 from polarface.inverse.polarimetric.init import init_albedos, init_eta, nan_median_filter
-from polarface.inverse.polarimetric.kernel import fused_loss_and_grad
 from polarface.inverse.polarimetric.losses import (
     LossWeights,
     data_losses,

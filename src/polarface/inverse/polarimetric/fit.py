@@ -9,7 +9,7 @@ reparameterised variables that keep them in physical ranges:
 * ``alpha_s = a_lo + (a_hi - a_lo) sigmoid(z)``, ``alpha_ss = alpha_s + (a_hi - alpha_s) sigmoid(z')``:
   the single-scattering lobe is by construction the broader one, so the two lobes cannot swap (no
   lobe mixing; the authors' release instead overwrote the single-scattering image inside the
-  specular mask, DESIGN.md);
+  specular mask);
 * ``rho_s, rho_ss = rho_max sigmoid(z)``, ``rho_sss_bar = sigmoid(z)`` (in [0, 1]);
 * ``H = h_scale z`` (mm); normals through :func:`polarface.geometry.heights.normals_from_heights`
   (its precomputed form :class:`~polarface.geometry.heights.HeightNormals`).

@@ -114,7 +114,7 @@ def init_eta(
     """Per-texel eta ``(T,)`` from a grid search of the refractive-index (DoP) relation alone.
 
     The signed ratio ``I_zeta / I_sss`` of the subsurface term depends on eta and the geometry only
-    (not on albedos or lighting, DESIGN.md: signed components), and ``I135 - I45`` carries no specular
+    (not on albedos or lighting: signed components), and ``I135 - I45`` carries no specular
     under the polarized near-coaxial light; least squares over each texel's views (weighted by the
     observed ``I_sss``) on a grid over ``eta_range`` give a start close to the optimum, so the joint
     optimisation does not have to drag eta across the range. Texels without samples get NaN.

@@ -1,4 +1,4 @@
-"""Levenberg-Marquardt refinement of the four lobe maps of the static polarimetric fit (issue 6).
+"""Levenberg-Marquardt refinement of the four lobe maps of the static polarimetric fit.
 
 The specular and single-scattering lobes (``alpha_s, rho_s`` and ``alpha_ss, rho_ss``) have the same
 Fresnel polarization and differ only in width; under the near-coaxial light their images over a

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from polarface.inverse.polarimetric.config import PolarimetricConfig
-from polarface.inverse.polarimetric.kernel import fused_loss_and_grad
+from polarface.inverse.polarimetric.fused import fused_loss_and_grad
 from polarface.inverse.polarimetric.losses import laplacian_support
 
 __all__ = ["RAW_LAYOUT", "optimise_patch_fused"]
