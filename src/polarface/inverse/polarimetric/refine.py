@@ -404,7 +404,7 @@ def refine_patch_lobes(
         batch: the patch's reference samples (:class:`SampleBatch`; ``batch.texel`` row-major).
         raw: the fit's raw variables ``name -> (h, w, C)``
             (:func:`polarface.inverse.polarimetric.config.maps_from_raw`).
-        normal: ``(h * w, 3)`` shading normals of ``raw``'s displacement (``_PatchProblem.normals``).
+        normal: ``(h * w, 3)`` shading normals of ``raw``'s displacement (``PatchProblem.normals``).
         mask: ``(h, w)`` bool valid texels. config: ranges, weights, ``refine_lobes_iterations`` and
             ``refine_lobes_damping``. scale: observation scale (> 0).
 
