@@ -243,7 +243,8 @@ def optimise_patch_fused(
     """RMSprop on one patch with the fused kernel (same steps as the torch glue; module docstring).
 
     Args:
-        problem: a :class:`~polarface.inverse.polarimetric.problem.PatchProblem` with fused samples; raw: raw variables
+        problem: a :class:`~polarface.inverse.polarimetric.problem.PatchProblem` with fused samples;
+            raw: raw variables
             ``(h, w, 1)`` / ``(h, w, 6)`` per :data:`RAW_LAYOUT` name; config: ``PolarimetricConfig``.
         learning_rates: one learning rate per step (the caller's schedule).
         curve: optional list, ``curve[step] +=`` the step's total loss (as ``optimise_patch``).
