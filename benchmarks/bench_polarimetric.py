@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from polarface.inverse.polarimetric_bench import run_benchmark
+from polarface.inverse.polarimetric import run_benchmark
 
 
 def main() -> None:

@@ -12,8 +12,7 @@ import torch
 from polarface.capture.rig import paper_rig
 from polarface.cli import main
 from polarface.geometry.mesh import TriangleMesh, save_obj
-from polarface.inverse.biophysical import BiophysicalConfig
-from polarface.inverse.biophysical_model import TotalsTable, local_channel_albedo
+from polarface.inverse.biophysical import BiophysicalConfig, TotalsTable, local_channel_albedo
 from polarface.inverse.biophysical_stage import (
     evaluate_biophysical,
     load_sog,

@@ -5,7 +5,7 @@ cameras = 48 views, 8 LED modules) through the fused numba kernel with analytic 
 vectorised torch autograd implementation (each: forward, backward and RMSprop step) and, in the same
 run, a straightforward eager per-texel implementation of the same losses as the baseline;
 prints both rates, their ratio, the paper's A100 rate (150 epochs x 2048^2 texels x 200 frames in
-180 min = 1.2e7 /s) and the peak RSS. See :mod:`polarface.inverse.polarimetric_bench`.
+180 min = 1.2e7 /s) and the peak RSS. See :mod:`polarface.inverse.polarimetric.bench`.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from polarface.device import resolve_device
-    from polarface.inverse.polarimetric_bench import run_benchmark
+    from polarface.inverse.polarimetric import run_benchmark
 
     for name in ("side", "frames", "iterations", "baseline_texels"):
         if getattr(args, name) < 1:

@@ -213,7 +213,7 @@ def stage_prepare(ctx: ReconstructContext) -> dict:
 def stage_polarimetric(ctx: ReconstructContext) -> dict:
     """Fit the polarimetric maps and write ``maps/``, ``previews/`` (checkpoints in ``checkpoints/``)."""
     from polarface.device import resolve_device
-    from polarface.inverse.polarimetric_fit import PolarimetricConfig, fit_polarimetric
+    from polarface.inverse.polarimetric import PolarimetricConfig, fit_polarimetric
     from polarface.texture import UnwrapStore
 
     started = time.perf_counter()
@@ -379,7 +379,7 @@ def run(args: argparse.Namespace) -> int:
     created = not out.exists()
     try:
         # validate the inputs before anything is written
-        from polarface.inverse.polarimetric_fit import PolarimetricConfig
+        from polarface.inverse.polarimetric import PolarimetricConfig
 
         PolarimetricConfig(**options)
         _load_geometry(ctx)

@@ -39,7 +39,7 @@ from tqdm import tqdm
 from polarface.capture.rig import Rig
 from polarface.device import resolve_device
 from polarface.inverse.biophysical import BiophysicalConfig, BiophysicalFit, fit_biophysical
-from polarface.inverse.biophysical_model import PARAMETER_ORDER, TotalsTable, local_channel_albedo
+from polarface.inverse.biophysical.model import PARAMETER_ORDER, TotalsTable, local_channel_albedo
 from polarface.io import colormap_png, read_exr, read_png, write_exr, write_json_atomic, write_png
 
 __all__ = [

@@ -10,7 +10,7 @@ Hence, with no specular in ``I90`` or ``I135 - I45``::
 
     r = (I135 - I45) / (2 I90) = psi zeta / (1 + psi xi),     psi = T-/T+ (eta, theta_o) (signed, <= 0)
 
-a ratio of *signed* components (no upward noise bias of a DoP magnitude, DESIGN.md) that is independent
+a ratio of *signed* components (no upward noise bias of a DoP magnitude) that is independent
 of albedo and illumination. :func:`estimate_ior` fits one eta to all usable pixels by robust
 (Huber-weighted) least squares on ``r``: a dense scan over ``eta_range`` then golden-section refinement.
 Pixels are used where ``theta_o`` lies in ``zenith_range`` (the DoP is informative and the sphere edge

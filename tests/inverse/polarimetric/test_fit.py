@@ -10,15 +10,16 @@ import torch
 
 from polarface.capture.rig import paper_rig
 from polarface.geometry.poses import rigid_transform
-from polarface.inverse.polarimetric_fit import (
+from polarface.inverse.polarimetric import (
+    PatchProblem,
     PolarimetricConfig,
-    _PatchProblem,
+    build_fused_samples,
     maps_from_raw,
     optimise_patch,
+    precompute_samples,
     raw_from_maps,
+    render_samples,
 )
-from polarface.inverse.polarimetric_fused import build_fused_samples
-from polarface.inverse.polarimetric_model import precompute_samples, render_samples
 from polarface.texture import TexelGeometry, build_views
 
 TRUTH = {
@@ -152,7 +153,7 @@ def _single_texel_problem(dtype=torch.float64):
 def test_noise_free_single_texel_recovers_exact_parameters(engine):
     batch, geometry, scale, fused = _single_texel_problem()
     config = PolarimetricConfig(optimizer="adam", lr=0.05, iterations=3000, warmup=1, lr_final_fraction=0.01)
-    problem = _PatchProblem(
+    problem = PatchProblem(
         batch,
         geometry,
         config,
@@ -186,7 +187,7 @@ def test_noise_free_single_texel_recovers_exact_parameters(engine):
 def test_loss_decreases_and_is_deterministic(engine):
     batch, geometry, scale, fused = _single_texel_problem(torch.float32)
     config = PolarimetricConfig(iterations=30)
-    problem = _PatchProblem(
+    problem = PatchProblem(
         batch,
         geometry,
         config,
@@ -217,7 +218,7 @@ def test_loss_decreases_and_is_deterministic(engine):
 
 
 def test_closed_form_starts_on_a_noise_free_texel():
-    from polarface.inverse.polarimetric_init import init_albedos, init_eta, nan_median_filter
+    from polarface.inverse.polarimetric import init_albedos, init_eta, nan_median_filter
 
     batch, _, _, _ = _single_texel_problem()
     normal = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)

@@ -6,7 +6,7 @@ optimisation only (no file I/O; the RESULT-folder stage is :mod:`polarface.inver
 Stages (:func:`fit_biophysical`):
 
 1. **Coarse** - the maps are area-averaged ``coarse_factor`` times; per texel the local (blur-free)
-   totals model of :func:`~polarface.inverse.biophysical_model.local_channel_albedo` (15 wavelengths
+   totals model of :func:`~polarface.inverse.biophysical.model.local_channel_albedo` (15 wavelengths
    -> 6 channels through the rig's calibration) is fitted to ``rho_sss_bar`` by a batched, box-bounded
    Levenberg-Marquardt from several starts (the paper uses gradient descent; LM on four unknowns per
    texel converges in tens of iterations instead of thousands). At coarse resolution the blur between
@@ -38,7 +38,7 @@ Stages (:func:`fit_biophysical`):
    and ``gamut_floor_rmse`` (the input's own distance to the gamut) say how much of it is the input's.
 
 All tensors channels-last: ``rho_sss_bar`` ``(H, W, 6)`` in [0, 1]; parameters ``(H, W, 4)`` in
-:data:`~polarface.inverse.biophysical_model.PARAMETER_ORDER` (volume fractions); mask ``(H, W)`` bool.
+:data:`~polarface.inverse.biophysical.model.PARAMETER_ORDER` (volume fractions); mask ``(H, W)`` bool.
 """
 
 from __future__ import annotations
@@ -51,26 +51,14 @@ from typing import Literal
 import torch
 import torch.nn.functional as nnf
 
-from polarface._validation import array_api, as_float_tensor, broadcast_named, check_range
-from polarface.inverse.biophysical_model import (
-    PARAMETER_ORDER,
-    TotalsTable,
-    blurred_channel_albedo,
-    local_channel_albedo,
-    local_channel_albedo_with_jacobian,
-)
+from polarface._validation import as_float_tensor, check_range
+from polarface.inverse.biophysical.local_fit import fit_local_parameters, gamut_screen
+from polarface.inverse.biophysical.model import TotalsTable, blurred_channel_albedo
 from polarface.skin.heterogeneous import ProfileShapes, fit_layer_shapes
-from polarface.skin.layers import PARAMETER_RANGES, SkinLayerConstants, _layer_optics
+from polarface.skin.layers import SkinLayerConstants, _layer_optics
 from polarface.skin.sog import default_radial_grid
 
-__all__ = [
-    "BiophysicalConfig",
-    "BiophysicalFit",
-    "fit_biophysical",
-    "fit_local_parameters",
-    "gamut_distance",
-    "median_shapes",
-]
+__all__ = ["BiophysicalConfig", "BiophysicalFit", "fit_biophysical", "median_shapes"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,130 +160,6 @@ class BiophysicalFit:
     gamut_floor_rmse: float = float("nan")
 
 
-def _bounds(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    table = torch.tensor([PARAMETER_RANGES[k] for k in PARAMETER_ORDER], dtype=dtype, device=device)
-    return table[:, 0], table[:, 1]
-
-
-def _start_design(starts: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """``(S, 4)`` starting parameters: a fixed design of plausible skin (then Halton-like spread)."""
-    base = torch.tensor(
-        [
-            [0.05, 0.10, 0.03, 0.05],
-            [0.02, 0.50, 0.05, 0.02],
-            [0.12, 0.05, 0.02, 0.10],
-            [0.05, 0.80, 0.10, 0.15],
-            [0.25, 0.30, 0.05, 0.05],
-            [0.01, 0.05, 0.20, 0.01],
-            [0.08, 0.20, 0.01, 0.25],
-            [0.35, 0.60, 0.15, 0.20],
-        ],
-        dtype=dtype,
-        device=device,
-    )
-    if starts <= base.shape[0]:
-        return base[:starts]
-    low, high = _bounds(dtype, device)
-    extra = torch.rand(starts - base.shape[0], 4, generator=torch.Generator().manual_seed(0), dtype=dtype)
-    return torch.cat([base, low + (high - low) * extra.to(device)])
-
-
-def fit_local_parameters(
-    rho_sss_bar: torch.Tensor,
-    table: TotalsTable,
-    channel_weights: torch.Tensor,
-    *,
-    start: torch.Tensor | None = None,
-    starts: int = 6,
-    iterations: int = 40,
-    channel_floor: float = 0.02,
-    prior: torch.Tensor | None = None,
-    prior_weight: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Fit the local totals model to six-channel albedos, all samples at once (bounded LM).
-
-    Args:
-        rho_sss_bar: ``(N, 6)`` target albedos in [0, 1].
-        table: :class:`TotalsTable` on the calibration grid; channel_weights ``(6, L)``.
-        start: optional ``(N, 4)`` warm start (then ``starts`` is ignored).
-        starts: number of starting points from a fixed design (best kept per sample).
-        iterations: LM iterations.
-        channel_floor: residual weight ``1 / (rho + floor)``.
-        prior: optional ``(N, 4)`` prior parameters (with a warm ``start``); adds the residuals
-            ``prior_weight * (x - prior)`` (a Tikhonov pull, per parameter, dimensionless weights).
-
-    Returns:
-        ``(parameters (N, 4), cost (N,))`` with parameters inside ``PARAMETER_RANGES``.
-    """
-    target = as_float_tensor(rho_sss_bar, "rho_sss_bar")
-    dtype, device = target.dtype, target.device
-    low, high = _bounds(dtype, device)
-    n_samples = target.shape[0]
-    if start is not None:
-        x = torch.minimum(torch.maximum(start.to(dtype=dtype, device=device), low), high)
-        n_starts = 1
-    else:
-        design = _start_design(starts, dtype, device)
-        n_starts = design.shape[0]
-        x = design[:, None, :].expand(n_starts, n_samples, 4).reshape(-1, 4)
-    goal = target.repeat(n_starts, 1)
-    weight = 1.0 / (goal + channel_floor)
-    n = x.shape[0]
-    pull = torch.tensor(prior_weight, dtype=dtype, device=device)
-    anchor = x.clone() if prior is None else prior.to(dtype=dtype, device=device).repeat(n_starts, 1)
-    if prior is None:
-        pull = torch.zeros_like(pull)
-
-    def residual(xs: torch.Tensor, goals: torch.Tensor, weights: torch.Tensor, anchors: torch.Tensor):
-        data = (local_channel_albedo(xs, table, channel_weights) - goals) * weights
-        return torch.cat([data, pull * (xs - anchors)], dim=-1)
-
-    damping = torch.full((n,), 1e-2, dtype=dtype, device=device)
-    with torch.no_grad():
-        res = residual(x, goal, weight, anchor)
-        cost = (res**2).sum(-1)
-        active = torch.arange(n, device=device)
-        for _ in range(iterations):
-            if active.numel() == 0:
-                break
-            xa, ra, ca, da, ga, wa = (
-                x[active],
-                res[active],
-                cost[active],
-                damping[active],
-                goal[active],
-                weight[active],
-            )
-            _, jac = local_channel_albedo_with_jacobian(xa, table, channel_weights)
-            jac = torch.cat(
-                [jac * wa[..., None], torch.diag(pull).expand(len(xa), 4, 4)], dim=1
-            )  # (n, C+4, 4)
-            jtj = jac.transpose(1, 2) @ jac
-            grad = (jac.transpose(1, 2) @ ra[..., None])[..., 0]
-            at_bound = ((xa <= low + 1e-9) & (grad > 0)) | ((xa >= high - 1e-9) & (grad < 0))
-            free = (~at_bound).to(dtype)
-            jtj = jtj * free[:, :, None] * free[:, None, :] + torch.diag_embed(1.0 - free)
-            grad = grad * free
-            diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-12)
-            delta = torch.linalg.solve(jtj + da[:, None, None] * torch.diag_embed(diag), -grad[..., None])
-            trial = torch.minimum(torch.maximum(xa + delta[..., 0], low), high)
-            trial_res = residual(trial, ga, wa, anchor[active])
-            trial_cost = (trial_res**2).sum(-1)
-            better = trial_cost < ca
-            x[active] = torch.where(better[:, None], trial, xa)
-            res[active] = torch.where(better[:, None], trial_res, ra)
-            cost[active] = torch.where(better, trial_cost, ca)
-            damping[active] = torch.where(better, da * 0.3, da * 4.0).clamp(1e-9, 1e9)
-            # Converged: an accepted step that gained < 1e-6 relative, a tiny cost, or hopeless damping.
-            done = (better & (ca - trial_cost <= 1e-6 * ca)) | (torch.minimum(trial_cost, ca) < 1e-16)
-            done |= damping[active] >= 1e8
-            active = active[~done]
-    cost = cost.reshape(n_starts, n_samples)
-    best = cost.argmin(0)
-    x = x.reshape(n_starts, n_samples, 4)[best, torch.arange(n_samples, device=device)]
-    return x, cost[best, torch.arange(n_samples, device=device)]
-
-
 def median_shapes(
     parameters: torch.Tensor, mask: torch.Tensor, table: TotalsTable
 ) -> tuple[ProfileShapes, torch.Tensor]:
@@ -362,19 +226,7 @@ def fit_biophysical(
     Raises:
         ValueError: bad shapes, values outside [0, 1], NaN/inf, no valid texel.
     """
-    rho = as_float_tensor(rho_sss_bar, "rho_sss_bar", dtype=torch.float32)
-    if rho.ndim != 3 or rho.shape[-1] != channel_weights.shape[0]:
-        raise ValueError(
-            f"argument 'rho_sss_bar' must be (H, W, {channel_weights.shape[0]}); got {tuple(rho.shape)}"
-        )
-    mask_b = torch.as_tensor(mask).bool().to(rho.device)
-    if mask_b.shape != rho.shape[:2]:
-        raise ValueError(f"argument 'mask' must be {tuple(rho.shape[:2])}; got {tuple(mask_b.shape)}")
-    if not bool(mask_b.any()):
-        raise ValueError("argument 'mask' has no valid texel")
-    check_range(rho[mask_b], "rho_sss_bar", 0.0, 1.0)
-    if not (texel_size_mm > 0):
-        raise ValueError(f"argument 'texel_size_mm' must be > 0; got {texel_size_mm}")
+    rho, mask_b = _checked_inputs(rho_sss_bar, mask, channel_weights, texel_size_mm)
     timings: dict[str, float] = {}
     notify = progress or (lambda _name: None)
     weights = channel_weights.to(torch.float32)
@@ -400,10 +252,70 @@ def fit_biophysical(
     timings["fine_local_s"] = time.perf_counter() - started
     notify("fine-local")
 
-    # Gamut screen: texels the warm-started fit leaves far from the input get a multi-start fit; those
-    # still beyond the tolerance are out of gamut and are replaced by their projection (config doc).
     started = time.perf_counter()
-    params_valid, distance, projection, refitted = _gamut_screen(
+    screened = _screened_fit(rho, mask_b, local_target, start, params_valid, coarse, table, weights, config)
+    params = torch.zeros(*mask_b.shape, 4, device=rho.device)
+    params[mask_b] = screened.params_valid
+    timings["gamut_s"] = time.perf_counter() - started
+    notify("gamut")
+
+    blur_stretch = stretch if config.use_stretch else None
+    started = time.perf_counter()
+    if config.albedo_model == "blurred":
+        _blurred_stage(params, mask_b, screened, table, weights, texel_size_mm, config, blur_stretch, notify)
+    timings["fine_blurred_s"] = time.perf_counter() - started
+
+    started = time.perf_counter()
+    shapes, _ = median_shapes(params, mask_b, table)  # the shapes of the final parameters
+    with torch.no_grad():
+        rendered, spectral = _render(
+            params, mask_b, table, weights, shapes, texel_size_mm, config, blur_stretch
+        )
+    return _assemble(rho, mask_b, params, shapes, rendered, spectral, screened, timings, started)
+
+
+def _checked_inputs(
+    rho_sss_bar: torch.Tensor, mask: torch.Tensor, channel_weights: torch.Tensor, texel_size_mm: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(rho (H, W, C) float32, mask (H, W) bool)`` of :func:`fit_biophysical` after its checks."""
+    rho = as_float_tensor(rho_sss_bar, "rho_sss_bar", dtype=torch.float32)
+    if rho.ndim != 3 or rho.shape[-1] != channel_weights.shape[0]:
+        raise ValueError(
+            f"argument 'rho_sss_bar' must be (H, W, {channel_weights.shape[0]}); got {tuple(rho.shape)}"
+        )
+    mask_b = torch.as_tensor(mask).bool().to(rho.device)
+    if mask_b.shape != rho.shape[:2]:
+        raise ValueError(f"argument 'mask' must be {tuple(rho.shape[:2])}; got {tuple(mask_b.shape)}")
+    if not bool(mask_b.any()):
+        raise ValueError("argument 'mask' has no valid texel")
+    check_range(rho[mask_b], "rho_sss_bar", 0.0, 1.0)
+    if not (texel_size_mm > 0):
+        raise ValueError(f"argument 'texel_size_mm' must be > 0; got {texel_size_mm}")
+    return rho, mask_b
+
+
+@dataclasses.dataclass
+class _Screened:
+    """The local fit after the gamut screen, over the N valid texels: parameters ``(N, 4)``, the
+    observation the blurred stage matches ``(N, C)`` (out-of-gamut texels: their projection), its
+    clamped local target, the prior ``(N, 4)``, ``out_of_gamut (N,)`` bool, the gamut ``distance (N,)``
+    and the ``projection (N, C)`` of the input onto the gamut."""
+
+    params_valid: torch.Tensor
+    observed: torch.Tensor
+    local_target: torch.Tensor
+    start: torch.Tensor
+    out_of_gamut: torch.Tensor
+    distance: torch.Tensor
+    projection: torch.Tensor
+
+
+def _screened_fit(
+    rho, mask_b, local_target, start, params_valid, coarse, table, weights, config
+) -> _Screened:
+    """Gamut screen: texels the warm-started fit leaves far from the input get a multi-start fit; those
+    still beyond the tolerance are out of gamut and are replaced by their projection (config doc)."""
+    params_valid, distance, projection, refitted = gamut_screen(
         local_target, params_valid, table, weights, config
     )
     out_of_gamut = distance > config.gamut_tolerance
@@ -447,48 +359,41 @@ def fit_biophysical(
             prior=start[todo],
             prior_weight=config.prior_weight,
         )
-    params = torch.zeros(*mask_b.shape, 4, device=rho.device)
-    params[mask_b] = params_valid
-    timings["gamut_s"] = time.perf_counter() - started
-    notify("gamut")
+    return _Screened(params_valid, observed, local_target, start, out_of_gamut, distance, projection)
 
-    blur_stretch = stretch if config.use_stretch else None
-    started = time.perf_counter()
-    if config.albedo_model == "blurred":
-        target = local_target.clone()
-        for _ in range(config.shape_rounds):
-            shapes, _ = median_shapes(params, mask_b, table)
-            for _ in range(config.correction_iterations):
-                with torch.no_grad():
-                    rendered = blurred_channel_albedo(
-                        params, table, weights, shapes, texel_size_mm, mask_b, stretch=blur_stretch
-                    )
-                target = (target + observed - rendered[mask_b]).clamp(1e-4, 0.999)
-                params_valid, _ = fit_local_parameters(
-                    target,
-                    table,
-                    weights,
-                    start=params[mask_b],
-                    iterations=config.correction_lm_iterations,
-                    channel_floor=config.channel_floor,
-                    prior=start,
-                    prior_weight=config.prior_weight,
+
+def _blurred_stage(params, mask_b, screened, table, weights, texel_size_mm, config, stretch, notify) -> None:
+    """Residual correction of the blurred model (module docstring, stage 3), in place on ``params``."""
+    target = screened.local_target.clone()
+    for _ in range(config.shape_rounds):
+        shapes, _ = median_shapes(params, mask_b, table)
+        for _ in range(config.correction_iterations):
+            with torch.no_grad():
+                rendered = blurred_channel_albedo(
+                    params, table, weights, shapes, texel_size_mm, mask_b, stretch=stretch
                 )
-                params[mask_b] = params_valid
-            notify("fine-blurred")
-    timings["fine_blurred_s"] = time.perf_counter() - started
+            target = (target + screened.observed - rendered[mask_b]).clamp(1e-4, 0.999)
+            params_valid, _ = fit_local_parameters(
+                target,
+                table,
+                weights,
+                start=params[mask_b],
+                iterations=config.correction_lm_iterations,
+                channel_floor=config.channel_floor,
+                prior=screened.start,
+                prior_weight=config.prior_weight,
+            )
+            params[mask_b] = params_valid
+        notify("fine-blurred")
 
-    started = time.perf_counter()
-    shapes, _ = median_shapes(params, mask_b, table)  # the shapes of the final parameters
-    with torch.no_grad():
-        rendered, spectral = _render(
-            params, mask_b, table, weights, shapes, texel_size_mm, config, blur_stretch
-        )
+
+def _assemble(rho, mask_b, params, shapes, rendered, spectral, screened, timings, started) -> BiophysicalFit:
+    """The :class:`BiophysicalFit` with its gamut maps and residuals (``started``: the render's start)."""
     in_gamut = torch.zeros_like(mask_b)
-    in_gamut[mask_b] = ~out_of_gamut
+    in_gamut[mask_b] = ~screened.out_of_gamut
     distance_map = torch.zeros(mask_b.shape, dtype=torch.float32, device=rho.device)
-    distance_map[mask_b] = distance.float()
-    floor = _relative_rmse(projection, rho[mask_b])
+    distance_map[mask_b] = screened.distance.float()
+    floor = _relative_rmse(screened.projection, rho[mask_b])
     residual = _relative_rmse(rendered[mask_b], rho[mask_b])
     residual_in = _relative_rmse(rendered[in_gamut], rho[in_gamut]) if bool(in_gamut.any()) else float("nan")
     params = params * mask_b[..., None]
@@ -530,60 +435,6 @@ def _fine_local(target, coarse, coarse_mask, mask_b, table, weights, config):
         prior_weight=config.prior_weight,
     )
     return start, params
-
-
-@array_api("rho_sss_bar", "model")
-def gamut_distance(
-    rho_sss_bar: torch.Tensor, model: torch.Tensor, channel_floor: float = 0.02
-) -> torch.Tensor:
-    """Relative distance ``(...)`` of albedos ``rho_sss_bar`` ``(..., C)`` to model albedos ``(..., C)``.
-
-    The channel-RMS of ``(model - rho_sss_bar) / (rho_sss_bar + channel_floor)``, the fit's own
-    weighting (dimensionless; 0.05 = 5 % relative). With ``model`` the best local fit of
-    ``rho_sss_bar`` it is the distance of the input to the skin model's gamut. Differentiable;
-    torch / numpy / float in, same kind out.
-
-    Raises:
-        ValueError: NaN/inf, shapes that do not broadcast, ``rho_sss_bar < 0`` or ``channel_floor <= 0``.
-    """
-    if not channel_floor > 0:
-        raise ValueError(f"argument 'channel_floor' must be > 0; got {channel_floor}")
-    rho, fitted = broadcast_named(("rho_sss_bar", rho_sss_bar), ("model", model))
-    check_range(rho, "rho_sss_bar", 0.0, None)
-    return (((fitted - rho) / (rho + channel_floor)) ** 2).mean(-1).sqrt()
-
-
-def _gamut_screen(target, params, table, weights, config):
-    """Distance of each texel's input to the skin model's gamut and its projection (best local fit).
-
-    Texels the warm-started fit leaves beyond ``gamut_tolerance`` get a multi-start fit (no prior);
-    the better of the two is kept (this also repairs warm starts that did not converge).
-    Returns ``(parameters (N, 4), distance (N,), projection (N, C), refitted (N,) bool)``.
-    """
-    with torch.no_grad():
-        projection = local_channel_albedo(params, table, weights)
-        distance = gamut_distance(target, projection, config.channel_floor)
-        refitted = distance > config.gamut_tolerance
-        suspect = torch.nonzero(refitted)[:, 0]
-        if suspect.numel():
-            refit, _ = fit_local_parameters(
-                target[suspect],
-                table,
-                weights,
-                starts=config.starts,
-                iterations=config.coarse_iterations,
-                channel_floor=config.channel_floor,
-            )
-            refit_projection = local_channel_albedo(refit, table, weights)
-            refit_distance = gamut_distance(target[suspect], refit_projection, config.channel_floor)
-            better = refit_distance < distance[suspect]
-            chosen = suspect[better]
-            params = params.clone()
-            params[chosen] = refit[better]
-            projection[chosen] = refit_projection[better]
-            distance[chosen] = refit_distance[better]
-            refitted[suspect] = better
-    return params, distance, projection, refitted
 
 
 def _render(params, mask_b, table, weights, shapes, texel_size_mm, config, stretch):

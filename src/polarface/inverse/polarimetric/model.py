@@ -17,7 +17,7 @@ directions to lights and camera at 1 m by < 1e-4 rad).
 
 Outputs per sample and channel are the observations of the paper (supplement Eqs. I_sss, I_alpha,
 I_s): ``I_sss = 2 I90 = s0 - s1``, ``I_zeta = I135 - I45 = -s2`` and ``I_s = I0 - I90 = s1``, all exact
-(the ``2 I90`` shortcut is *modelled*, not assumed: DESIGN.md errata), plus the specular+single part of
+(the ``2 I90`` shortcut is *modelled*, not assumed), plus the specular+single part of
 ``s1`` (for the observed DoP's ``I_xi``). Units: mm, radiance in the light intensity unit per mm^2 per sr.
 """
 

@@ -11,14 +11,20 @@ import torch
 
 from polarface.capture.rig import paper_rig
 from polarface.geometry.poses import rigid_transform
-from polarface.inverse.polarimetric_config import PolarimetricConfig, maps_from_raw, raw_from_maps
-from polarface.inverse.polarimetric_fit import _PatchProblem
-from polarface.inverse.polarimetric_losses import LossWeights, data_losses, smoothness_penalty
-from polarface.inverse.polarimetric_model import SamplePrediction, precompute_samples, render_samples
-from polarface.inverse.polarimetric_refine import (
+from polarface.inverse.polarimetric import (
+    LossWeights,
+    PatchProblem,
+    PolarimetricConfig,
+    SamplePrediction,
+    data_losses,
+    maps_from_raw,
+    precompute_samples,
+    raw_from_maps,
     refine_lobes,
     refine_patch_lobes,
+    render_samples,
     smoothness_hessian,
+    smoothness_penalty,
     weighted_residuals,
 )
 from polarface.texture import TexelGeometry, build_views
@@ -177,7 +183,7 @@ def test_objective_is_the_fit_loss_and_never_increases():
         np.ones((3, 3), np.float32),
         np.ones((3, 3), bool),
     )
-    problem = _PatchProblem(batch, geometry, config, scale, torch.float64, torch.device("cpu"))
+    problem = PatchProblem(batch, geometry, config, scale, torch.float64, torch.device("cpu"))
     maps = {k: getattr(result, k).reshape(3, 3, 1).numpy() for k in START}
     maps["eta"] = np.full((3, 3, 1), TRUTH["eta"])
     maps["rho_sss_bar"] = np.broadcast_to(RHO_SSS, (3, 3, 6)).copy()

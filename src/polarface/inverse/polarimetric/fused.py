@@ -1,7 +1,7 @@
 """Compact patch samples and the autograd wrapper of the fused CPU data loss.
 
 :class:`FusedSamples` holds one patch's samples in the layout of
-:func:`polarface.inverse.polarimetric_kernel.fused_loss_and_grad` (sorted by texel, 44 bytes per
+:func:`polarface.inverse.polarimetric.kernel.fused_loss_and_grad` (sorted by texel, 44 bytes per
 sample, view geometry in per-view tables); :func:`fused_data_loss` evaluates the weighted data loss of
 the polarimetric stage on it as a differentiable torch scalar whose backward pass returns the
 kernel's analytic gradient. Same value and gradient as
@@ -15,10 +15,10 @@ import dataclasses
 import numpy as np
 import torch
 
-from polarface.inverse.polarimetric_kernel import PARAM_COUNT, fused_loss_and_grad
-from polarface.inverse.polarimetric_losses import LossWeights
+from polarface.inverse.polarimetric.kernel import PARAM_COUNT, compiled_kernel
+from polarface.inverse.polarimetric.losses import LossWeights
 
-__all__ = ["FusedSamples", "build_fused_samples", "fused_data_loss", "pack_parameters"]
+__all__ = ["FusedSamples", "build_fused_samples", "fused_data_loss", "fused_loss_and_grad", "pack_parameters"]
 
 _MAX_LIGHTS = 63
 
@@ -184,7 +184,7 @@ def fused_data_loss(
         params: ``(T, 14)`` from :func:`pack_parameters` (float32 or float64; CPU tensor, or any device
             — evaluated on the CPU).
         samples: :class:`FusedSamples` of the same ``T`` texels.
-        weights: :class:`~polarface.inverse.polarimetric_losses.LossWeights`; scale: observation scale > 0.
+        weights: :class:`~polarface.inverse.polarimetric.losses.LossWeights`; scale: observation scale > 0.
     """
     if params.ndim != 2 or params.shape[1] != PARAM_COUNT:
         raise ValueError(f"argument 'params' must have shape (T, {PARAM_COUNT}); got {tuple(params.shape)}")
@@ -196,3 +196,62 @@ def fused_data_loss(
         raise ValueError(f"argument 'scale' must be > 0; got {scale}")
     data_weights = (weights.sss, weights.s, weights.phi, weights.psi)
     return _FusedLoss.apply(params, samples, data_weights, float(scale))
+
+
+def fused_loss_and_grad(
+    offsets: np.ndarray,
+    position: np.ndarray,
+    params: np.ndarray,
+    sample_view: np.ndarray,
+    sample_lit: np.ndarray,
+    observed: np.ndarray,
+    view_center: np.ndarray,
+    view_up: np.ndarray,
+    view_ref_up: np.ndarray,
+    light_pos: np.ndarray,
+    light_intensity: np.ndarray,
+    view_channels: np.ndarray,
+    weights: tuple[float, float, float, float],
+    scale: float,
+    chunks: int = 64,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-texel data loss and its gradient of the fused kernel
+    (:mod:`polarface.inverse.polarimetric.kernel`). Unchecked: callers validate.
+
+    Args:
+        offsets: ``(T + 1,)`` int64 CSR offsets of each texel's samples (samples sorted by texel).
+        position: ``(T, 3)`` texel positions (model frame, mm); params: ``(T, 14)`` in
+            :data:`~polarface.inverse.polarimetric.kernel.GRAD_LAYOUT` order (unit normal, eta > 1,
+            alphas > 0, albedos).
+        sample_view: ``(S,)`` int32 view index; sample_lit: ``(S,)`` int64 bitmask of unshadowed
+            lights (bit k = light k); observed: ``(S, 3, 3)`` ``[I_sss, I_zeta, I_s]`` x channel.
+        view_center, view_up, view_ref_up: ``(V, 3)``; light_pos, light_intensity: ``(V, 3, K)``
+            (lights on the last axis; K <= 63);
+        view_channels: ``(V, 3)`` int64 channel indices.
+        weights: ``(w_sss, w_s, w_phi, w_psi)``; scale: observation scale (> 0).
+        chunks: parallel work items: runs of consecutive texels holding about equal numbers of samples
+            (numba hands each thread an equal share of them, so threads get equal work); the result
+            does not depend on it or on the thread count, except the rounding of ``term_sums``.
+
+    Returns:
+        ``(loss (T,), grad (T, 14), term_sums (4,))`` with term sums ``(L_sss, L_s, L_phi, L_psi)``
+        unweighted; dtype of ``params`` (float32 or float64; every float array must share it).
+    """
+    dtype = params.dtype
+    kernel = compiled_kernel(dtype)
+    texel_count = offsets.shape[0] - 1
+    grad = np.empty((texel_count, PARAM_COUNT), dtype=dtype)
+    loss = np.empty(texel_count, dtype=dtype)
+    count = int(offsets[-1])
+    targets = np.linspace(0, count, max(int(chunks), 1) + 1)
+    bounds = np.searchsorted(offsets, targets, side="left").astype(np.int64)
+    bounds[0], bounds[-1] = 0, texel_count
+    term_sums = np.zeros((bounds.shape[0] - 1, 4), dtype=np.float64)
+    tiny = float(np.finfo(dtype).eps) ** 4
+    kernel(
+        offsets, position, params, sample_view, sample_lit, observed,
+        view_center, view_up, view_ref_up, light_pos, light_intensity, view_channels,
+        np.asarray(weights, dtype=dtype), dtype.type(scale), dtype.type(tiny), bounds,
+        grad, loss, term_sums,
+    )  # fmt: skip
+    return loss, grad, term_sums.sum(0)

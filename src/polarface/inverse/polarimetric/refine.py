@@ -1,4 +1,4 @@
-"""Levenberg-Marquardt refinement of the four lobe maps of the static polarimetric fit (issue 6).
+"""Levenberg-Marquardt refinement of the four lobe maps of the static polarimetric fit.
 
 The specular and single-scattering lobes (``alpha_s, rho_s`` and ``alpha_ss, rho_ss``) have the same
 Fresnel polarization and differ only in width; under the near-coaxial light their images over a
@@ -10,7 +10,7 @@ every texel's own data gradient along it is tiny). Here, after the fit, with the
 rho_sss_bar held, Gauss-Newton steps are taken on the four lobe maps of a patch *jointly*:
 
 * the data loss (``w_sss L_sss + w_s L_s + w_phi L_phi + w_psi L_psi`` of
-  :func:`polarface.inverse.polarimetric_losses.data_losses`, all sums of squares, written as the
+  :func:`polarface.inverse.polarimetric.losses.data_losses`, all sums of squares, written as the
   weighted residuals of :func:`weighted_residuals`) is a sum over texels, so its Gauss-Newton matrix is
   block diagonal with one ``4 x 4`` block per texel;
 * the 5x5 smoothness priors of alpha_s and alpha_ss (the paper's regulariser, weights 200) are
@@ -47,9 +47,9 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
-from polarface.inverse.polarimetric_config import PolarimetricConfig, maps_from_raw
-from polarface.inverse.polarimetric_losses import LossWeights, smoothness_penalty
-from polarface.inverse.polarimetric_model import SampleBatch, SamplePrediction, render_samples
+from polarface.inverse.polarimetric.config import PolarimetricConfig, maps_from_raw
+from polarface.inverse.polarimetric.losses import LossWeights, smoothness_penalty
+from polarface.inverse.polarimetric.model import SampleBatch, SamplePrediction, render_samples
 
 __all__ = [
     "LOBE_NAMES",
@@ -71,7 +71,7 @@ def weighted_residuals(
 ) -> torch.Tensor:
     """Residuals ``(S, 15)`` whose squares summed equal the weighted data loss
     ``w_sss L_sss + w_s L_s + w_phi L_phi + w_psi L_psi`` of
-    :func:`polarface.inverse.polarimetric_losses.data_losses`.
+    :func:`polarface.inverse.polarimetric.losses.data_losses`.
 
     Per channel (3 each): ``sqrt(w_sss) r_sss``, ``sqrt(w_s + w_phi W_phi) r_s``,
     ``sqrt(w_phi W_phi) r_zeta`` and the two signed-DoP residuals times ``sqrt(w_psi)``, with
@@ -114,7 +114,7 @@ def weighted_residuals(
 
 def smoothness_hessian(mask: np.ndarray, window: int = 5) -> scipy.sparse.csr_matrix:
     """Hessian ``(T, T)`` (float64 CSR) of
-    :func:`polarface.inverse.polarimetric_losses.smoothness_penalty` over a row-major ``(h, w)`` map.
+    :func:`polarface.inverse.polarimetric.losses.smoothness_penalty` over a row-major ``(h, w)`` map.
 
     The penalty is ``||A x||^2`` with ``A = D_m (I - N^-1 B D_m)``: ``B`` the ``window x window`` box
     (zero padded), ``D_m`` the mask, ``N`` the valid counts of the windows; the Hessian is ``2 A^T A``.
@@ -250,7 +250,7 @@ def refine_lobes(
     with the normal, eta and rho_sss_bar held (module docstring).
 
     Args:
-        batch: the patch's samples (:func:`polarface.inverse.polarimetric_model.precompute_samples`);
+        batch: the patch's samples (:func:`polarface.inverse.polarimetric.model.precompute_samples`);
             ``batch.texel`` indexes the ``T = h * w`` texels row-major.
         normal: ``(T, 3)`` unit shading normals (batch frame). eta: ``(T,)`` or ``(T, 1)`` (> 1).
         rho_sss_bar: ``(T, 6)`` subsurface albedos.
@@ -403,8 +403,8 @@ def refine_patch_lobes(
     Args:
         batch: the patch's reference samples (:class:`SampleBatch`; ``batch.texel`` row-major).
         raw: the fit's raw variables ``name -> (h, w, C)``
-            (:func:`polarface.inverse.polarimetric_config.maps_from_raw`).
-        normal: ``(h * w, 3)`` shading normals of ``raw``'s displacement (``_PatchProblem.normals``).
+            (:func:`polarface.inverse.polarimetric.config.maps_from_raw`).
+        normal: ``(h * w, 3)`` shading normals of ``raw``'s displacement (``PatchProblem.normals``).
         mask: ``(h, w)`` bool valid texels. config: ranges, weights, ``refine_lobes_iterations`` and
             ``refine_lobes_damping``. scale: observation scale (> 0).
 

@@ -1,4 +1,4 @@
-"""The numba optimiser step (polarimetric_step) against the torch glue it replaces."""
+"""The numba optimiser step (polarface.inverse.polarimetric.step) against the torch glue it replaces."""
 
 from __future__ import annotations
 
@@ -8,9 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from polarface.inverse.polarimetric_bench import benchmark_problem
-from polarface.inverse.polarimetric_fit import PolarimetricConfig, optimise_patch
-from polarface.inverse.polarimetric_losses import LossWeights
+from polarface.inverse.polarimetric import LossWeights, PolarimetricConfig, benchmark_problem, optimise_patch
 
 
 def _perturbed(raw: dict[str, torch.Tensor], seed: int) -> dict[str, torch.Tensor]:
@@ -20,8 +18,8 @@ def _perturbed(raw: dict[str, torch.Tensor], seed: int) -> dict[str, torch.Tenso
 
 @pytest.fixture(scope="module")
 def patch():
-    _problem, fused_problem, raw, _views = benchmark_problem(side=10, frames=3, dtype=torch.float64)
-    return fused_problem, _perturbed(raw, 0)
+    bench = benchmark_problem(side=10, frames=3, dtype=torch.float64)
+    return bench.problems["fused"], _perturbed(bench.raw, 0)
 
 
 @pytest.mark.parametrize(
@@ -49,8 +47,8 @@ def test_numba_steps_follow_the_torch_trajectory(patch, weights):
 
 
 def test_float32_steps_are_deterministic_and_lower_the_loss():
-    _problem, problem, raw, _views = benchmark_problem(side=10, frames=3)
-    raw = _perturbed(raw, 1)
+    bench = benchmark_problem(side=10, frames=3)
+    problem, raw = bench.problems["fused"], _perturbed(bench.raw, 1)
     config = PolarimetricConfig(iterations=20)
     curve_a, curve_b = [], []
     first = optimise_patch(problem, raw, config, curve_a)

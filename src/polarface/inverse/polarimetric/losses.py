@@ -5,15 +5,15 @@ Data terms, summed over samples (texel x view; the visibility V^t is the sample 
 observations divided by a global ``scale`` (mean observed ``I_sss``, so the paper's weights act on
 images of unit mean):
 
-* ``L_sss = sum (I^_sss - I_sss)^2``, with ``I^_sss`` the *exact* ``2 I90`` of the model (DESIGN.md
-  errata: no ``I_sss = S rho T+T+`` shortcut bias);
+* ``L_sss = sum (I^_sss - I_sss)^2``, with ``I^_sss`` the *exact* ``2 I90`` of the model
+  (no ``I_sss = S rho T+T+`` shortcut bias);
 * ``L_s = sum (I^_s - I_s)^2``, ``I^_s`` including the subsurface ``-S rho T-T+ xi`` term;
 * ``L_phi = sum W_phi ((I^_zeta - I_zeta)^2 + (I^_xi - I_xi)^2)`` with ``W_phi = I_sss / scale`` (the
-  normalised observed subsurface intensity) and ``I_xi = I_s - S kappa R+`` (DESIGN.md: the
+  normalised observed subsurface intensity) and ``I_xi = I_s - S kappa R+`` (the
   supplement writes ``I_zeta`` twice); with the model's own specular part subtracted from both
   sides, ``I^_xi - I_xi = I^_s - I_s``;
 * ``L_psi``: the refractive-index (DoP) loss on the *signed* components of the diffuse DoP,
-  ``(I_zeta / I_sss, I_xi / I_sss)`` observed vs predicted (DESIGN.md: the magnitude
+  ``(I_zeta / I_sss, I_xi / I_sss)`` observed vs predicted (the magnitude
   ``sqrt(a^2 + b^2)`` is biased upward by noise); ``I_sss`` is clamped below at 5 % of ``scale``.
 
 Regularisers (per valid texel of the patch): ``H^2`` (temporal, i.e. towards the base mesh),
@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch.nn import functional
 
-from polarface.inverse.polarimetric_model import SamplePrediction
+from polarface.inverse.polarimetric.model import SamplePrediction
 
 __all__ = ["LossWeights", "data_losses", "laplacian_penalty", "laplacian_support", "smoothness_penalty"]
 

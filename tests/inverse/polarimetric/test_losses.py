@@ -5,13 +5,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from polarface.inverse.polarimetric_losses import (
+from polarface.inverse.polarimetric import (
     LossWeights,
+    SamplePrediction,
     data_losses,
     laplacian_penalty,
     smoothness_penalty,
 )
-from polarface.inverse.polarimetric_model import SamplePrediction
 
 
 def _prediction(seed: int = 0, count: int = 6, requires_grad: bool = False):

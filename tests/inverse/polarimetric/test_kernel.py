@@ -11,10 +11,16 @@ import pytest
 import torch
 
 from polarface.capture.rig import paper_rig
-from polarface.inverse.polarimetric_fused import build_fused_samples, fused_data_loss, pack_parameters
-from polarface.inverse.polarimetric_kernel import fused_loss_and_grad
-from polarface.inverse.polarimetric_losses import LossWeights, data_losses
-from polarface.inverse.polarimetric_model import precompute_samples, render_samples
+from polarface.inverse.polarimetric import (
+    LossWeights,
+    build_fused_samples,
+    data_losses,
+    fused_data_loss,
+    fused_loss_and_grad,
+    pack_parameters,
+    precompute_samples,
+    render_samples,
+)
 from polarface.simulate.sphere_capture import sphere_placement
 from polarface.texture import build_views
 

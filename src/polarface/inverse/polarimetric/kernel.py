@@ -7,8 +7,8 @@ Computes, for every texel of a patch, the summed data loss of its samples (texel
 and its exact gradient with respect to the texel's shading normal, eta, alpha_s, alpha_ss, rho_s,
 rho_ss and six-channel rho_sss_bar, in one pass over the samples (forward, then reverse mode by hand,
 per sample in registers). The mathematics is *identical* to
-:func:`polarface.inverse.polarimetric_model.render_samples` followed by
-:func:`polarface.inverse.polarimetric_losses.data_losses` (the reference implementation, differentiated
+:func:`polarface.inverse.polarimetric.model.render_samples` followed by
+:func:`polarface.inverse.polarimetric.losses.data_losses` (the reference implementation, differentiated
 by autograd, against which the tests check value and gradient in float64): exact image formation with
 all K LED modules (real positions, shadowed modules removed), specular + single scattering through the
 Fresnel reflection Mueller matrix, entry Fresnel with its polarization term, local subsurface albedo and
@@ -27,16 +27,14 @@ array; every later phase (view geometry, the forward loop over lights, the per-c
 their reverse pass, the reverse loop over lights) is a loop over the block's samples that addresses
 only constant rows of that array, so LLVM vectorises it across samples (16 float32 lanes with
 AVX-512; in float32 for a float32 fit); a last scalar loop adds each sample's gradient into its
-texel's float64 sums. Vectorising across samples rather than across the 8 lights made the kernel
-2.1x faster (demo-sized patch, 1 thread): the per-sample work (exit Fresnel, losses) had been scalar
-and was 75 % of the time.
+texel's float64 sums. Vectorising across samples rather than across the lights also vectorises the
+per-sample work (exit Fresnel, losses); docs/reconstruct.md gives the measured effect.
 
 Threads: ``numba.prange`` over runs of texels with about equal sample counts (each texel's samples
 are summed by one thread, so gradients need no atomics); results do not depend on the thread count.
 Importing this module selects numba's ``workqueue`` threading layer unless ``NUMBA_THREADING_LAYER``
-is set: with the OpenMP layer, numba's worker threads left spinning after each kernel call made every
-following torch operation of the optimiser step 100-1000x slower (measured: a 31k-element ``sqrt``
-went from 13 us to 5-16 ms).
+is set: with the OpenMP layer, numba's worker threads left spinning after each kernel call slow down
+every following torch operation of the optimiser step (docs/reconstruct.md).
 """
 
 from __future__ import annotations
@@ -48,7 +46,7 @@ import types
 import numba
 import numpy as np
 
-from polarface.inverse.polarimetric_kernel_math import (  # noqa: F401 (compiled by _compile)
+from polarface.inverse.polarimetric.kernel_math import (  # noqa: F401 (compiled by _compile)
     _INV_PI,
     F,
     _cos2_sin2,
@@ -62,7 +60,7 @@ from polarface.inverse.polarimetric_kernel_math import (  # noqa: F401 (compiled
 if "NUMBA_THREADING_LAYER" not in os.environ:
     numba.config.THREADING_LAYER = "workqueue"
 
-__all__ = ["GRAD_LAYOUT", "PARAM_COUNT", "fused_loss_and_grad"]
+__all__ = ["GRAD_LAYOUT", "PARAM_COUNT", "compiled_kernel"]
 
 #: Columns of the per-texel parameter/gradient arrays.
 GRAD_LAYOUT = (
@@ -408,59 +406,9 @@ def _compile(float_type) -> numba.core.registry.CPUDispatcher:
 _KERNELS = {np.dtype(np.float32): _compile(np.float32), np.dtype(np.float64): _compile(np.float64)}
 
 
-def fused_loss_and_grad(
-    offsets: np.ndarray,
-    position: np.ndarray,
-    params: np.ndarray,
-    sample_view: np.ndarray,
-    sample_lit: np.ndarray,
-    observed: np.ndarray,
-    view_center: np.ndarray,
-    view_up: np.ndarray,
-    view_ref_up: np.ndarray,
-    light_pos: np.ndarray,
-    light_intensity: np.ndarray,
-    view_channels: np.ndarray,
-    weights: tuple[float, float, float, float],
-    scale: float,
-    chunks: int = 64,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-texel data loss and its gradient (module docstring). Unchecked: callers validate.
-
-    Args:
-        offsets: ``(T + 1,)`` int64 CSR offsets of each texel's samples (samples sorted by texel).
-        position: ``(T, 3)`` texel positions (model frame, mm); params: ``(T, 14)`` in
-            :data:`GRAD_LAYOUT` order (unit normal, eta > 1, alphas > 0, albedos).
-        sample_view: ``(S,)`` int32 view index; sample_lit: ``(S,)`` int64 bitmask of unshadowed
-            lights (bit k = light k); observed: ``(S, 3, 3)`` ``[I_sss, I_zeta, I_s]`` x channel.
-        view_center, view_up, view_ref_up: ``(V, 3)``; light_pos, light_intensity: ``(V, 3, K)``
-            (lights on the last axis; K <= 63);
-        view_channels: ``(V, 3)`` int64 channel indices.
-        weights: ``(w_sss, w_s, w_phi, w_psi)``; scale: observation scale (> 0).
-        chunks: parallel work items: runs of consecutive texels holding about equal numbers of samples
-            (numba hands each thread an equal share of them, so threads get equal work); the result
-            does not depend on it or on the thread count, except the rounding of ``term_sums``.
-
-    Returns:
-        ``(loss (T,), grad (T, 14), term_sums (4,))`` with term sums ``(L_sss, L_s, L_phi, L_psi)``
-        unweighted; dtype of ``params`` (float32 or float64; every float array must share it).
-    """
-    dtype = params.dtype
+def compiled_kernel(dtype: np.dtype):
+    """The compiled kernel for float ``dtype`` (float32 or float64; :func:`_compile`)."""
+    dtype = np.dtype(dtype)
     if dtype not in _KERNELS:
         raise ValueError(f"argument 'params' must be float32 or float64; got {dtype}")
-    texel_count = offsets.shape[0] - 1
-    grad = np.empty((texel_count, PARAM_COUNT), dtype=dtype)
-    loss = np.empty(texel_count, dtype=dtype)
-    count = int(offsets[-1])
-    targets = np.linspace(0, count, max(int(chunks), 1) + 1)
-    bounds = np.searchsorted(offsets, targets, side="left").astype(np.int64)
-    bounds[0], bounds[-1] = 0, texel_count
-    term_sums = np.zeros((bounds.shape[0] - 1, 4), dtype=np.float64)
-    tiny = float(np.finfo(dtype).eps) ** 4
-    _KERNELS[dtype](
-        offsets, position, params, sample_view, sample_lit, observed,
-        view_center, view_up, view_ref_up, light_pos, light_intensity, view_channels,
-        np.asarray(weights, dtype=dtype), dtype.type(scale), dtype.type(tiny), bounds,
-        grad, loss, term_sums,
-    )  # fmt: skip
-    return loss, grad, term_sums.sum(0)
+    return _KERNELS[dtype]

@@ -11,12 +11,14 @@ import torch.nn.functional as nnf
 
 from polarface.inverse.biophysical import (
     BiophysicalConfig,
+    TotalsTable,
+    blurred_channel_albedo,
     fit_biophysical,
     fit_local_parameters,
     gamut_distance,
+    local_channel_albedo,
     median_shapes,
 )
-from polarface.inverse.biophysical_model import TotalsTable, blurred_channel_albedo, local_channel_albedo
 from polarface.skin.layers import PARAMETER_RANGES
 from polarface.skin.spectral import default_spectral_calibration
 

@@ -1,16 +1,20 @@
 """Closed-form per-texel starts of the static polarimetric fit (eta, rho_sss_bar, alpha_s, rho_s).
 
-Evaluated on one patch's samples with :func:`polarface.inverse.polarimetric_model.render_samples`
-(vectorised; per-texel sums with ``index_add``). See :mod:`polarface.inverse.polarimetric_fit`.
+Evaluated on one patch's samples with :func:`polarface.inverse.polarimetric.model.render_samples`
+(vectorised; per-texel sums with ``index_add``). See :mod:`polarface.inverse.polarimetric.fit`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
+import numpy as np
 import torch
 
-from polarface.inverse.polarimetric_model import SampleBatch, _cos2_sin2, _transmission, render_samples
+from polarface.inverse.polarimetric.config import PolarimetricConfig, maps_from_raw
+from polarface.inverse.polarimetric.model import SampleBatch, _cos2_sin2, _transmission, render_samples
 
-__all__ = ["init_albedos", "init_eta", "nan_median_filter"]
+__all__ = ["apply_closed_form_starts", "init_albedos", "init_eta", "nan_median_filter"]
 
 
 def nan_median_filter(values: torch.Tensor, window: int = 5) -> torch.Tensor:
@@ -110,7 +114,7 @@ def init_eta(
     """Per-texel eta ``(T,)`` from a grid search of the refractive-index (DoP) relation alone.
 
     The signed ratio ``I_zeta / I_sss`` of the subsurface term depends on eta and the geometry only
-    (not on albedos or lighting, DESIGN.md: signed components), and ``I135 - I45`` carries no specular
+    (not on albedos or lighting: signed components), and ``I135 - I45`` carries no specular
     under the polarized near-coaxial light; least squares over each texel's views (weighted by the
     observed ``I_sss``) on a grid over ``eta_range`` give a start close to the optimum, so the joint
     optimisation does not have to drag eta across the range. Texels without samples get NaN.
@@ -141,3 +145,49 @@ def init_eta(
         seen = torch.zeros(texel_count, dtype=torch.bool, device=normal.device)
         seen[texel] = True
     return torch.where(seen, best, torch.nan)
+
+
+def apply_closed_form_starts(
+    batch: SampleBatch,
+    patch_raw: dict[str, torch.Tensor],
+    todo: np.ndarray,
+    normals: Callable[[torch.Tensor], torch.Tensor],
+    config: PolarimetricConfig,
+    dtype: torch.dtype,
+    device: torch.device,
+) -> None:
+    """Overwrite, in place, the raw eta (when ``config.init_eta_search``), alpha_s, rho_sss_bar and rho_s
+    of one patch's texels flagged in ``todo`` with their closed-form starts.
+
+    Args:
+        batch: the patch's samples; patch_raw: name -> ``(h, w, c)`` raw variables (``dtype``, ``device``)
+            of :func:`polarface.inverse.polarimetric.config.maps_from_raw`; todo: ``(h, w)`` bool texels
+            not yet started; normals: ``H (h, w)`` (mm) -> ``(h w, 3)`` unit normals of the patch
+            (:meth:`polarface.inverse.polarimetric.problem.PatchProblem.normals`).
+    """
+    maps0 = maps_from_raw(patch_raw, config)
+    h, w = todo.shape
+    flat0 = {k: v.reshape(h * w, -1) for k, v in maps0.items()}
+    normal0 = normals(maps0["displacement_mm"][..., 0])
+    todo_t = torch.as_tensor(todo, device=device)
+    if config.init_eta_search:
+        eta0 = init_eta(batch, normal0, h * w, config.eta_range).reshape(h, w)
+        eta0 = nan_median_filter(eta0, 5)[..., None]
+        e_lo, e_hi = config.eta_range
+        new_eta = torch.logit(((eta0 - e_lo) / (e_hi - e_lo)).to(dtype))
+        use = todo_t[..., None] & torch.isfinite(new_eta)
+        patch_raw["eta"] = torch.where(use, new_eta, patch_raw["eta"])
+        flat0["eta"] = maps_from_raw(patch_raw, config)["eta"].reshape(h * w, 1)
+    rho_sss, rho_s, alpha_s0 = init_albedos(batch, normal0, flat0, h * w)
+    seen0 = torch.zeros(h * w, dtype=torch.bool, device=device)
+    seen0[batch.texel] = True
+    masked = torch.where(seen0, alpha_s0, torch.nan).reshape(h, w)
+    smooth = nan_median_filter(masked, 5).reshape(-1)
+    alpha_s0 = torch.where(torch.isfinite(smooth), smooth, alpha_s0)
+    a_lo, a_hi = config.alpha_range
+    new_alpha = torch.logit(((alpha_s0 - a_lo) / (a_hi - a_lo)).reshape(h, w, 1).to(dtype))
+    patch_raw["alpha_s"] = torch.where(todo_t[..., None], new_alpha, patch_raw["alpha_s"])
+    new_sss = torch.logit(rho_sss.reshape(h, w, 6).to(dtype))
+    new_s = torch.logit((rho_s / config.rho_max).reshape(h, w, 1).to(dtype))
+    patch_raw["rho_sss_bar"] = torch.where(todo_t[..., None], new_sss, patch_raw["rho_sss_bar"])
+    patch_raw["rho_s"] = torch.where(todo_t[..., None], new_s, patch_raw["rho_s"])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from polarface.inverse.polarimetric_model import precompute_samples, render_samples
+from polarface.inverse.polarimetric import precompute_samples, render_samples
 from polarface.optics import render_polarimetric
 
 

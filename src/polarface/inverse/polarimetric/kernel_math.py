@@ -1,10 +1,10 @@
 """Per-light and per-sample physics of the fused polarimetric kernel, with partial derivatives.
 
-Plain Python functions written for numba: :mod:`polarface.inverse.polarimetric_kernel` compiles copies of
+Plain Python functions written for numba: :mod:`polarface.inverse.polarimetric.kernel` compiles copies of
 them with the float type ``F`` bound to float32 or float64 and inlines them into its vectorised loops
 (every literal is wrapped in ``F`` so that the float32 kernel computes in float32). They are branch-free
 (conditional expressions become selects), so LLVM vectorises the loops that call them. The mathematics
-is that of :func:`polarface.inverse.polarimetric_model.render_samples` (the torch reference).
+is that of :func:`polarface.inverse.polarimetric.model.render_samples` (the torch reference).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Tests of polarface.inverse.biophysical_model: tabulated totals, local and blurred albedo."""
+"""Tests of polarface.inverse.biophysical.model: tabulated totals, local and blurred albedo."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polarface.inverse.biophysical import median_shapes
-from polarface.inverse.biophysical_model import (
+from polarface.inverse.biophysical import (
     TotalsTable,
     blurred_channel_albedo,
     check_parameter_maps,
     local_channel_albedo,
     local_channel_albedo_with_jacobian,
+    median_shapes,
 )
 from polarface.skin.layers import subsurface_albedo
 from polarface.skin.spectral import default_spectral_calibration

@@ -2,7 +2,7 @@
 
 ``PolarimetricConfig`` holds the optimiser options and the loss weights (paper defaults);
 :func:`maps_from_raw` / :func:`raw_from_maps` map between the unconstrained optimisation variables and
-the physical maps (ranges in :mod:`polarface.inverse.polarimetric_fit`'s docstring).
+the physical maps (ranges in :mod:`polarface.inverse.polarimetric.fit`'s docstring).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import math
 import numpy as np
 import torch
 
-from polarface.inverse.polarimetric_losses import LossWeights
+from polarface.inverse.polarimetric.losses import LossWeights
 
 __all__ = ["PARAMETER_NAMES", "PolarimetricConfig", "initial_raw", "maps_from_raw", "raw_from_maps"]
 
@@ -37,7 +37,7 @@ class PolarimetricConfig:
         h_scale_mm: H per unit of its raw variable.
         init_eta, init_alpha_s, init_alpha_ss, init_rho_ss: initial values.
         init_eta_search: start eta per texel from a grid search of the DoP relation
-            (:func:`polarface.inverse.polarimetric_init.init_eta`).
+            (:func:`polarface.inverse.polarimetric.init.init_eta`).
         min_views: fewest fitting views that must see a texel for it to count as reconstructed (the
             result mask): texels seen in 1-3 views (grazing, mostly at the atlas border) cannot
             separate the 13 unknowns; on the demo preset their rho_sss_bar error was 7-15 % (vs 1.6-2.9 %
@@ -52,7 +52,7 @@ class PolarimetricConfig:
             it.
         seed: torch seed (deterministic runs).
         refine_lobes_iterations: Levenberg-Marquardt iterations on the four lobe maps after each
-            patch's optimisation (:func:`polarface.inverse.polarimetric_refine.refine_patch_lobes`; 0,
+            patch's optimisation (:func:`polarface.inverse.polarimetric.refine.refine_patch_lobes`; 0,
             the default, disables it). It lowers the loss and, on the demo preset (whole texture), the
             alpha_s error (0.046 -> 0.028 median abs with one iteration), but not the rho_s error
             (19.4 % -> 21.3 %; rho_ss 29 % -> 41 %) and it doubles the optimisation time: with noisy

@@ -1,10 +1,10 @@
 """Whole optimiser steps of one patch on the CPU, without torch (the fused engine's hot loop).
 
-An RMSprop step of :func:`polarface.inverse.polarimetric_fit.optimise_patch` is: raw variables ->
-maps (:func:`~polarface.inverse.polarimetric_config.maps_from_raw`) -> normals from H
+An RMSprop step of :func:`polarface.inverse.polarimetric.fit.optimise_patch` is: raw variables ->
+maps (:func:`~polarface.inverse.polarimetric.config.maps_from_raw`) -> normals from H
 (:class:`~polarface.geometry.heights.HeightNormals`) -> data loss (the fused kernel,
-:mod:`polarface.inverse.polarimetric_kernel`) + regularisers (H^2, (Laplacian H)^2, 5x5 smoothness of
-eta, alpha_s, alpha_ss; :mod:`polarface.inverse.polarimetric_losses`) -> gradient -> RMSprop update.
+:mod:`polarface.inverse.polarimetric.kernel`) + regularisers (H^2, (Laplacian H)^2, 5x5 smoothness of
+eta, alpha_s, alpha_ss; :mod:`polarface.inverse.polarimetric.losses`) -> gradient -> RMSprop update.
 Once the data loss ran in the kernel, the rest — about a hundred small torch operations and their
 autograd graph — cost a quarter of a step. Here the same mathematics runs in two numba functions around
 the kernel: :func:`_forward` (reparameterisation and normals, packed for the kernel) and
@@ -22,9 +22,9 @@ import numba
 import numpy as np
 import torch
 
-from polarface.inverse.polarimetric_config import PolarimetricConfig
-from polarface.inverse.polarimetric_kernel import fused_loss_and_grad
-from polarface.inverse.polarimetric_losses import laplacian_support
+from polarface.inverse.polarimetric.config import PolarimetricConfig
+from polarface.inverse.polarimetric.fused import fused_loss_and_grad
+from polarface.inverse.polarimetric.losses import laplacian_support
 
 __all__ = ["RAW_LAYOUT", "optimise_patch_fused"]
 
@@ -243,7 +243,8 @@ def optimise_patch_fused(
     """RMSprop on one patch with the fused kernel (same steps as the torch glue; module docstring).
 
     Args:
-        problem: a ``polarimetric_fit._PatchProblem`` with fused samples; raw: raw variables
+        problem: a :class:`~polarface.inverse.polarimetric.problem.PatchProblem` with fused samples;
+            raw: raw variables
             ``(h, w, 1)`` / ``(h, w, 6)`` per :data:`RAW_LAYOUT` name; config: ``PolarimetricConfig``.
         learning_rates: one learning rate per step (the caller's schedule).
         curve: optional list, ``curve[step] +=`` the step's total loss (as ``optimise_patch``).

@@ -1,11 +1,5 @@
-"""Static polarimetric inverse rendering in texture space (paper Sec. 5.1-5.2): public entry points.
-
-* :func:`render_view_texture` re-renders one view in texture space from parameter maps (residuals,
-  held-out evaluation, the report's DoP/AoLP validation);
-* the optimisation itself is :func:`polarface.inverse.polarimetric_fit.fit_polarimetric` on an
-  unwrapped capture (:mod:`polarface.texture`), with the model of
-  :mod:`polarface.inverse.polarimetric_model` and the losses of
-  :mod:`polarface.inverse.polarimetric_losses`.
+"""Re-rendering of one view in texture space from parameter maps (residuals, held-out evaluation, the
+report's DoP/AoLP validation).
 
 Maps follow ``SIM/ground_truth/maps`` conventions: ``eta, alpha_s, alpha_ss, rho_s, rho_ss,
 displacement_mm`` as ``(Ht, Wt)`` float32 and ``rho_sss_bar`` as ``(Ht, Wt, 6)``.
@@ -17,26 +11,12 @@ import numpy as np
 import torch
 
 from polarface.geometry.heights import normals_from_heights
-from polarface.inverse.polarimetric_fit import (
-    PARAMETER_NAMES,
-    PolarimetricConfig,
-    PolarimetricFit,
-    build_patch_samples,
-    fit_polarimetric,
-)
-from polarface.inverse.polarimetric_losses import LossWeights
-from polarface.inverse.polarimetric_model import render_samples
+from polarface.inverse.polarimetric.config import PARAMETER_NAMES
+from polarface.inverse.polarimetric.model import render_samples
+from polarface.inverse.polarimetric.problem import build_patch_samples
 from polarface.texture import UnwrapStore
 
-__all__ = [
-    "PARAMETER_NAMES",
-    "LossWeights",
-    "PolarimetricConfig",
-    "PolarimetricFit",
-    "fit_polarimetric",
-    "render_view_texture",
-    "shading_normals",
-]
+__all__ = ["render_view_texture", "shading_normals"]
 
 
 def shading_normals(unwrap: UnwrapStore, displacement_mm: np.ndarray) -> np.ndarray:

@@ -1,0 +1,39 @@
+"""Biophysical inverse stage (paper Sec. 5.3): chromophore maps from the subsurface albedo.
+
+:func:`fit_biophysical` fits the four parameters ``(c_m, beta_m, c_h_in, c_h_out)`` per texel to the
+``rho_sss_bar`` map of the polarimetric stage with the skin-layer model of
+:mod:`~polarface.inverse.biophysical.model` (:class:`TotalsTable`, :func:`local_channel_albedo`,
+:func:`blurred_channel_albedo`). Modules: ``model`` (forward model and its Jacobian), ``local_fit``
+(bounded Levenberg-Marquardt per texel, gamut distance), ``fit`` (coarse-to-fine stages).
+"""
+
+from polarface.inverse.biophysical.fit import (
+    BiophysicalConfig,
+    BiophysicalFit,
+    fit_biophysical,
+    median_shapes,
+)
+from polarface.inverse.biophysical.local_fit import fit_local_parameters, gamut_distance
+from polarface.inverse.biophysical.model import (
+    PARAMETER_ORDER,
+    TotalsTable,
+    blurred_channel_albedo,
+    check_parameter_maps,
+    local_channel_albedo,
+    local_channel_albedo_with_jacobian,
+)
+
+__all__ = [
+    "PARAMETER_ORDER",
+    "BiophysicalConfig",
+    "BiophysicalFit",
+    "TotalsTable",
+    "blurred_channel_albedo",
+    "check_parameter_maps",
+    "fit_biophysical",
+    "fit_local_parameters",
+    "gamut_distance",
+    "local_channel_albedo",
+    "local_channel_albedo_with_jacobian",
+    "median_shapes",
+]

@@ -1,0 +1,100 @@
+"""Static polarimetric inverse rendering in texture space (paper Sec. 5.1-5.2).
+
+:func:`fit_polarimetric` recovers the maps ``eta, alpha_s, alpha_ss, rho_s, rho_ss, rho_sss_bar`` and
+the displacement ``H`` (mm) from an unwrapped capture (:mod:`polarface.texture`), patch by patch, with
+the per-sample forward model of :mod:`~polarface.inverse.polarimetric.model` and the losses of
+:mod:`~polarface.inverse.polarimetric.losses`. The loss of a patch is evaluated by one of the
+:data:`POLARIMETRIC_ENGINES` (the fused numba kernel or the torch autograd reference).
+:func:`render_view_texture` re-renders one view in texture space from parameter maps.
+
+Modules: ``config`` (options, reparameterisation), ``model`` (per-sample forward model), ``losses``,
+``init`` (closed-form starts), ``problem`` (a patch's samples and loss), ``fused``/``kernel``/
+``kernel_math``/``step`` (the numba engine), ``engines`` (registry), ``optimise`` (first-order
+optimiser), ``refine`` (Levenberg-Marquardt on the lobe maps), ``fit`` (the patch loop),
+``texture_view`` (re-rendering in texture space), ``bench`` (throughput benchmark).
+
+Maps follow ``SIM/ground_truth/maps`` conventions: ``eta, alpha_s, alpha_ss, rho_s, rho_ss,
+displacement_mm`` as ``(Ht, Wt)`` float32 and ``rho_sss_bar`` as ``(Ht, Wt, 6)``.
+"""
+
+from polarface.inverse.polarimetric.bench import benchmark_problem, run_benchmark
+from polarface.inverse.polarimetric.config import (
+    PARAMETER_NAMES,
+    PolarimetricConfig,
+    initial_raw,
+    maps_from_raw,
+    raw_from_maps,
+)
+from polarface.inverse.polarimetric.engines import POLARIMETRIC_ENGINES, PolarimetricEngine, resolve_engine
+from polarface.inverse.polarimetric.fit import PolarimetricFit, fit_polarimetric
+from polarface.inverse.polarimetric.fused import (
+    FusedSamples,
+    build_fused_samples,
+    fused_data_loss,
+    fused_loss_and_grad,
+    pack_parameters,
+)
+from polarface.inverse.polarimetric.init import init_albedos, init_eta, nan_median_filter
+from polarface.inverse.polarimetric.losses import (
+    LossWeights,
+    data_losses,
+    laplacian_penalty,
+    smoothness_penalty,
+)
+from polarface.inverse.polarimetric.model import (
+    SampleBatch,
+    SamplePrediction,
+    precompute_samples,
+    render_samples,
+)
+from polarface.inverse.polarimetric.optimise import optimise_patch
+from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
+from polarface.inverse.polarimetric.refine import (
+    LobeRefinement,
+    refine_lobes,
+    refine_patch_lobes,
+    smoothness_hessian,
+    weighted_residuals,
+)
+from polarface.inverse.polarimetric.texture_view import render_view_texture, shading_normals
+
+__all__ = [
+    "PARAMETER_NAMES",
+    "POLARIMETRIC_ENGINES",
+    "FusedSamples",
+    "LobeRefinement",
+    "LossWeights",
+    "PatchProblem",
+    "PolarimetricConfig",
+    "PolarimetricEngine",
+    "PolarimetricFit",
+    "SampleBatch",
+    "SamplePrediction",
+    "benchmark_problem",
+    "build_fused_samples",
+    "build_patch_samples",
+    "data_losses",
+    "fit_polarimetric",
+    "fused_data_loss",
+    "fused_loss_and_grad",
+    "init_albedos",
+    "init_eta",
+    "initial_raw",
+    "laplacian_penalty",
+    "maps_from_raw",
+    "nan_median_filter",
+    "optimise_patch",
+    "pack_parameters",
+    "precompute_samples",
+    "raw_from_maps",
+    "refine_lobes",
+    "refine_patch_lobes",
+    "render_samples",
+    "render_view_texture",
+    "resolve_engine",
+    "run_benchmark",
+    "shading_normals",
+    "smoothness_hessian",
+    "smoothness_penalty",
+    "weighted_residuals",
+]
