@@ -31,6 +31,16 @@ from polarface.results import layout
 __all__ = ["ResultFolder"]
 
 
+def _check_polarimetric_maps(maps: Mapping[str, np.ndarray], mask: np.ndarray) -> None:
+    required = (*layout.POLARIMETRIC_MAPS, layout.RHO_SSS_BAR)
+    missing = [name for name in required if name not in maps]
+    if missing:
+        raise ValueError(f"argument 'maps' lacks {missing}; the polarimetric stage writes {list(required)}")
+    wrong = {n: np.shape(maps[n]) for n in required if np.shape(maps[n])[:2] != np.shape(mask)}
+    if wrong:
+        raise ValueError(f"argument 'maps': shapes {wrong} do not match the mask's {np.shape(mask)}")
+
+
 class ResultFolder:
     """A RESULT folder rooted at ``root`` (need not exist yet; writers create sub-folders).
 
@@ -264,7 +274,11 @@ class ResultFolder:
                 channel order).
             mask: ``(H, W)`` bool valid texels.
             view_count: ``(H, W)`` fitting views per texel, or None.
+
+        Raises:
+            ValueError: a map is missing or its shape does not match the mask (nothing is written).
         """
+        _check_polarimetric_maps(maps, mask)
         for name in layout.POLARIMETRIC_MAPS:
             self.write_scalar_map(name, maps[name].astype(np.float32))
             self._write_map_preview(name, maps[name], mask)
