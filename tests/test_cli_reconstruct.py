@@ -10,9 +10,9 @@ import pytest
 from scipy import ndimage
 
 from polarface.cli import main
-from polarface.commands.reconstruct import ReconstructContext, run_stages
 from polarface.geometry.mesh import TriangleMesh, load_mesh, save_obj
 from polarface.io import read_exr, read_png
+from polarface.pipeline import ReconstructContext, run_stages
 from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
 
 RES = 16

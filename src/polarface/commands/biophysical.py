@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from polarface.inverse.biophysical import BiophysicalConfig
-from polarface.inverse.biophysical_stage import evaluate_biophysical, run_biophysical_stage
+from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
 
 NAME = "biophysical"
 HELP = "recover melanin/haemoglobin maps and diffusion profiles from a RESULT's rho_sss_bar"

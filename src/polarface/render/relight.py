@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -38,6 +37,7 @@ from polarface.optics.image_formation import subsurface_exit_stokes
 from polarface.render.renderer import render_view, rig_lighting, shading_normals
 from polarface.render.shading import FrameTextures, fragment_material, lobe_stokes
 from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
+from polarface.results import ResultAppearance
 from polarface.skin.layers import PARAMETER_RANGES
 
 __all__ = [
@@ -52,7 +52,6 @@ __all__ = [
 ]
 
 _EDIT_NAMES = {"c_m": "c_m", "beta_m": "beta_m", "c_h_in": "c_h_in", "c_h_out": "c_h_out"}
-POLARIMETRIC_MAPS = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "displacement_mm")
 
 
 def parse_edits(text: str | None) -> dict[str, float]:
@@ -96,50 +95,6 @@ def apply_edits(chromophores: dict[str, np.ndarray], edits: dict[str, float]) ->
     return out
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class ResultAppearance:
-    """Everything needed to render a RESULT folder.
-
-    Attributes:
-        maps: name -> ``(H, W)`` float32 maps (polarimetric parameters, displacement in mm, chromophores).
-        mask: ``(H, W)`` bool valid texels.
-        mesh: rest mesh (model frame, mm, UVs).
-        rig: the capture rig (cameras, lights, spectral calibration).
-        shapes: SoG shapes (:class:`polarface.skin.heterogeneous.ProfileShapes`, ``(L, 9)``) or None
-            (then fitted at the median texel).
-    """
-
-    maps: dict[str, np.ndarray]
-    mask: np.ndarray
-    mesh: Any
-    rig: Any
-    shapes: Any
-
-    @classmethod
-    def load(cls, result_dir: str | Path) -> ResultAppearance:
-        """Read maps, mask, ``mesh.obj``, ``rig.json`` and ``maps/sog.json`` of a RESULT folder."""
-        from polarface.capture.rig import Rig
-        from polarface.geometry.mesh import load_mesh
-        from polarface.inverse.biophysical_stage import load_sog
-        from polarface.io import read_exr, read_png
-
-        root = Path(result_dir)
-        if not root.is_dir():
-            raise FileNotFoundError(f"result folder '{root}' does not exist")
-        rig = Rig.load(root / "rig.json")
-        if rig.spectral is None:
-            raise ValueError(f"'{root / 'rig.json'}' has no spectral calibration (needed to render spectra)")
-        maps = {}
-        for name in (*POLARIMETRIC_MAPS, "c_m", "beta_m", "c_h_in", "c_h_out"):
-            path = root / "maps" / f"{name}.exr"
-            if not path.is_file():
-                raise FileNotFoundError(f"'{path}' does not exist (run the reconstruction stages first)")
-            maps[name] = read_exr(path)["Y"].astype(np.float32)
-        mask = read_png(root / "maps" / "mask.png")
-        mask = (mask[..., 0] if mask.ndim == 3 else mask) > 127
-        sog = root / "maps" / "sog.json"
-        shapes = load_sog(sog) if sog.is_file() else None
-        return cls(maps, mask, load_mesh(root / "mesh.obj"), rig, shapes)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

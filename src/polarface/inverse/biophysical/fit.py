@@ -1,7 +1,7 @@
 """Biophysical inverse: chromophore maps and layer diffusion profiles from the six-channel ``rho_sss_bar``.
 
 Paper Sec. 5.3 and supplement "Optimization of Biophysically-based Parameters Details". Physics and
-optimisation only (no file I/O; the RESULT-folder stage is :mod:`polarface.inverse.biophysical_stage`).
+optimisation only (no file I/O; the RESULT-folder stage is :mod:`polarface.pipeline.biophysical`).
 
 Stages (:func:`fit_biophysical`):
 

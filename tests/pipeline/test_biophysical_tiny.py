@@ -9,9 +9,10 @@ import pytest
 
 from polarface.geometry.mesh import save_obj
 from polarface.inverse.biophysical import BiophysicalConfig
-from polarface.inverse.biophysical_stage import evaluate_biophysical, run_biophysical_stage
 from polarface.io import write_exr, write_png
-from polarface.render.relight import ResultAppearance, render_result_view
+from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
+from polarface.render.relight import render_result_view
+from polarface.results import ResultAppearance
 from polarface.simulate.pipeline import SimulationConfig, SimulationScene, render_frame
 from polarface.simulate.sequences import static_poses
 

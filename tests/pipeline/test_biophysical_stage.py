@@ -13,15 +13,11 @@ from polarface.capture.rig import paper_rig
 from polarface.cli import main
 from polarface.geometry.mesh import TriangleMesh, save_obj
 from polarface.inverse.biophysical import BiophysicalConfig, TotalsTable, local_channel_albedo
-from polarface.inverse.biophysical_stage import (
-    evaluate_biophysical,
-    load_sog,
-    per_texel_relative_residual,
-    report_section,
-    run_biophysical_stage,
-)
+from polarface.inverse.biophysical_maps import per_texel_relative_residual
 from polarface.io import read_exr, read_png, write_exr, write_png
-from polarface.report.html import HtmlPage
+from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
+from polarface.report import HtmlPage, biophysical_section
+from polarface.results import load_sog
 
 RESOLUTION = 32
 
@@ -206,7 +202,7 @@ def test_stage_with_saturated_texels_reports_them_and_counts_them(tmp_path):
 def test_report_section(fitted_result, tmp_path):
     result, _ = fitted_result
     page = HtmlPage("test")
-    report_section(page, result, evaluate_biophysical(result, result.parent / "gt"))
+    biophysical_section(page, result, evaluate_biophysical(result, result.parent / "gt"))
     html = page.render()
     assert "previews/c_m.png" in html and "Biophysical" in html and "median |error|" in html
     assert "skin gamut" in html and "rerender_vs_gt_relative_rmse" in html

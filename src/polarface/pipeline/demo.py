@@ -1,0 +1,269 @@
+"""The README's demo jobs: the whole pipeline on the embedded head, and the optics-only sphere.
+
+:func:`run_demo_pipeline` (``polarface demo --out DIR [--preset demo|tiny]``) runs, resumably:
+
+  1. simulation: a synthetic capture of the bundled head with the paper's rig -> DIR/sim
+  2. reconstruction: texture-space polarimetric inverse rendering, then the biophysical stage
+     -> DIR/result (maps as EXR, previews, report.html)
+  3. evaluation: errors against the simulator's ground truth -> DIR/metrics.json
+  4. DIR/index.html: a landing page linking the report, the metrics and the simulated frames.
+
+:func:`run_sphere_demo` (``polarface demo --sphere --out DIR``) renders a skin-like sphere under the 8
+polarized LED modules (:func:`polarface.render.demo.render_demo`), written as:
+  exr/I0.exr, I45, I90, I135      analyzer images, channels R, G, B (linear float32 radiance)
+  exr/I_sss.exr, I_zeta, I_s      observations 2 I90, I135 - I45, I0 - I90
+  exr/DoP.exr, AoLP.exr           linear DoP and AoLP in [0, pi) radians, per channel
+  exr/mask.exr                    1 on the sphere, 0 on the background
+  png/*.png                       previews (sRGB tone-mapped or colour-mapped, channel G for maps)
+  parameters.json                 the scene and material parameters used
+  index.html                      a page showing every image with a caption
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["run_demo_pipeline", "run_sphere_demo"]
+
+_CAPTIONS = {
+    "I0": "I0: analyzer at 0 deg, co-polarized with the LEDs: specular + subsurface.",
+    "I45": "I45: analyzer at 45 deg.",
+    "I90": "I90: analyzer at 90 deg, cross-polarized: specular removed, subsurface only.",
+    "I135": "I135: analyzer at 135 deg.",
+    "I_sss": "I_sss = 2 I90: unpolarized subsurface observation.",
+    "I_zeta": "I_zeta = I135 - I45: polarized subsurface observation (signed, channel G; blue < 0 < red).",
+    "I_s": "I_s = I0 - I90: specular-dominant observation (signed, channel G): specular highlight > 0, "
+    "subsurface polarization term -T- T+ xi (negative where the normal tilts up/down).",
+    "DoP": "Degree of linear polarization (channel G).",
+    "AoLP": "Angle of linear polarization in [0, pi) (channel G, cyclic colour map).",
+}
+
+
+def _srgb(linear: np.ndarray) -> np.ndarray:
+    linear = np.clip(linear, 0.0, 1.0)
+    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1 / 2.4) - 0.055)
+
+
+# ---- the pipeline demo ---------------------------------------------------------------------------
+def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], None]) -> dict[str, Any]:
+    """Simulate, reconstruct and evaluate; each step announced as the equivalent command line."""
+    from polarface.io import write_json_atomic
+    from polarface.pipeline.evaluate import evaluate
+    from polarface.pipeline.reconstruct import reconstruct, resolve_reconstruct_inputs
+    from polarface.simulate.pipeline import SimulationConfig, simulate
+
+    sim, result = out / "sim", out / "result"
+    say(f"polarface demo: polarface simulate --preset {preset} --skin-type {skin_type} --out {sim}")
+    config = SimulationConfig(
+        preset=preset, seed=0, skin_type=skin_type, noise=True, subsurface_blur=True,
+        sequences=("static", "dynamic"),
+    )
+    summary = simulate(str(sim), config)
+    say(json.dumps({"out": str(sim), "timings": summary["timings"], "peak_rss_mb": summary["peak_rss_mb"]},
+                   indent=2))
+    resume = result.exists()
+    say(f"polarface demo: polarface reconstruct {sim} --out {result}{' --resume' if resume else ''}")
+    record = reconstruct(resolve_reconstruct_inputs(sim), result, resume=resume)
+    say(reconstruct_summary_line(result, record))
+    say(f"polarface demo: polarface evaluate {result} --gt {sim} --out {out / 'metrics.json'}")
+    metrics = evaluate(result, sim)
+    write_json_atomic(out / "metrics.json", metrics)
+    say(json.dumps(metrics, indent=2))
+    return metrics
+
+
+def reconstruct_summary_line(out: Path, result: dict[str, Any]) -> str:
+    """The one-line summary ``polarface reconstruct`` prints after a run."""
+    stage = result.get("stages", {}).get("polarimetric", {})
+    return (
+        f"polarface reconstruct: wrote {out} ({stage.get('texels', 0)} texels, "
+        f"{stage.get('throughput_texel_view_iterations_per_s', 0):.3g} texel-view it/s)"
+    )
+
+
+def _demo_page(out: Path, preset: str, skin_type: str, elapsed: float, metrics: dict[str, Any]):
+    from polarface.report.html import HtmlPage
+
+    page = HtmlPage(
+        "polarface demo: simulate -> reconstruct -> evaluate",
+        subtitle=f"preset {preset}, skin type {skin_type}, {elapsed / 60:.1f} min on this machine",
+    )
+    report = page.section(
+        "Reconstruction",
+        "Recovered maps (EXR in result/maps/); the full report has loss curves, per-view residuals, "
+        "the DoP validation and the chromophore maps.",
+    ).link("result/report.html", "Open the reconstruction report (result/report.html)")
+    previews = [
+        (f"result/previews/{name}.png", caption)
+        for name, caption in (
+            ("rho_sss_bar_rgb", "subsurface albedo rho_sss_bar (upper bands)"),
+            ("eta", "index of refraction eta"),
+            ("alpha_s", "specular roughness alpha_s"),
+            ("rho_s", "specular albedo rho_s"),
+        )
+        if (out / "result" / "previews" / f"{name}.png").is_file()
+    ]
+    if previews:
+        report.image_grid(previews, columns=4)
+    for group, values in metrics.items():
+        flat = {k: (json.dumps(v) if isinstance(v, dict) else v) for k, v in values.items()}
+        page.section(f"Errors against the ground truth: {group}").table(flat)
+    return page
+
+
+def _print_now(line: str) -> None:
+    print(line, flush=True)
+
+
+def run_demo_pipeline(
+    out: str | Path, preset: str = "demo", skin_type: str = "II", say: Callable[[str], None] = _print_now
+) -> Path:
+    """Simulate -> reconstruct -> evaluate into ``out`` and write ``out/index.html`` (module docstring).
+
+    Args:
+        out: output folder (``sim/``, ``result/``, ``metrics.json``, ``demo.json``, ``index.html``).
+        preset: simulator preset (``demo`` or ``tiny``).
+        skin_type: Fitzpatrick skin type I..VI of the simulated subject.
+        say: receives the progress lines (default: printed and flushed).
+
+    Returns:
+        The path of ``index.html``.
+    """
+    from polarface.io import write_json_atomic
+
+    out = Path(out)
+    started = time.perf_counter()
+    metrics = _demo_steps(out, preset, skin_type, say)
+    elapsed = time.perf_counter() - started
+    write_json_atomic(out / "demo.json", {"preset": preset, "skin_type": skin_type, "seconds": elapsed})
+    path = _demo_page(out, preset, skin_type, elapsed, metrics).write(out / "index.html")
+    say(f"polarface demo: wrote {out}/index.html ({elapsed / 60:.1f} min)")
+    return path
+
+
+# ---- the sphere demo -----------------------------------------------------------------------------
+def _sphere_parameters(size: int, eta: float | None):
+    from polarface.render.demo import DemoParameters
+
+    if size < 8 or size > 4096:
+        raise ValueError(f"argument '--size' must be in [8, 4096]; got {size}")
+    overrides: dict[str, Any] = {"width": size, "height": size, "focal_px": 1400.0 * size / 256}
+    if eta is not None:
+        if not eta > 1.0:
+            raise ValueError(f"argument '--eta' must be > 1; got {eta}")
+        overrides["eta"] = eta
+    return dataclasses.replace(DemoParameters(), **overrides)
+
+
+def _render_sphere(params) -> tuple[dict[str, np.ndarray], np.ndarray, float]:
+    """Render on one torch thread; returns the named ``(H, W, C)`` float32 images, the mask and seconds."""
+    import torch
+
+    from polarface.render.demo import render_demo
+
+    # A 256x256 render is ~40k pixels per elementwise op: intra-op threading costs more than it gains,
+    # and on a busy machine OpenMP workers spinning against other processes slow it down a lot.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        start = time.perf_counter()
+        result = render_demo(params)
+        render_seconds = time.perf_counter() - start
+    finally:
+        torch.set_num_threads(threads)
+    images = result.images
+    maps = {
+        "I0": images.i0, "I45": images.i45, "I90": images.i90, "I135": images.i135,
+        "I_sss": images.i_sss, "I_zeta": images.i_zeta, "I_s": images.i_s,
+        "DoP": images.dop(), "AoLP": images.aolp(),
+    }
+    maps = {name: value.numpy().astype(np.float32) for name, value in maps.items()}
+    return maps, result.geometry.mask.numpy(), render_seconds
+
+
+def _write_sphere_preview(path: Path, name: str, value: np.ndarray, mask: np.ndarray, exposure: float,
+                          green: int) -> None:
+    from polarface.io import colormap_png, write_png
+
+    if name in ("I0", "I45", "I90", "I135", "I_sss"):
+        preview = value[..., :3] if value.shape[-1] >= 3 else np.repeat(value[..., :1], 3, -1)
+        scale = 2.0 * exposure if name == "I_sss" else exposure
+        write_png(path, _srgb(preview / scale).astype(np.float64))
+    elif name in ("I_zeta", "I_s"):
+        channel = value[..., green]
+        limit = float(np.percentile(np.abs(channel[mask]), 99.5)) if mask.any() else 1.0
+        colormap_png(path, channel, vmin=-limit, vmax=limit or 1.0, cmap="coolwarm", mask=mask)
+    elif name == "DoP":
+        colormap_png(path, value[..., green], vmin=0.0, mask=mask)
+    else:
+        colormap_png(path, value[..., green], vmin=0.0, vmax=np.pi, cmap="twilight", mask=mask)
+
+
+def _sphere_page(params, render_seconds: float, parameters: dict[str, Any]):
+    from polarface.report.html import HtmlPage, ImageItem
+
+    page = HtmlPage(
+        "polarface demo: polarimetric images of a skin-like sphere",
+        subtitle=f"{params.width}x{params.height} px, {params.light_count} polarized LED "
+        f"modules {params.off_axis_deg:.2f} deg off axis, rendered in "
+        f"{render_seconds:.2f} s on CPU",
+    )
+    page.section(
+        "Analyzer images",
+        "Linear radiance seen behind the four polarizer angles of a polarization camera "
+        "(sRGB previews, common exposure; EXR files hold the linear values).",
+    ).image_grid([ImageItem(f"png/{n}.png", _CAPTIONS[n]) for n in ("I0", "I45", "I90", "I135")])
+    page.section(
+        "Observations (paper, Sec. 4.2)",
+        "The separations the inverse stage fits: subsurface, its polarized part, and the specular.",
+    ).image_grid([ImageItem(f"png/{n}.png", _CAPTIONS[n]) for n in ("I_sss", "I_zeta", "I_s")], columns=3)
+    page.section("Polarization", "Per-pixel degree and angle of linear polarization.").image_grid(
+        [ImageItem(f"png/{n}.png", _CAPTIONS[n]) for n in ("DoP", "AoLP")], columns=2
+    )
+    page.section("Parameters").table(parameters)
+    return page
+
+
+def run_sphere_demo(out: str | Path, size: int = 256, eta: float | None = None) -> float:
+    """Render the optics-only sphere demo into ``out`` (module docstring), atomically.
+
+    Args:
+        out: output folder (replaced as a whole).
+        size: image width and height in pixels, in [8, 4096].
+        eta: refractive index (> 1; default the demo's).
+
+    Returns:
+        The render time in seconds.
+
+    Raises:
+        ValueError: ``size`` or ``eta`` out of range (nothing is written).
+    """
+    from tqdm import tqdm
+
+    from polarface.io import atomic_directory, write_exr, write_json_atomic
+
+    params = _sphere_parameters(size, eta)
+    maps, mask, render_seconds = _render_sphere(params)
+    names = list(params.channel_names)
+    exposure = float(np.percentile(maps["I0"][mask], 99.5)) if mask.any() else 1.0
+    exposure = exposure if exposure > 0 else 1.0
+    green = names.index("G") if "G" in names else 0
+    with atomic_directory(Path(out)) as tmp:
+        for name, value in tqdm(maps.items(), desc="writing images", unit="image", leave=False):
+            write_exr(tmp / "exr" / f"{name}.exr", value, names)
+            _write_sphere_preview(tmp / "png" / f"{name}.png", name, value, mask, exposure, green)
+        write_exr(tmp / "exr" / "mask.exr", mask.astype(np.float32))
+        parameters = {
+            k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(params).items()
+        }
+        parameters["off_axis_deg"] = params.off_axis_deg
+        write_json_atomic(tmp / "parameters.json", parameters)
+        _sphere_page(params, render_seconds, parameters).write(tmp / "index.html")
+    return render_seconds

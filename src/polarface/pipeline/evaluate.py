@@ -1,0 +1,190 @@
+"""Metrics of a RESULT folder against simulator ground truth (``polarface evaluate``).
+
+Metric groups (:data:`METRIC_GROUPS`, name -> function(result_dir, gt_dir) -> dict; downstream stages
+add theirs):
+
+* ``polarimetric``: per map (eta, alpha_s, alpha_ss, rho_s, rho_ss, displacement_mm, rho_sss_bar) the
+  median and mean absolute error over valid texels (reconstruction mask and ground-truth mask), the
+  median relative error of the albedos, and the normal angular error in degrees (normals of the base
+  mesh displaced by each displacement map);
+* ``rerender``: RMSE of ``I_sss`` and ``I_s`` re-rendered from the maps on the views held out of fitting,
+  in texture space (visible texels), divided by the mean observed ``I_sss`` of those views (``*_rmse``)
+  and, for ``I_s``, also by its own mean absolute value (``i_s_rmse_over_mean_abs``);
+* ``biophysical``: :func:`evaluate_biophysical` (skipped when the RESULT or the ground truth has no
+  chromophore maps).
+
+The ground truth (``SIM/ground_truth`` or that folder itself) has the RESULT's ``maps/`` layout.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
+from polarface.results import POLARIMETRIC_MAPS, RHO_SSS_BAR, ResultFolder
+
+__all__ = [
+    "METRIC_GROUPS",
+    "biophysical_metrics",
+    "evaluate",
+    "evaluate_biophysical",
+    "ground_truth_root",
+    "polarimetric_metrics",
+    "rerender_metrics",
+]
+
+
+def ground_truth_root(gt: str | Path) -> Path:
+    """The folder holding the ground truth's ``maps/``: ``gt/ground_truth`` or ``gt`` itself.
+
+    Raises:
+        FileNotFoundError: neither holds ``maps/``.
+    """
+    gt = Path(gt)
+    if (gt / "ground_truth" / "maps").is_dir():
+        return gt / "ground_truth"
+    if (gt / "maps").is_dir():
+        return gt
+    raise FileNotFoundError(f"'{gt}' holds no ground-truth maps (expected ground_truth/maps or maps/)")
+
+
+def _load(result_dir: Path, gt_dir: Path) -> tuple[dict, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    folder = ResultFolder(result_dir)
+    result_json = folder.read_result()
+    names = list(result_json.get("channel_names", []))
+    return result_json, folder.read_maps(names), ResultFolder(ground_truth_root(gt_dir)).read_maps(names)
+
+
+def _map_errors(name: str, estimate: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    error = np.abs(estimate - truth)[mask]
+    entry = {
+        "median_abs_error": float(np.median(error)),
+        "mean_abs_error": float(np.mean(error)),
+        "gt_median": float(np.median(truth[mask])),
+    }
+    if name in ("rho_s", "rho_ss", RHO_SSS_BAR):
+        relative = error / np.maximum(np.abs(truth[mask]), 1e-6)
+        entry["median_relative_error"] = float(np.median(relative))
+    return entry
+
+
+def polarimetric_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
+    """Per-map absolute/relative errors and the normal angular error (module docstring)."""
+    from polarface.inverse.polarimetric import shading_normals
+    from polarface.texture import UnwrapStore
+
+    _, estimate, truth = _load(result_dir, gt_dir)
+    if "mask" not in estimate:
+        raise FileNotFoundError(f"'{result_dir}/maps/mask.png' is missing: run reconstruct first")
+    mask = estimate["mask"]
+    if "mask" in truth:
+        if truth["mask"].shape != mask.shape:
+            raise ValueError(
+                f"texture resolutions differ: result {mask.shape}, ground truth {truth['mask'].shape}"
+            )
+        mask = mask & truth["mask"]
+    if not mask.any():
+        raise ValueError("no valid texel in common between the result and the ground truth")
+    metrics: dict[str, Any] = {"texels": int(mask.sum())}
+    for name in (*POLARIMETRIC_MAPS, RHO_SSS_BAR):
+        if name in estimate and name in truth:
+            metrics[name] = _map_errors(name, estimate[name], truth[name], mask)
+    unwrap = UnwrapStore.open(ResultFolder(result_dir).unwrap_path)
+    if "displacement_mm" in estimate and "displacement_mm" in truth:
+        n_est = shading_normals(unwrap, estimate["displacement_mm"].astype(np.float32))[mask]
+        n_gt = shading_normals(unwrap, truth["displacement_mm"].astype(np.float32))[mask]
+        angle = np.degrees(np.arccos(np.clip((n_est * n_gt).sum(-1), -1.0, 1.0)))
+        metrics["normal_angular_error_deg"] = {
+            "median": float(np.median(angle)),
+            "mean": float(np.mean(angle)),
+        }
+    return metrics
+
+
+def _rerender_sums(unwrap, maps: dict[str, np.ndarray], held: list[int], normal: np.ndarray,
+                   mask: np.ndarray | None) -> tuple[dict[str, float], dict[str, float], int]:
+    """Squared errors, observed sums and the sample count over the held-out views (channel-wise)."""
+    from polarface.inverse.polarimetric import render_view_texture
+
+    sq = {"i_sss": 0.0, "i_s": 0.0}
+    sums = {"i_sss": 0.0, "i_s_abs": 0.0}
+    count = 0
+    for index in held:
+        observed, predicted, valid = render_view_texture(unwrap, maps, index, normal=normal)
+        if mask is not None:
+            valid = valid & mask
+        if not valid.any():
+            continue
+        obs, pred = observed[valid], predicted[valid]
+        sq["i_sss"] += float(((pred[:, 0] - obs[:, 0]) ** 2).sum())
+        sq["i_s"] += float(((pred[:, 2] - obs[:, 2]) ** 2).sum())
+        sums["i_sss"] += float(obs[:, 0].sum())
+        sums["i_s_abs"] += float(np.abs(obs[:, 2]).sum())
+        count += obs[:, 0].size
+    return sq, sums, count
+
+
+def rerender_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
+    """Held-out-view re-render RMSE of I_sss and I_s (module docstring)."""
+    from polarface.inverse.polarimetric import shading_normals
+    from polarface.texture import UnwrapStore
+
+    _, estimate, _ = _load(result_dir, gt_dir)
+    unwrap = UnwrapStore.open(ResultFolder(result_dir).unwrap_path)
+    held = [i for i, v in enumerate(unwrap.views) if v.held_out]
+    if not held:
+        return {"held_out_views": 0, "note": "no held-out view (reconstruct --holdout-every 0)"}
+    normal = shading_normals(unwrap, estimate["displacement_mm"].astype(np.float32))
+    maps = {k: v.astype(np.float32) for k, v in estimate.items() if k != "mask"}
+    sq, sums, count = _rerender_sums(unwrap, maps, held, normal, estimate.get("mask"))
+    if count == 0:
+        return {"held_out_views": len(held), "note": "held-out views see no reconstructed texel"}
+    mean_sss = sums["i_sss"] / count
+    return {
+        "held_out_views": len(held),
+        "samples": count,
+        "i_sss_rmse": float(np.sqrt(sq["i_sss"] / count) / mean_sss),
+        "i_s_rmse": float(np.sqrt(sq["i_s"] / count) / mean_sss),
+        "i_s_rmse_over_mean_abs": float(np.sqrt(sq["i_s"] / count) / max(sums["i_s_abs"] / count, 1e-30)),
+        "normalisation": "RMSE / mean observed I_sss of the held-out samples (paper: 3.94e-2 for I_s)",
+    }
+
+
+def biophysical_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
+    """Chromophore errors and rho_sss_bar re-render error (:func:`evaluate_biophysical`)."""
+    if not ResultFolder(result_dir).has_map("c_m"):
+        return {"skipped": "the RESULT has no biophysical maps (stage not run)"}
+    gt = Path(gt_dir)
+    if not any(ResultFolder(root).has_map("c_m") for root in (gt, gt / "ground_truth")):
+        return {"skipped": "the ground truth has no chromophore maps"}
+    return evaluate_biophysical(result_dir, gt_dir)
+
+
+#: Metric groups: name -> function(result_dir, gt_dir) -> dict.
+METRIC_GROUPS: dict[str, Callable[[Path, Path], dict]] = {
+    "polarimetric": polarimetric_metrics,
+    "rerender": rerender_metrics,
+    "biophysical": biophysical_metrics,
+}
+
+
+def evaluate(result_dir: str | Path, gt_dir: str | Path, groups: list[str] | None = None) -> dict[str, Any]:
+    """All requested metric groups (default all) as one dict ``{group: metrics}``.
+
+    Raises:
+        FileNotFoundError: ``result_dir`` has no ``result.json`` or ``gt_dir`` no ground-truth maps.
+        ValueError: an unknown group name.
+    """
+    result_dir, gt_dir = Path(result_dir), Path(gt_dir)
+    if not ResultFolder(result_dir).result_json_path.is_file():
+        raise FileNotFoundError(f"'{result_dir}' is not a RESULT folder (no result.json)")
+    ground_truth_root(gt_dir)
+    names = list(METRIC_GROUPS) if not groups else groups
+    unknown = [g for g in names if g not in METRIC_GROUPS]
+    if unknown:
+        raise ValueError(f"argument '--groups': unknown {unknown}; choose from {list(METRIC_GROUPS)}")
+    return {name: METRIC_GROUPS[name](result_dir, gt_dir) for name in names}

@@ -1,0 +1,316 @@
+"""Static polarimetric inverse rendering of a capture into a RESULT folder (paper Sec. 5).
+
+The run is a sequence of stages over the RESULT folder (:data:`STAGES`); each reads and writes the
+documented artifacts (``docs/result_folder.md``) through :class:`polarface.results.ResultFolder`,
+records itself in ``result.json`` and is skipped when resuming once done:
+
+* ``prepare``: ``rig.json``, ``mesh.obj``, ``result.json`` header, ``unwrap.zarr`` (texture space);
+* ``polarimetric``: ``maps/*.exr`` + ``maps/mask.png``, ``previews/*.png``, ``checkpoints/``;
+* ``biophysical``: chromophore maps and diffusion profiles (:mod:`polarface.pipeline.biophysical`);
+* ``report``: ``report.html`` (:mod:`polarface.report`).
+
+Bad input (no poses, mismatched UV atlas, all-invisible texels, NaN observations) raises ValueError
+before anything is written, or :func:`reconstruct` removes the RESULT folder this run created.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from polarface.results import ResultFolder, default_channel_names
+
+__all__ = [
+    "STAGES",
+    "ReconstructContext",
+    "ReconstructInputs",
+    "reconstruct",
+    "resolve_reconstruct_inputs",
+    "run_stages",
+    "stage_biophysical",
+    "stage_polarimetric",
+    "stage_prepare",
+    "stage_report",
+]
+
+LOGGER = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass
+class ReconstructContext:
+    """What the stages share: inputs, options and the RESULT folder."""
+
+    capture: Path
+    out: Path
+    mesh_path: Path
+    poses_path: Path
+    texture_resolution: int
+    device: str
+    resume: bool
+    progress: bool
+    holdout_every: int
+    fit_options: dict = dataclasses.field(default_factory=dict)
+    stop_after_patches: int | None = None
+    threads: int | None = 1
+
+    @property
+    def folder(self) -> ResultFolder:
+        """The RESULT folder."""
+        return ResultFolder(self.out)
+
+
+@dataclasses.dataclass(frozen=True)
+class ReconstructInputs:
+    """Resolved inputs: the capture store, the rest mesh, the poses and the texture resolution."""
+
+    capture: Path
+    mesh_path: Path
+    poses_path: Path
+    texture_resolution: int
+
+
+def _resolve_geometry(sim_root: Path | None, geometry: Path | None, mesh: Path | None,
+                      poses: Path | None) -> tuple[Path, Path]:
+    if mesh is not None or poses is not None:
+        if mesh is None or poses is None:
+            raise ValueError("arguments '--mesh' and '--poses' must be given together")
+        return Path(mesh), Path(poses)
+    geometry = geometry or (sim_root / "ground_truth" if sim_root is not None else None)
+    if geometry is None:
+        raise ValueError(
+            "no geometry: pass '--geometry DIR' or '--mesh MESH --poses POSES' (known-geometry mode)"
+        )
+    return Path(geometry) / "mesh_rest.obj", Path(geometry) / "static" / "poses.json"
+
+
+def resolve_reconstruct_inputs(
+    capture: str | Path,
+    *,
+    geometry: str | Path | None = None,
+    mesh: str | Path | None = None,
+    poses: str | Path | None = None,
+    texture_resolution: int | None = None,
+) -> ReconstructInputs:
+    """Resolve a capture store or simulation folder and its known geometry.
+
+    ``capture`` is a capture store or a simulation folder (then ``SIM/static`` is used, the geometry
+    defaults to ``SIM/ground_truth`` and the texture resolution to the simulation's; else 512).
+
+    Raises:
+        FileNotFoundError: the capture or mesh does not exist. ValueError: not a capture store, no
+        geometry, ``mesh`` without ``poses`` (or the reverse), or the poses file does not exist.
+    """
+    capture = Path(capture)
+    if not capture.exists():
+        raise FileNotFoundError(f"capture '{capture}' does not exist")
+    sim_root = None
+    if (capture / "static" / "manifest.json").exists():
+        sim_root, capture = capture, capture / "static"
+    if not (capture / "manifest.json").exists():
+        raise ValueError(f"'{capture}' is not a capture store (no manifest.json)")
+    mesh_path, poses_path = _resolve_geometry(
+        sim_root, Path(geometry) if geometry is not None else None, mesh, poses
+    )
+    if not mesh_path.is_file():
+        raise FileNotFoundError(f"mesh '{mesh_path}' does not exist")
+    if not poses_path.is_file():
+        raise ValueError(f"the capture has no poses: '{poses_path}' does not exist (pass '--poses')")
+    resolution = texture_resolution
+    if resolution is None:
+        resolution = 512
+        summary = (sim_root / "simulation.json") if sim_root is not None else None
+        if summary is not None and summary.exists():
+            resolution = int(json.loads(summary.read_text())["preset"]["texture_resolution"])
+    return ReconstructInputs(capture, mesh_path, poses_path, int(resolution))
+
+
+def _load_geometry(ctx: ReconstructContext):
+    from polarface.capture.store import CaptureStore
+    from polarface.geometry.mesh import load_mesh
+    from polarface.geometry.poses import load_poses
+
+    store = CaptureStore.open(ctx.capture)
+    mesh = load_mesh(ctx.mesh_path)
+    poses = load_poses(ctx.poses_path)
+    frames = [r.index for r in store.frames]
+    if len(poses) != len(frames):
+        raise ValueError(
+            f"'{ctx.poses_path}' holds {len(poses)} poses but the capture has {len(frames)} frames"
+        )
+    return store, mesh, poses
+
+
+def stage_prepare(ctx: ReconstructContext) -> dict[str, Any]:
+    """Copy rig and mesh, write the result.json header and unwrap the capture into ``unwrap.zarr``."""
+    from polarface.texture import UnwrapConfig, unwrap_capture
+
+    started = time.perf_counter()
+    folder = ctx.folder
+    store, mesh, poses = _load_geometry(ctx)
+    config = UnwrapConfig(texture_resolution=ctx.texture_resolution, holdout_every=ctx.holdout_every)
+    unwrap = unwrap_capture(store, mesh, poses, folder.unwrap_path, config, progress=ctx.progress)
+    store.rig.save(folder.rig_path)
+    folder.write_mesh(mesh)
+    geometry = unwrap.geometry()
+    valid = geometry.mask
+    texel_size = float(np.median(0.5 * (geometry.texel_size_u[valid] + geometry.texel_size_v[valid])))
+    calibration = store.rig.spectral.to_calibration() if store.rig.spectral is not None else None
+    names = list(calibration.channel_names) if calibration is not None else default_channel_names()
+    folder.write_result_header(names, unwrap.resolution, texel_size)
+    views = unwrap.views
+    return {
+        "views": len(views),
+        "held_out_views": [i for i, v in enumerate(views) if v.held_out],
+        "capture": str(ctx.capture),
+        "mesh": str(ctx.mesh_path),
+        "poses": str(ctx.poses_path),
+        "timings": {"prepare_s": time.perf_counter() - started},
+    }
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
+    """Fit the polarimetric maps and write ``maps/``, ``previews/`` (checkpoints in ``checkpoints/``)."""
+    from polarface.device import resolve_device
+    from polarface.inverse.polarimetric import PolarimetricConfig, fit_polarimetric
+    from polarface.texture import UnwrapStore
+
+    started = time.perf_counter()
+    folder = ctx.folder
+    device = resolve_device(ctx.device)
+    config = PolarimetricConfig(**ctx.fit_options)
+    fit = fit_polarimetric(
+        UnwrapStore.open(folder.unwrap_path),
+        config,
+        device=device,
+        checkpoint=folder.checkpoints_dir / "polarimetric.npz",
+        progress=ctx.progress,
+        stop_after_patches=ctx.stop_after_patches,
+        threads=ctx.threads,
+    )
+    if not fit.complete:
+        raise InterruptedError("polarimetric stage interrupted (checkpoint written; rerun with --resume)")
+    folder.write_polarimetric_maps(fit.maps, fit.mask, fit.view_count)
+    folder.write_loss_curve(fit.loss_curve)
+    masked = {k: float(np.median(v[fit.mask])) for k, v in fit.maps.items() if v.ndim == 2}
+    return {
+        "config": _jsonable(dataclasses.asdict(config)),
+        "device": str(device),
+        "patches": fit.patches,
+        "samples": fit.sample_count,
+        "texels": int(fit.mask.sum()),
+        "texels_below_min_views": int(((fit.view_count > 0) & (fit.view_count < config.min_views)).sum()),
+        "texels_in_boundary_margin": int(((fit.view_count >= config.min_views) & ~fit.mask).sum()),
+        "throughput_texel_view_iterations_per_s": fit.throughput,
+        "final_loss": fit.loss_curve[-1] if fit.loss_curve else None,
+        "median": masked,
+        "timings": {**fit.timings, "stage_s": time.perf_counter() - started},
+    }
+
+
+def stage_biophysical(ctx: ReconstructContext) -> dict[str, Any]:
+    """Chromophore maps and diffusion profiles from ``maps/rho_sss_bar.exr`` (paper Sec. 5.3)."""
+    from polarface.pipeline.biophysical import run_biophysical_stage
+
+    return run_biophysical_stage(ctx.folder, device=ctx.device, progress=ctx.progress)
+
+
+def stage_report(ctx: ReconstructContext) -> dict[str, Any]:
+    """Write ``report.html`` (:func:`polarface.report.write_report`, plus the biophysical section)."""
+    from polarface.report import biophysical_section, write_report
+
+    started = time.perf_counter()
+    folder = ctx.folder
+    extra = [lambda page: biophysical_section(page, folder)] if folder.has_map("c_m") else []
+    write_report(folder, extra_sections=extra)
+    return {"timings": {"report_s": time.perf_counter() - started}}
+
+
+#: The stages in order: (name, function).
+STAGES: list[tuple[str, Callable[[ReconstructContext], dict]]] = [
+    ("prepare", stage_prepare),
+    ("polarimetric", stage_polarimetric),
+    ("biophysical", stage_biophysical),
+    ("report", stage_report),
+]
+
+
+def run_stages(ctx: ReconstructContext, stages=None) -> dict[str, Any]:
+    """Run ``stages`` (default :data:`STAGES`) in order, skipping completed ones when resuming.
+
+    Returns:
+        The final ``result.json`` content.
+    """
+    stages = STAGES if stages is None else stages
+    folder = ctx.folder
+    for name, function in stages:
+        if ctx.resume and folder.stage_complete(name):
+            LOGGER.info("stage %s already complete; skipped", name)
+            continue
+        LOGGER.info("stage %s", name)
+        folder.record_stage(name, function(ctx))
+    return folder.read_result()
+
+
+def reconstruct(
+    inputs: ReconstructInputs,
+    out: str | Path,
+    *,
+    fit_options: dict[str, Any] | None = None,
+    holdout_every: int = 4,
+    device: str = "auto",
+    threads: int | None = 1,
+    resume: bool = False,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Validate the inputs, then run :data:`STAGES` into ``out``; returns ``result.json``'s content.
+
+    Args:
+        inputs: :func:`resolve_reconstruct_inputs`.
+        out: the RESULT folder (must be empty or absent unless ``resume``).
+        fit_options: :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides.
+        holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
+
+    Raises:
+        ValueError, FileNotFoundError: bad input; a RESULT folder this call created is removed.
+    """
+    out = Path(out)
+    if out.exists() and any(out.iterdir()) and not resume:
+        raise ValueError(
+            f"output folder '{out}' exists and is not empty; pass '--resume' or choose another --out"
+        )
+    if holdout_every < 0 or holdout_every == 1:
+        raise ValueError(f"argument '--holdout-every' must be 0 or >= 2; got {holdout_every}")
+    options = dict(fit_options or {})
+    ctx = ReconstructContext(
+        inputs.capture, out, inputs.mesh_path, inputs.poses_path, inputs.texture_resolution,
+        device, resume, progress, holdout_every, options, threads=threads,
+    )
+    created = not out.exists()
+    try:
+        # validate the inputs before anything is written
+        from polarface.inverse.polarimetric import PolarimetricConfig
+
+        PolarimetricConfig(**options)
+        _load_geometry(ctx)
+        out.mkdir(parents=True, exist_ok=True)
+        return run_stages(ctx)
+    except (ValueError, FileNotFoundError):
+        if created and out.exists():
+            shutil.rmtree(out, ignore_errors=True)
+        raise

@@ -1,0 +1,75 @@
+"""Everything needed to render a RESULT folder, read through :class:`~polarface.results.ResultFolder`."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from polarface.results import layout
+from polarface.results.folder import ResultFolder
+
+__all__ = ["ResultAppearance", "load_sog", "sog_shapes"]
+
+
+def sog_shapes(payload: Mapping[str, Any]):
+    """A ``sog.json`` payload as :class:`polarface.skin.heterogeneous.ProfileShapes` (float64, ``(L, 9)``)."""
+    import torch
+
+    from polarface.skin.heterogeneous import ProfileShapes
+
+    layers = payload["layers"]
+    return ProfileShapes(*(torch.tensor(layers[k], dtype=torch.float64) for k in layout.SOG_LAYERS))
+
+
+def load_sog(path: str | Path):
+    """Read a ``sog.json`` file back as :class:`polarface.skin.heterogeneous.ProfileShapes` (float64)."""
+    import json
+
+    return sog_shapes(json.loads(Path(path).read_text(encoding="utf-8")))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ResultAppearance:
+    """Everything needed to render a RESULT folder.
+
+    Attributes:
+        maps: name -> ``(H, W)`` float32 maps (polarimetric parameters, displacement in mm, chromophores).
+        mask: ``(H, W)`` bool valid texels.
+        mesh: rest mesh (model frame, mm, UVs).
+        rig: the capture rig (cameras, lights, spectral calibration).
+        shapes: SoG shapes (:class:`polarface.skin.heterogeneous.ProfileShapes`, ``(L, 9)``) or None
+            (then fitted at the median texel).
+    """
+
+    maps: dict[str, np.ndarray]
+    mask: np.ndarray
+    mesh: Any
+    rig: Any
+    shapes: Any
+
+    @classmethod
+    def load(cls, result_dir: str | Path | ResultFolder) -> ResultAppearance:
+        """Read maps, mask, ``mesh.obj``, ``rig.json`` and ``maps/sog.json`` of a RESULT folder.
+
+        Raises:
+            FileNotFoundError: the folder or a map is missing. ValueError: the rig has no spectral
+            calibration.
+        """
+        folder = result_dir if isinstance(result_dir, ResultFolder) else ResultFolder(result_dir)
+        if not folder.root.is_dir():
+            raise FileNotFoundError(f"result folder '{folder.root}' does not exist")
+        rig = folder.read_rig()
+        if rig.spectral is None:
+            raise ValueError(f"'{folder.rig_path}' has no spectral calibration (needed to render spectra)")
+        maps = {
+            name: folder.read_scalar_map(name).astype(np.float32)
+            for name in (*layout.POLARIMETRIC_MAPS, *layout.CHROMOPHORE_MAPS)
+        }
+        mask = folder.read_mask()
+        sog = folder.read_sog()
+        shapes = sog_shapes(sog) if sog is not None else None
+        return cls(maps, mask, folder.read_mesh(), rig, shapes)

@@ -1,0 +1,75 @@
+"""The RESULT folder's names: every map, file and ``result.json`` key, defined once.
+
+The full table of paths with shapes, dtypes and units is ``docs/result_folder.md``. Names here are
+part of the on-disk format: renaming one breaks old RESULT folders.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "CHROMOPHORE_MAPS",
+    "CHROMOPHORE_PREVIEWS",
+    "EXPORTS_DIR",
+    "FRAMES_DIR",
+    "GEOMETRY_DIR",
+    "MAPS_DIR",
+    "POLARIMETRIC_MAPS",
+    "PREVIEWS_DIR",
+    "RESULT_FORMAT",
+    "RESULT_VERSION",
+    "RHO_SSS_BAR",
+    "default_channel_names",
+]
+
+#: ``result.json``'s ``format`` and ``version`` keys.
+RESULT_FORMAT = "polarface-result"
+RESULT_VERSION = 1
+
+#: Folders under the RESULT root.
+MAPS_DIR = "maps"
+PREVIEWS_DIR = "previews"
+CHECKPOINTS_DIR = "checkpoints"
+FRAMES_DIR = "frames"
+GEOMETRY_DIR = "geometry"
+EXPORTS_DIR = "exports"
+
+#: Files under the RESULT root.
+RESULT_JSON = "result.json"
+RIG_JSON = "rig.json"
+MESH_OBJ = "mesh.obj"
+UNWRAP_STORE = "unwrap.zarr"
+REPORT_HTML = "report.html"
+POSES_JSON = "poses.json"
+
+#: Single-channel (``Y``) polarimetric maps ``maps/<name>.exr``, in the fit's order.
+POLARIMETRIC_MAPS = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "displacement_mm")
+#: The six-channel subsurface albedo ``maps/rho_sss_bar.exr`` (channels named as ``result.json``'s
+#: ``channel_names``, i.e. the rig's spectral calibration).
+RHO_SSS_BAR = "rho_sss_bar"
+#: Texel mask ``maps/mask.png`` (8-bit, 255 = valid) and fitting views per texel ``maps/view_count.exr``.
+MASK = "mask"
+VIEW_COUNT = "view_count"
+#: Chromophore maps ``maps/<name>.exr`` (channel ``Y``, volume fractions), in the biophysical order.
+CHROMOPHORE_MAPS = ("c_m", "beta_m", "c_h_in", "c_h_out")
+#: The biophysical stage's other maps.
+RHO_SSS_BAR_RENDERED = "rho_sss_bar_rendered"
+RHO_SSS_BAR_RESIDUAL = "rho_sss_bar_residual"
+RESIDUAL_CHANNELS = ("relative", "gamut_distance")
+SUBSURFACE_SPECTRAL = "subsurface_spectral"
+IN_GAMUT = "in_gamut"
+SOG_JSON = "sog.json"
+SOG_FORMAT = "polarface-sog"
+SOG_LAYERS = ("r_out_f", "t_out_f", "r_out_b", "t_out_b", "r_in_f")
+
+#: Human-readable names, preview colour ranges and colour maps of the chromophore maps.
+CHROMOPHORE_PREVIEWS: dict[str, tuple[str, float, float, str]] = {
+    "c_m": ("Melanin C_m", 0.0, 0.15, "copper"),
+    "beta_m": ("Eumelanin fraction beta_m", 0.0, 0.3, "cividis"),
+    "c_h_in": ("Inner haemoglobin C_h,in", 0.0, 0.08, "Reds"),
+    "c_h_out": ("Outer haemoglobin C_h,out", 0.0, 0.2, "Reds"),
+}
+
+
+def default_channel_names(count: int = 6) -> list[str]:
+    """Channel names used when a RESULT records none: ``channel0`` ... ``channel{count-1}``."""
+    return [f"channel{i}" for i in range(count)]
