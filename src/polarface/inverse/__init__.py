@@ -3,5 +3,27 @@
 :mod:`polarface.inverse.polarimetric` recovers eta, alpha_s, alpha_ss, rho_s, rho_ss, rho_sss_bar and
 the displacement map in texture space; :mod:`polarface.inverse.biophysical` fits the chromophore maps
 to rho_sss_bar; :mod:`polarface.inverse.ior` is the single-view sphere refractive-index measurement of
-the paper's validation table.
+the paper's validation table. This facade holds each stage's entry point; the subpackages hold the rest.
 """
+
+from polarface.inverse.biophysical import BiophysicalConfig, BiophysicalFit, fit_biophysical
+from polarface.inverse.ior import IorResult, SphereScene, estimate_ior
+from polarface.inverse.polarimetric import (
+    POLARIMETRIC_ENGINES,
+    PolarimetricConfig,
+    PolarimetricFit,
+    fit_polarimetric,
+)
+
+__all__ = [
+    "POLARIMETRIC_ENGINES",
+    "BiophysicalConfig",
+    "BiophysicalFit",
+    "IorResult",
+    "PolarimetricConfig",
+    "PolarimetricFit",
+    "SphereScene",
+    "estimate_ior",
+    "fit_biophysical",
+    "fit_polarimetric",
+]

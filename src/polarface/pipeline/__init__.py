@@ -1,5 +1,6 @@
-"""Orchestration over RESULT folders: the reconstruct stages and checkpoints, the biophysical stage's
-files, the evaluation against ground truth and the demo jobs. Commands call one function of here."""
+"""Orchestration over folders: the reconstruct stages and checkpoints, the biophysical stage's files,
+the evaluation against ground truth, the demo jobs, the skin fit of a spectra file and the IOR of a
+sphere capture. Commands call one function of here."""
 
 from polarface.pipeline.biophysical import load_stage_inputs, run_biophysical_stage
 from polarface.pipeline.demo import reconstruct_summary_line, run_demo_pipeline, run_sphere_demo
@@ -12,6 +13,12 @@ from polarface.pipeline.evaluate import (
     rerender_metrics,
 )
 from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
+from polarface.pipeline.ior import (
+    ANALYZER_IMAGE_NAMES,
+    estimate_ior_from_folder,
+    read_analyzer_image,
+    validate_ior,
+)
 from polarface.pipeline.reconstruct import (
     STAGES,
     ReconstructContext,
@@ -20,18 +27,25 @@ from polarface.pipeline.reconstruct import (
     resolve_reconstruct_inputs,
     run_stages,
 )
+from polarface.pipeline.skin_fit import SkinFitSummary, fit_spectra_file, read_reflectance_csv
 
 __all__ = [
+    "ANALYZER_IMAGE_NAMES",
     "METRIC_GROUPS",
     "STAGES",
     "ReconstructContext",
     "ReconstructInputs",
+    "SkinFitSummary",
     "biophysical_metrics",
+    "estimate_ior_from_folder",
     "evaluate",
     "evaluate_biophysical",
+    "fit_spectra_file",
     "ground_truth_root",
     "load_stage_inputs",
     "polarimetric_metrics",
+    "read_analyzer_image",
+    "read_reflectance_csv",
     "reconstruct",
     "reconstruct_summary_line",
     "rerender_metrics",
@@ -40,4 +54,5 @@ __all__ = [
     "run_demo_pipeline",
     "run_sphere_demo",
     "run_stages",
+    "validate_ior",
 ]

@@ -41,8 +41,8 @@ from polarface.inverse.biophysical import (
     BiophysicalFit,
     TotalsTable,
     fit_biophysical,
+    per_texel_relative_residual,
 )
-from polarface.inverse.biophysical_maps import per_texel_relative_residual
 from polarface.pipeline.biophysical_previews import write_previews, write_residual_previews
 from polarface.results import RESULT_FORMAT, RESULT_VERSION, RHO_SSS_BAR, ResultFolder
 from polarface.results import layout as names_

@@ -12,8 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from polarface.inverse.biophysical import PARAMETER_ORDER
-from polarface.inverse.biophysical_maps import per_texel_relative_residual
+from polarface.inverse.biophysical import PARAMETER_ORDER, per_texel_relative_residual
 from polarface.io import atomic_path, colormap_png, write_png
 from polarface.results import CHROMOPHORE_PREVIEWS, ResultFolder
 

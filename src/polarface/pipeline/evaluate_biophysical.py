@@ -8,8 +8,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from polarface.inverse.biophysical import PARAMETER_ORDER, TotalsTable, local_channel_albedo
-from polarface.inverse.biophysical_maps import relative_rmse
+from polarface.inverse.biophysical import PARAMETER_ORDER, TotalsTable, local_channel_albedo, relative_rmse
 from polarface.results import RHO_SSS_BAR, ResultFolder
 from polarface.results import layout as names_
 

@@ -4,7 +4,8 @@
 ``rho_sss_bar`` map of the polarimetric stage with the skin-layer model of
 :mod:`~polarface.inverse.biophysical.model` (:class:`TotalsTable`, :func:`local_channel_albedo`,
 :func:`blurred_channel_albedo`). Modules: ``model`` (forward model and its Jacobian), ``local_fit``
-(bounded Levenberg-Marquardt per texel, gamut distance), ``fit`` (coarse-to-fine stages).
+(bounded Levenberg-Marquardt per texel, gamut distance), ``fit`` (coarse-to-fine stages),
+``residuals`` (re-render residuals of the fitted maps).
 """
 
 from polarface.inverse.biophysical.fit import (
@@ -22,6 +23,7 @@ from polarface.inverse.biophysical.model import (
     local_channel_albedo,
     local_channel_albedo_with_jacobian,
 )
+from polarface.inverse.biophysical.residuals import per_texel_relative_residual, relative_rmse
 
 __all__ = [
     "PARAMETER_ORDER",
@@ -36,4 +38,6 @@ __all__ = [
     "local_channel_albedo",
     "local_channel_albedo_with_jacobian",
     "median_shapes",
+    "per_texel_relative_residual",
+    "relative_rmse",
 ]
