@@ -12,8 +12,12 @@ import torch
 from polarface.capture.rig import paper_rig
 from polarface.cli import main
 from polarface.geometry.mesh import TriangleMesh, save_obj
-from polarface.inverse.biophysical import BiophysicalConfig, TotalsTable, local_channel_albedo
-from polarface.inverse.biophysical import per_texel_relative_residual
+from polarface.inverse.biophysical import (
+    BiophysicalConfig,
+    TotalsTable,
+    local_channel_albedo,
+    per_texel_relative_residual,
+)
 from polarface.io import read_exr, read_png, write_exr, write_png
 from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
 from polarface.report import HtmlPage, biophysical_section

@@ -39,7 +39,7 @@ def test_polarimetric_maps_round_trip(tmp_path):
     folder.write_result_header(NAMES, SHAPE, 0.5)
     maps, mask = _maps(np.random.default_rng(1)), _mask()
     view_count = np.arange(np.prod(SHAPE)).reshape(SHAPE) % 7
-    folder.write_polarimetric_maps(maps, mask, view_count)
+    folder.write_polarimetric_maps(maps, mask, {"view_count": view_count})
     back = folder.read_maps(NAMES)
     for name in (*POLARIMETRIC_MAPS, RHO_SSS_BAR):
         assert back[name].dtype == np.float64
@@ -160,3 +160,13 @@ def test_failed_write_leaves_no_partial_file(tmp_path):
     assert not folder.has_map(RHO_SSS_BAR)
     assert not [p for p in tmp_path.rglob(".tmp-*")]
     np.testing.assert_array_equal(folder.read_scalar_map("eta"), np.ones(SHAPE, np.float32))
+
+
+def test_diagnostic_maps_must_be_registered_and_match_the_mask(tmp_path):
+    folder = ResultFolder(tmp_path)
+    maps = _maps(np.random.default_rng(4))
+    with pytest.raises(ValueError, match="'dop_max' is not registered in DIAGNOSTIC_MAPS"):
+        folder.write_polarimetric_maps(maps, _mask(), {"dop_max": np.zeros(SHAPE)})
+    with pytest.raises(ValueError, match=r"'view_count' has shape \(2, 2\)"):
+        folder.write_polarimetric_maps(maps, _mask(), {"view_count": np.zeros((2, 2))})
+    assert not folder.has_map("eta")

@@ -205,7 +205,7 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
     )
     if not fit.complete:
         raise InterruptedError("polarimetric stage interrupted (checkpoint written; rerun with --resume)")
-    folder.write_polarimetric_maps(fit.maps, fit.mask, fit.view_count)
+    folder.write_polarimetric_maps(fit.maps, fit.mask, {"view_count": fit.view_count})
     folder.write_loss_curve(fit.loss_curve)
     masked = {k: float(np.median(v[fit.mask])) for k, v in fit.maps.items() if v.ndim == 2}
     return {

@@ -17,7 +17,7 @@ import numpy as np
 
 from polarface.io import colormap_png
 from polarface.report.html import HtmlPage, ImageItem
-from polarface.results import POLARIMETRIC_MAPS, ResultFolder
+from polarface.results import DIAGNOSTIC_MAPS, POLARIMETRIC_MAPS, ResultFolder
 
 __all__ = ["write_report"]
 
@@ -38,11 +38,10 @@ def _dop_aolp(values: np.ndarray, specular_s1: np.ndarray | None = None) -> tupl
 def _add_map_section(page: HtmlPage, folder: ResultFolder, stage: dict[str, Any]) -> None:
     items = [ImageItem(f"previews/{n}.png", n) for n in POLARIMETRIC_MAPS]
     items.append(ImageItem("previews/rho_sss_bar_rgb.png", "rho_sss_bar (upper-half R, G, B)"))
-    if folder.preview_path("view_count").exists():
-        min_views = stage.get("config", {}).get("min_views", "?")
-        items.append(
-            ImageItem("previews/view_count.png", f"fitting views per texel (mask: >= {min_views})")
-        )
+    min_views = stage.get("config", {}).get("min_views", "?")
+    for name, spec in DIAGNOSTIC_MAPS.items():
+        if folder.preview_path(name).exists():
+            items.append(ImageItem(f"previews/{name}.png", spec.caption.format(min_views=min_views)))
     page.section("Parameter maps", "Texture-space maps (EXR in maps/).").image_grid(items, columns=4)
 
 

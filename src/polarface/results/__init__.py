@@ -9,20 +9,24 @@ from polarface.results.folder import ResultFolder
 from polarface.results.layout import (
     CHROMOPHORE_MAPS,
     CHROMOPHORE_PREVIEWS,
+    DIAGNOSTIC_MAPS,
     POLARIMETRIC_MAPS,
     RESULT_FORMAT,
     RESULT_VERSION,
     RHO_SSS_BAR,
+    DiagnosticMap,
     default_channel_names,
 )
 
 __all__ = [
     "CHROMOPHORE_MAPS",
     "CHROMOPHORE_PREVIEWS",
+    "DIAGNOSTIC_MAPS",
     "POLARIMETRIC_MAPS",
     "RESULT_FORMAT",
     "RESULT_VERSION",
     "RHO_SSS_BAR",
+    "DiagnosticMap",
     "ResultAppearance",
     "ResultFolder",
     "default_channel_names",

@@ -265,7 +265,10 @@ class ResultFolder:
         return out
 
     def write_polarimetric_maps(
-        self, maps: Mapping[str, np.ndarray], mask: np.ndarray, view_count: np.ndarray | None = None
+        self,
+        maps: Mapping[str, np.ndarray],
+        mask: np.ndarray,
+        diagnostics: Mapping[str, np.ndarray] | None = None,
     ) -> None:
         """Write the polarimetric stage's maps, mask and previews (see ``docs/result_folder.md``).
 
@@ -273,35 +276,50 @@ class ResultFolder:
             maps: ``POLARIMETRIC_MAPS`` ``(H, W)`` and ``rho_sss_bar`` ``(H, W, 6)`` (result.json's
                 channel order).
             mask: ``(H, W)`` bool valid texels.
-            view_count: ``(H, W)`` fitting views per texel, or None.
+            diagnostics: ``(H, W)`` maps named in ``DIAGNOSTIC_MAPS`` (e.g. ``view_count``, fitting views
+                per texel), or None.
 
         Raises:
-            ValueError: a map is missing or its shape does not match the mask (nothing is written).
+            ValueError: a map is missing, a diagnostic map is not registered, or a shape does not match
+                the mask (nothing is written).
         """
         _check_polarimetric_maps(maps, mask)
+        diagnostics = dict(diagnostics or {})
+        for name, values in diagnostics.items():
+            if name not in layout.DIAGNOSTIC_MAPS:
+                known = sorted(layout.DIAGNOSTIC_MAPS)
+                raise ValueError(f"diagnostic map '{name}' is not registered in DIAGNOSTIC_MAPS {known}")
+            if np.shape(values) != mask.shape:
+                shape = np.shape(values)
+                raise ValueError(f"diagnostic map '{name}' has shape {shape}; expected {mask.shape}")
         for name in layout.POLARIMETRIC_MAPS:
             self.write_scalar_map(name, maps[name].astype(np.float32))
             self._write_map_preview(name, maps[name], mask)
         rho = maps[layout.RHO_SSS_BAR].astype(np.float32)
         self.write_channel_map(layout.RHO_SSS_BAR, rho, self.channel_names())
         self.write_mask(mask)
-        if view_count is not None:
-            self.write_scalar_map(layout.VIEW_COUNT, view_count.astype(np.float32))
-            seen = view_count > 0
-            colormap_png(
-                self.preview_path(layout.VIEW_COUNT),
-                np.where(seen, view_count, np.nan).astype(np.float64),
-                vmin=0.0,
-                vmax=float(max(view_count.max(), 1)),
-                mask=seen,
-                title="fitting views per texel",
-                colorbar=True,
-            )
+        for name, values in diagnostics.items():
+            self._write_diagnostic_map(name, np.asarray(values), mask)
         upper = rho[..., :3] if rho.shape[-1] >= 3 else np.repeat(rho[..., :1], 3, -1)
         scale = max(float(np.percentile(upper[mask], 99.5)) if mask.any() else 1.0, 1e-6)
         preview = np.clip(upper / scale, 0, 1)
         shown = np.where(mask[..., None], preview, 0.0).astype(np.float64)
         write_png(self.preview_path("rho_sss_bar_rgb"), shown)
+
+    def _write_diagnostic_map(self, name: str, values: np.ndarray, mask: np.ndarray) -> None:
+        """``maps/<name>.exr`` and its preview, scaled from the entry's ``vmin`` to the map's maximum."""
+        spec = layout.DIAGNOSTIC_MAPS[name]
+        self.write_scalar_map(name, values.astype(np.float32))
+        shown = values > 0 if spec.shown == "positive" else mask
+        colormap_png(
+            self.preview_path(name),
+            np.where(shown, values, np.nan).astype(np.float64),
+            vmin=spec.vmin,
+            vmax=float(max(values.max(), spec.vmin + 1)),
+            mask=shown,
+            title=spec.title,
+            colorbar=True,
+        )
 
     def _write_map_preview(self, name: str, values: np.ndarray, mask: np.ndarray) -> None:
         """Colour-mapped preview over the 1st..99th percentile of the masked values."""

@@ -6,9 +6,12 @@ part of the on-disk format: renaming one breaks old RESULT folders.
 
 from __future__ import annotations
 
+import dataclasses
+
 __all__ = [
     "CHROMOPHORE_MAPS",
     "CHROMOPHORE_PREVIEWS",
+    "DIAGNOSTIC_MAPS",
     "EXPORTS_DIR",
     "FRAMES_DIR",
     "GEOMETRY_DIR",
@@ -18,6 +21,7 @@ __all__ = [
     "RESULT_FORMAT",
     "RESULT_VERSION",
     "RHO_SSS_BAR",
+    "DiagnosticMap",
     "default_channel_names",
 ]
 
@@ -49,6 +53,34 @@ RHO_SSS_BAR = "rho_sss_bar"
 #: Texel mask ``maps/mask.png`` (8-bit, 255 = valid) and fitting views per texel ``maps/view_count.exr``.
 MASK = "mask"
 VIEW_COUNT = "view_count"
+
+
+@dataclasses.dataclass(frozen=True)
+class DiagnosticMap:
+    """How a per-texel diagnostic map of the polarimetric stage is previewed and captioned.
+
+    Attributes:
+        title: the preview's title.
+        caption: the report's caption; ``{min_views}`` is replaced by the stage's ``min_views``.
+        vmin: lower end of the preview's colour scale; the upper end is the map's maximum (at least
+            ``vmin + 1``).
+        shown: which texels the preview colours: ``"positive"`` (value > 0) or ``"mask"`` (the result mask).
+    """
+
+    title: str
+    caption: str
+    vmin: float = 0.0
+    shown: str = "mask"
+
+
+#: Diagnostic maps ``maps/<name>.exr`` (channel ``Y``, float32) with a preview ``previews/<name>.png``,
+#: written by the polarimetric stage when it computes them and shown by the report in this order.
+DIAGNOSTIC_MAPS: dict[str, DiagnosticMap] = {
+    VIEW_COUNT: DiagnosticMap(
+        "fitting views per texel", "fitting views per texel (mask: >= {min_views})", shown="positive"
+    ),
+}
+
 #: Chromophore maps ``maps/<name>.exr`` (channel ``Y``, volume fractions), in the biophysical order.
 CHROMOPHORE_MAPS = ("c_m", "beta_m", "c_h_in", "c_h_out")
 #: The biophysical stage's other maps.
