@@ -1,4 +1,4 @@
-"""Benchmark and accuracy report of the biophysical stage (issue 7) on simulator ground truth.
+"""Benchmark and accuracy report of the biophysical stage on simulator ground truth.
 
 For each requested skin type the simulator's scene is built (``SimulationScene.build``: ground-truth
 maps through the skin model, no rendering) and two RESULT folders are written:

@@ -157,7 +157,7 @@ def test_radiometry_local_subsurface():
 
 def test_exact_coaxial_cross_polarized_has_no_specular():
     """A light at the camera centre: the specular lobes stay [k, k, 0, 0], so I90 is subsurface only and
-    2 I90 = K (T+^2 - T-^2 xi^2) exactly (DESIGN.md: the shortcut drops T- T- xi^2)."""
+    2 I90 = K (T+^2 - T-^2 xi^2) exactly (docs/conventions.md, errata: the shortcut drops T-^2 xi^2)."""
     cam = PinholeCamera.centred(48, 48, 300.0)
     geometry = trace_sphere(cam, (0.0, 0.0, 1000.0), 80.0, F64)
     normal, position = geometry.normal[geometry.mask], geometry.position[geometry.mask]
