@@ -47,6 +47,7 @@ from polarface.optics.mueller import (
     stokes_frame,
 )
 from polarface.optics.pbssrdf import (
+    SURFACE_PARAMETER_NAMES,
     pbssrdf_coaxial_mueller,
     pbssrdf_mueller,
     pbssrdf_specular_mueller,
@@ -64,6 +65,7 @@ from polarface.optics.stokes import (
 __all__ = [
     "ANALYZER_ANGLES",
     "DEFAULT_LIGHT_STOKES",
+    "SURFACE_PARAMETER_NAMES",
     "FresnelTerms",
     "PolarimetricImages",
     "analyzer_intensity",

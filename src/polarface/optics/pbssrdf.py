@@ -44,12 +44,17 @@ from polarface.optics.mueller import (
 )
 
 __all__ = [
+    "SURFACE_PARAMETER_NAMES",
     "microfacet_kappa",
     "pbssrdf_coaxial_mueller",
     "pbssrdf_mueller",
     "pbssrdf_specular_mueller",
     "pbssrdf_subsurface_mueller",
 ]
+
+#: The pBSSRDF's scalar surface parameters (paper Eq. pbssrdf): refractive index, the roughness of the
+#: specular and single-scattering lobes and their albedos; ``rho_sss_bar`` (per channel) completes them.
+SURFACE_PARAMETER_NAMES = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss")
 
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

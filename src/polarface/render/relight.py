@@ -38,7 +38,7 @@ from polarface.render.renderer import render_view, rig_lighting, shading_normals
 from polarface.render.shading import FrameTextures, fragment_material, lobe_stokes
 from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
 from polarface.results import ResultAppearance
-from polarface.skin.layers import PARAMETER_RANGES
+from polarface.skin.layers import CHROMOPHORE_NAMES, PARAMETER_RANGES
 
 __all__ = [
     "ResultAppearance",
@@ -197,7 +197,7 @@ def _result_textures(
     reference = rig.polarimetric_cameras()[0].pinhole()
     eta = np.where(mask, maps["eta"], 1.4).astype(np.float32)
     flux = entering_flux(caster, raster, shading, eta, lights, intensity, reference.up_vector)
-    chromophores = apply_edits({k: maps[k] for k in ("c_m", "beta_m", "c_h_in", "c_h_out")}, edits)
+    chromophores = apply_edits({k: maps[k] for k in CHROMOPHORE_NAMES}, edits)
     calibration = rig.spectral.to_calibration()
     params = {
         k: np.where(mask, maps[k], 0.0).astype(np.float32) for k in ("alpha_s", "alpha_ss", "rho_s", "rho_ss")

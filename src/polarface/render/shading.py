@@ -26,6 +26,7 @@ from scipy import ndimage
 from polarface._validation import trusted_inputs
 from polarface.geometry.uv_raster import sample_texture
 from polarface.optics.image_formation import render_polarimetric
+from polarface.optics.pbssrdf import SURFACE_PARAMETER_NAMES
 
 __all__ = [
     "PARAMETER_ORDER",
@@ -38,7 +39,7 @@ __all__ = [
 ]
 
 #: Order of the parameter channels stacked in :attr:`FrameTextures.stack`.
-PARAMETER_ORDER = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss")
+PARAMETER_ORDER = SURFACE_PARAMETER_NAMES
 #: First channel of the shading normal and of the exitance in :attr:`FrameTextures.stack`.
 NORMAL_CHANNEL = len(PARAMETER_ORDER)
 EXITANCE_CHANNEL = NORMAL_CHANNEL + 3

@@ -31,7 +31,13 @@ from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster
 from polarface.optics.image_formation import subsurface_entry_flux
 from polarface.skin.heterogeneous import ProfileShapes, fit_layer_shapes, render_layered_subsurface
-from polarface.skin.layers import LayerTotals, SkinLayerConstants, layer_optics, layer_totals
+from polarface.skin.layers import (
+    CHROMOPHORE_NAMES,
+    LayerTotals,
+    SkinLayerConstants,
+    layer_optics,
+    layer_totals,
+)
 
 __all__ = ["SubsurfaceModel", "entering_flux", "texture_space_exitance"]
 
@@ -80,7 +86,7 @@ class SubsurfaceModel:
         mask = raster.mask
         params = [
             torch.from_numpy(np.asarray(chromophores[k][mask], np.float64))
-            for k in ("c_m", "beta_m", "c_h_in", "c_h_out")
+            for k in CHROMOPHORE_NAMES
         ]
         optics = layer_optics(*params, wavelengths_nm, constants)
         per_texel = layer_totals(*optics, constants)  # each (N, L)

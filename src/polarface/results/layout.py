@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import dataclasses
 
+from polarface.optics.pbssrdf import SURFACE_PARAMETER_NAMES
+from polarface.skin.layers import CHROMOPHORE_NAMES
+
 __all__ = [
     "CHROMOPHORE_MAPS",
     "CHROMOPHORE_PREVIEWS",
@@ -46,7 +49,7 @@ REPORT_HTML = "report.html"
 POSES_JSON = "poses.json"
 
 #: Single-channel (``Y``) polarimetric maps ``maps/<name>.exr``, in the fit's order.
-POLARIMETRIC_MAPS = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "displacement_mm")
+POLARIMETRIC_MAPS = (*SURFACE_PARAMETER_NAMES, "displacement_mm")
 #: The six-channel subsurface albedo ``maps/rho_sss_bar.exr`` (channels named as ``result.json``'s
 #: ``channel_names``, i.e. the rig's spectral calibration).
 RHO_SSS_BAR = "rho_sss_bar"
@@ -82,7 +85,7 @@ DIAGNOSTIC_MAPS: dict[str, DiagnosticMap] = {
 }
 
 #: Chromophore maps ``maps/<name>.exr`` (channel ``Y``, volume fractions), in the biophysical order.
-CHROMOPHORE_MAPS = ("c_m", "beta_m", "c_h_in", "c_h_out")
+CHROMOPHORE_MAPS = CHROMOPHORE_NAMES
 #: The biophysical stage's other maps.
 RHO_SSS_BAR_RENDERED = "rho_sss_bar_rendered"
 RHO_SSS_BAR_RESIDUAL = "rho_sss_bar_residual"

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from polarface.results import CHROMOPHORE_MAPS, POLARIMETRIC_MAPS
 from polarface.simulate.presets import SkinTypePreset
 
 __all__ = [
@@ -41,18 +42,7 @@ __all__ = [
 ]
 
 #: Names of the scalar maps, in the order they are saved.
-SCALAR_MAPS = (
-    "eta",
-    "alpha_s",
-    "alpha_ss",
-    "rho_s",
-    "rho_ss",
-    "displacement_mm",
-    "c_m",
-    "beta_m",
-    "c_h_in",
-    "c_h_out",
-)
+SCALAR_MAPS = (*POLARIMETRIC_MAPS, *CHROMOPHORE_MAPS)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

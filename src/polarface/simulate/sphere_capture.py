@@ -31,6 +31,7 @@ from polarface.geometry.poses import rigid_transform, save_poses
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster, rasterize_uv, reposition
 from polarface.io import write_exr, write_png
+from polarface.optics.pbssrdf import SURFACE_PARAMETER_NAMES
 from polarface.render.renderer import ViewRender, render_view, rig_lighting, shading_normals
 from polarface.render.shading import FrameTextures
 from polarface.render.subsurface import entering_flux
@@ -143,7 +144,7 @@ def _render_frames(
         flux = entering_flux(caster, posed, shading, maps["eta"], lights, intensity, reference_up)
         exitance = maps["rho_sss_bar"] * flux[..., None]
         textures = FrameTextures.build(
-            {k: maps[k] for k in ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss")},
+            {k: maps[k] for k in SURFACE_PARAMETER_NAMES},
             shading,
             exitance,
             posed.mask,

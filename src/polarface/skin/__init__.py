@@ -33,6 +33,7 @@ from polarface.skin.fitting import (
 )
 from polarface.skin.heterogeneous import ProfileShapes, fit_layer_shapes, render_layered_subsurface
 from polarface.skin.layers import (
+    CHROMOPHORE_NAMES,
     PARAMETER_RANGES,
     LayerOptics,
     LayerTotals,
@@ -76,6 +77,7 @@ from polarface.skin.spectral import (
 
 __all__ = [
     "CHANNEL_NAMES",
+    "CHROMOPHORE_NAMES",
     "DEFAULT_N_POLES",
     "DEFAULT_WAVELENGTHS_NM",
     "DOLBY_LOWER_BANDS_NM",

@@ -47,6 +47,7 @@ from polarface.skin.chromophores import (
 from polarface.skin.multipole import DEFAULT_N_POLES, _closed_form_totals
 
 __all__ = [
+    "CHROMOPHORE_NAMES",
     "PARAMETER_RANGES",
     "LayerOptics",
     "LayerTotals",
@@ -92,6 +93,9 @@ class SkinLayerConstants:
 #: Physical ranges of the biophysical parameters (volume fractions), used by fits and validation.
 #: Melanin up to 0.5 and haemoglobin up to 0.32 contain the literature ranges (Donner & Jensen
 #: 2006, Jimenez 2010) and the paper's estimates (supplement Table tb:res_params).
+#: The two-layer model's chromophore parameters (volume fractions), in the order every stage uses.
+CHROMOPHORE_NAMES = ("c_m", "beta_m", "c_h_in", "c_h_out")
+
 PARAMETER_RANGES: dict[str, tuple[float, float]] = {
     "c_m": (0.0, 0.5),
     "beta_m": (0.0, 1.0),

@@ -40,6 +40,7 @@ import torch
 from polarface._validation import as_float_tensor, check_range
 from polarface.skin.heterogeneous import ProfileShapes, render_layered_subsurface
 from polarface.skin.layers import (
+    CHROMOPHORE_NAMES,
     PARAMETER_RANGES,
     SkinLayerConstants,
     _chromophore_spectra,
@@ -57,7 +58,7 @@ __all__ = [
 ]
 
 #: Order of the biophysical parameters on the last axis of parameter tensors.
-PARAMETER_ORDER = ("c_m", "beta_m", "c_h_in", "c_h_out")
+PARAMETER_ORDER = CHROMOPHORE_NAMES
 
 
 class _Tables(NamedTuple):

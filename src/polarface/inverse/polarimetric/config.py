@@ -14,11 +14,12 @@ import numpy as np
 import torch
 
 from polarface.inverse.polarimetric.losses import LossWeights
+from polarface.optics.pbssrdf import SURFACE_PARAMETER_NAMES
 
 __all__ = ["PARAMETER_NAMES", "PolarimetricConfig", "initial_raw", "maps_from_raw", "raw_from_maps"]
 
 #: Output maps (``rho_sss_bar`` has 6 channels, the others one).
-PARAMETER_NAMES = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "rho_sss_bar", "displacement_mm")
+PARAMETER_NAMES = (*SURFACE_PARAMETER_NAMES, "rho_sss_bar", "displacement_mm")
 
 
 @dataclasses.dataclass(frozen=True)

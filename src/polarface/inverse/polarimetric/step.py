@@ -22,14 +22,14 @@ import numba
 import numpy as np
 import torch
 
-from polarface.inverse.polarimetric.config import PolarimetricConfig
+from polarface.inverse.polarimetric.config import PARAMETER_NAMES, PolarimetricConfig
 from polarface.inverse.polarimetric.fused import fused_loss_and_grad
 from polarface.inverse.polarimetric.losses import laplacian_support
 
 __all__ = ["RAW_LAYOUT", "optimise_patch_fused"]
 
 #: Channels of the packed raw array ``(h, w, 12)``.
-RAW_LAYOUT = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "rho_sss_bar", "displacement_mm")
+RAW_LAYOUT = PARAMETER_NAMES
 _CHANNELS = (1, 1, 1, 1, 1, 6, 1)
 _JIT = {"cache": True, "error_model": "numpy", "nogil": True}
 _RMS_ALPHA, _RMS_EPS = 0.99, 1e-8
