@@ -1,8 +1,11 @@
 """polarface: polarimetric BSSRDF acquisition of dynamic faces.
 
 Implements Ha et al., "Polarimetric BSSRDF Acquisition of Dynamic Faces", ACM TOG 43(6), 2024.
-Data flows one way: optics -> skin -> capture -> geometry -> texture -> inverse -> render/export,
-with ``simulate`` beside them. See ``docs/conventions.md`` for units, shapes and frames.
+Data flows one way: optics -> skin -> geometry -> capture -> results -> texture -> render ->
+simulate -> inverse -> report -> pipeline -> commands (the README's "Layout"). See
+``docs/conventions.md`` for units, shapes and frames.
 """
 
 __version__ = "0.1.0"
+
+__all__ = ["__version__"]

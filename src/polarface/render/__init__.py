@@ -1,1 +1,73 @@
-"""polarface.render"""
+"""The renderer: one image formation for the simulator, ``polarface render`` and the report.
+
+Stages, each with a frozen-dataclass output whose fields document shape, dtype, units and frame (in the
+manner of a rasterizer -> fragments -> shader pipeline):
+
+1. :func:`cast_fragments` -> :class:`SurfaceFragments`: Embree ray casting of a view (hit mask, texel
+   coordinates, world positions and normals).
+2. :class:`SubsurfaceModel`, :func:`entering_flux`, :func:`texture_space_exitance`: texture-space
+   subsurface transport (entry Fresnel under the rig's polarized LEDs, heterogeneous two-layer
+   sum-of-Gaussians diffusion).
+3. :func:`fragment_material`, :func:`lobe_stokes`: polarimetric shading of fragments with the image
+   formation of :mod:`polarface.optics` (exit Fresnel, specular and single-scattering Mueller lobes).
+
+:func:`render_view` composes them into a :class:`ViewRender`; :func:`render_result_view` and
+:func:`mueller_images` render a RESULT folder's maps, :func:`render_demo` the optics-only sphere.
+"""
+
+from polarface.render.demo import DemoParameters, DemoRender, render_demo
+from polarface.render.fragments import SurfaceFragments, cast_fragments
+from polarface.render.relight import (
+    apply_edits,
+    encode_srgb,
+    linear_rgb_from_channels,
+    linear_srgb_to_lab,
+    mueller_images,
+    parse_edits,
+    render_result_view,
+)
+from polarface.render.renderer import ViewRender, analyzer_images, render_view, rig_lighting, shading_normals
+from polarface.render.result_views import render_result_outputs
+from polarface.render.scene import SphereGeometry, ring_light_positions, trace_sphere
+from polarface.render.shading import (
+    FragmentMaterial,
+    FrameTextures,
+    facing_shading_normal,
+    fill_empty_texels,
+    fragment_material,
+    lobe_stokes,
+)
+from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
+
+__all__ = [
+    "DemoParameters",
+    "DemoRender",
+    "FragmentMaterial",
+    "FrameTextures",
+    "SphereGeometry",
+    "SubsurfaceModel",
+    "SurfaceFragments",
+    "ViewRender",
+    "analyzer_images",
+    "apply_edits",
+    "cast_fragments",
+    "encode_srgb",
+    "entering_flux",
+    "facing_shading_normal",
+    "fill_empty_texels",
+    "fragment_material",
+    "linear_rgb_from_channels",
+    "linear_srgb_to_lab",
+    "lobe_stokes",
+    "mueller_images",
+    "parse_edits",
+    "render_demo",
+    "render_result_outputs",
+    "render_result_view",
+    "render_view",
+    "rig_lighting",
+    "ring_light_positions",
+    "shading_normals",
+    "texture_space_exitance",
+    "trace_sphere",
+]

@@ -41,7 +41,6 @@ from polarface.results import ResultAppearance
 from polarface.skin.layers import CHROMOPHORE_NAMES, PARAMETER_RANGES
 
 __all__ = [
-    "ResultAppearance",
     "apply_edits",
     "encode_srgb",
     "linear_rgb_from_channels",

@@ -1,0 +1,164 @@
+"""The public API of every package, pinned (in the manner of kornia's ``tests/test_api_surface.py``).
+
+Each package's ``__init__`` lists its public names in ``__all__``. A change to a public name must change
+this table too, so that additions and removals are deliberate and show up in review.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+
+import pytest
+
+import polarface
+
+PUBLIC_API: dict[str, tuple[str, ...]] = {
+    "polarface": (
+        "__version__",
+    ),
+    "polarface.capture": (
+        "BAYER_BLOCK", "Camera", "CaptureStore", "CharucoBoardSpec", "DEMOSAIC_METHODS",
+        "DemosaicErrors", "DemosaicMethod", "FrameRecord", "IntrinsicsResult", "Lattice",
+        "LightModule", "MANIFEST_FORMAT", "MANIFEST_VERSION", "OBSERVATION_NAMES", "Observations",
+        "PATTERNS", "POLARIZER_BLOCK", "PolarizationStack", "RAW_SUFFIXES", "Rig", "SENSOR_KINDS",
+        "SIX_CHANNEL_NAMES", "SensorNoise", "SpectralModel", "StereoResult", "angle_index_map",
+        "calibrate_intrinsics", "calibrate_rig", "calibrate_stereo", "chessboard_object_points",
+        "colour_index_map", "convergence_distance_mm", "demosaic", "demosaic_camera",
+        "depth_from_mesh", "detect_charuco", "detect_chessboard", "frame_marker_path",
+        "ingest_directory", "lattices", "manifest_problems", "measure_demosaic",
+        "merge_six_channels", "mosaic", "observations_from_intensities", "observations_from_stack",
+        "paper_rig", "pattern_period", "plane_homography", "raw_bit_depth_ok", "read_gray",
+        "read_image_list", "read_manifest", "register_to_reference", "registration_map",
+        "reprojection_rms", "scan_raw_directory", "simulate_raw", "stokes_pattern", "update_rig",
+        "write_manifest", "write_stokes_images",
+    ),
+    "polarface.geometry": (
+        "EXPRESSIONS", "ExpressionConfig", "ExpressionRig", "HeadAsset", "HeightNormals",
+        "PinholeCamera", "RayCaster", "RayHits", "StaticSequenceConfig", "TriangleMesh", "UVRaster",
+        "check_rigid", "dilate_texture", "distort_normalized", "dynamic_sequence_weights",
+        "embree_available", "euler_from_rotation", "face_areas", "face_normals", "flipped_faces",
+        "head_placement", "height_gradients", "invert_rigid", "load_head_asset", "load_mesh",
+        "load_poses", "look_at", "normals_from_height_gradients", "normals_from_heights",
+        "pick_landmark", "rasterize_uv", "reposition", "rigid_transform", "rotation_from_euler",
+        "sample_texture", "save_obj", "save_ply", "save_poses", "smooth_falloff", "srgb_to_linear",
+        "static_sequence_poses", "texel_uv", "texels_to_world", "undistort_normalized",
+        "vertex_normals",
+    ),
+    "polarface.inverse": (
+        "BiophysicalConfig", "BiophysicalFit", "IorResult", "POLARIMETRIC_ENGINES",
+        "PolarimetricConfig", "PolarimetricFit", "SphereScene", "estimate_ior", "fit_biophysical",
+        "fit_polarimetric",
+    ),
+    "polarface.inverse.biophysical": (
+        "BiophysicalConfig", "BiophysicalFit", "PARAMETER_ORDER", "TotalsTable",
+        "blurred_channel_albedo", "check_parameter_maps", "fit_biophysical", "fit_local_parameters",
+        "gamut_distance", "local_channel_albedo", "local_channel_albedo_with_jacobian",
+        "median_shapes", "per_texel_relative_residual", "relative_rmse",
+    ),
+    "polarface.inverse.polarimetric": (
+        "FusedSamples", "LobeRefinement", "LossWeights", "PARAMETER_NAMES", "POLARIMETRIC_ENGINES",
+        "PatchProblem", "PolarimetricConfig", "PolarimetricEngine", "PolarimetricFit",
+        "SampleBatch", "SamplePrediction", "benchmark_problem", "build_fused_samples",
+        "build_patch_samples", "data_losses", "fit_polarimetric", "fused_data_loss",
+        "fused_loss_and_grad", "init_albedos", "init_eta", "initial_raw", "laplacian_penalty",
+        "maps_from_raw", "nan_median_filter", "optimise_patch", "pack_parameters",
+        "precompute_samples", "raw_from_maps", "refine_lobes", "refine_patch_lobes",
+        "render_samples", "render_view_texture", "resolve_engine", "run_benchmark",
+        "shading_normals", "smoothness_hessian", "smoothness_penalty", "weighted_residuals",
+    ),
+    "polarface.io": (
+        "atomic_directory", "atomic_path", "colormap_png", "image_header", "read_exr", "read_png",
+        "write_exr", "write_json_atomic", "write_png",
+    ),
+    "polarface.optics": (
+        "ANALYZER_ANGLES", "DEFAULT_LIGHT_STOKES", "FresnelTerms", "PolarimetricImages",
+        "SURFACE_PARAMETER_NAMES", "analyzer_intensity", "aolp", "brewster_angle", "depolarizer",
+        "diffuse_dop", "double_angle_cos_sin", "frame_rotation_angle", "fresnel_reflectance",
+        "fresnel_terms", "fresnel_transmittance", "fresnel_transmittance_exit", "ggx_d",
+        "incidence_frame_angle", "intensities_from_stokes", "linear_dop", "linear_polarizer",
+        "max_diffuse_dop", "mueller_fresnel_reflection", "mueller_fresnel_transmission",
+        "pbssrdf_coaxial_mueller", "pbssrdf_mueller", "pbssrdf_specular_mueller",
+        "pbssrdf_subsurface_mueller", "plane_azimuth", "render_polarimetric", "rotator", "smith_g",
+        "smith_g1", "smith_g1_over_cos", "specular_dop", "stokes_frame", "stokes_from_intensities",
+        "subsurface_entry_flux", "subsurface_exit_stokes", "zenith_from_diffuse_dop",
+        "zenith_from_specular_dop",
+    ),
+    "polarface.pipeline": (
+        "ANALYZER_IMAGE_NAMES", "METRIC_GROUPS", "ReconstructContext", "ReconstructInputs",
+        "STAGES", "SkinFitSummary", "biophysical_metrics", "estimate_ior_from_folder", "evaluate",
+        "evaluate_biophysical", "fit_spectra_file", "ground_truth_root", "load_stage_inputs",
+        "polarimetric_metrics", "read_analyzer_image", "read_reflectance_csv", "reconstruct",
+        "reconstruct_summary_line", "rerender_metrics", "resolve_reconstruct_inputs",
+        "run_biophysical_stage", "run_demo_pipeline", "run_sphere_demo", "run_stages",
+        "validate_ior",
+    ),
+    "polarface.render": (
+        "DemoParameters", "DemoRender", "FragmentMaterial", "FrameTextures", "SphereGeometry",
+        "SubsurfaceModel", "SurfaceFragments", "ViewRender", "analyzer_images", "apply_edits",
+        "cast_fragments", "encode_srgb", "entering_flux", "facing_shading_normal",
+        "fill_empty_texels", "fragment_material", "linear_rgb_from_channels", "linear_srgb_to_lab",
+        "lobe_stokes", "mueller_images", "parse_edits", "render_demo", "render_result_outputs",
+        "render_result_view", "render_view", "rig_lighting", "ring_light_positions",
+        "shading_normals", "texture_space_exitance", "trace_sphere",
+    ),
+    "polarface.report": (
+        "HtmlPage", "ImageItem", "Section", "biophysical_section", "write_report",
+    ),
+    "polarface.results": (
+        "CHROMOPHORE_MAPS", "CHROMOPHORE_PREVIEWS", "DIAGNOSTIC_MAPS", "DiagnosticMap",
+        "POLARIMETRIC_MAPS", "RESULT_FORMAT", "RESULT_VERSION", "RHO_SSS_BAR", "ResultAppearance",
+        "ResultFolder", "default_channel_names", "load_sog", "sog_shapes",
+    ),
+    "polarface.simulate": (
+        "AppearanceMaps", "PRESETS", "SKIN_TYPES", "SimulationConfig", "SimulationPreset",
+        "SimulationScene", "SphereCaptureConfig", "blood_flow_factor", "build_appearance_maps",
+        "get_preset", "get_skin_type", "make_sphere_capture", "render_frame", "simulate",
+        "sphere_cap_mesh", "sphere_placement", "static_poses",
+    ),
+    "polarface.skin": (
+        "CHANNEL_NAMES", "CHROMOPHORE_NAMES", "DEFAULT_N_POLES", "DEFAULT_WAVELENGTHS_NM",
+        "DOLBY_LOWER_BANDS_NM", "DOLBY_UPPER_BANDS_NM", "FIT_PARAMETER_NAMES", "FitSettings",
+        "HAEMOGLOBIN_TABLE_RANGE_NM", "HB_CONCENTRATION_G_PER_L", "HB_MOLAR_MASS_G_PER_MOL",
+        "LayerOptics", "LayerTotals", "PARAMETER_RANGES", "ProfileShapes", "SOG_COUNT",
+        "SOG_V0_MM2", "SkinLayerConstants", "SoGFit", "SpectralCalibration", "SpectrumFit",
+        "cie_illuminant", "compose_total_reflectance", "default_radial_grid",
+        "default_spectral_calibration", "default_wavelengths", "fit_layer_shapes",
+        "fit_reflectance_spectra", "fit_sog", "fresnel_diffuse_reflectance", "gaussian_2d",
+        "gaussian_blur", "interpolate_table", "layer_optics", "layer_totals", "load_spectral_table",
+        "reflectance_model", "render_layered_subsurface", "sigma_a_baseline",
+        "sigma_a_deoxy_haemoglobin", "sigma_a_eumelanin", "sigma_a_oxy_haemoglobin",
+        "sigma_a_pheomelanin", "sigma_s_prime_outer", "slab_profiles", "slab_totals",
+        "slab_totals_forward_backward", "sog_blur", "sog_profile", "sog_variances", "spectral",
+        "spectrum_to_srgb", "subsurface_albedo",
+    ),
+    "polarface.texture": (
+        "TEXTURE_OBSERVATION_NAMES", "TexelGeometry", "UnwrapConfig", "UnwrapStore", "ViewSpec",
+        "build_views", "footprint_sees_surface", "sample_view", "texel_geometry", "unwrap_capture",
+    ),
+}
+
+
+def _packages() -> list[str]:
+    found = [info.name for info in pkgutil.walk_packages(polarface.__path__, "polarface.") if info.ispkg]
+    return ["polarface", *sorted(name for name in found if not name.startswith("polarface.commands"))]
+
+
+def test_every_package_is_pinned():
+    assert sorted(PUBLIC_API) == _packages()
+
+
+@pytest.mark.parametrize("package", sorted(PUBLIC_API))
+def test_public_names_are_pinned(package):
+    module = importlib.import_module(package)
+    assert hasattr(module, "__all__"), f"{package} has no __all__"
+    assert sorted(module.__all__) == sorted(PUBLIC_API[package])
+    assert len(set(module.__all__)) == len(module.__all__), f"{package}.__all__ repeats a name"
+
+
+@pytest.mark.parametrize("package", sorted(PUBLIC_API))
+def test_public_names_exist_and_are_not_private(package):
+    module = importlib.import_module(package)
+    for name in module.__all__:
+        assert name == "__version__" or not name.startswith("_"), f"{package}.{name} is private"
+        assert hasattr(module, name), f"{package}.__all__ lists {name}, which it does not define"
