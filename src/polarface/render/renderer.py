@@ -56,7 +56,10 @@ class ViewRender:
 
 def shading_normals(raster: UVRaster, displacement_mm: np.ndarray) -> np.ndarray:
     """``(Ht, Wt, 3)`` float64 world unit shading normals of a posed ``raster`` with the displacement
-    map ``(Ht, Wt)`` (mm along the geometric normal) applied (:func:`normals_from_heights`)."""
+    map ``(Ht, Wt)`` (mm along the geometric normal) applied (:func:`normals_from_heights`).
+
+    ``raster`` may also be a :class:`polarface.texture.TexelGeometry` (same per-texel fields; its
+    frame, the model frame, is then the frame of the normals)."""
     as_tensor = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float64))  # noqa: E731
     return normals_from_heights(
         as_tensor(displacement_mm),

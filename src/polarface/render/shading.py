@@ -183,7 +183,8 @@ def lobe_stokes(
         camera_center: ``(3,)`` mm; camera_up: ``(3,)`` world up of the camera (Stokes frame).
         light_positions: ``(K, 3)`` float64 LED module positions, mm.
         visible: ``(N, K)`` bool shadow-ray visibility of each module.
-        intensity: ``(1, C)`` radiant intensity of a module (``(1, 1)`` broadcasts over channels).
+        intensity: ``(1, C)`` radiant intensity of every module (``(1, 1)`` broadcasts over channels),
+            or ``(K, C)`` one row per module.
         stokes: ``(N, C, 4)`` the Stokes to add to (e.g. the subsurface term).
         light_stokes: incident Stokes vector of the LEDs (default: the image formation's default).
         skip_unlit: skip modules that no fragment sees (they add zero).
@@ -202,7 +203,7 @@ def lobe_stokes(
             camera_center,
             camera_up,
             torch.from_numpy(light_positions[k : k + 1].astype(numpy_dtype)),
-            intensity,
+            intensity[k : k + 1] if intensity.shape[0] > 1 else intensity,
             material.eta,
             material.alpha_s,
             material.alpha_ss,

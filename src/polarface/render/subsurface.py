@@ -39,7 +39,7 @@ from polarface.skin.layers import (
     layer_totals,
 )
 
-__all__ = ["SubsurfaceModel", "entering_flux", "texture_space_exitance"]
+__all__ = ["SubsurfaceModel", "entering_flux", "texture_space_exitance", "visible_entry_flux"]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -147,24 +147,59 @@ def entering_flux(
     lights = np.asarray(light_positions, np.float64)
     flux = np.zeros(points.shape[0])
     up = torch.from_numpy(np.asarray(camera_up, np.float64))
+    intensity = torch.full((lights.shape[0], 1), float(light_intensity), dtype=torch.float64)
     for start in range(0, points.shape[0], chunk):
         stop = min(start + chunk, points.shape[0])
         visible = caster.shadow_rays(points[start:stop], geometric[start:stop], lights)  # (n, K)
-        for k in range(lights.shape[0]):
-            lit = visible[:, k]
-            if not lit.any():
-                continue
-            phi = subsurface_entry_flux(
-                torch.from_numpy(normals[start:stop][lit]),
-                torch.from_numpy(points[start:stop][lit]),
-                up,
-                torch.from_numpy(lights[k : k + 1]),
-                torch.tensor([float(light_intensity)], dtype=torch.float64),
-                torch.from_numpy(etas[start:stop][lit])[:, None],
-            )
-            flux[start:stop][lit] += phi[:, 0].numpy()
+        phi = visible_entry_flux(
+            torch.from_numpy(normals[start:stop]),
+            torch.from_numpy(points[start:stop]),
+            up,
+            lights,
+            intensity,
+            torch.from_numpy(etas[start:stop])[:, None],
+            visible,
+        )
+        flux[start:stop] = phi[:, 0].numpy()
     out[mask] = flux
     return out
+
+
+def visible_entry_flux(
+    normal: torch.Tensor,
+    position: torch.Tensor,
+    up: torch.Tensor,
+    light_positions: np.ndarray,
+    light_intensity: torch.Tensor,
+    eta: torch.Tensor,
+    visible: np.ndarray,
+) -> torch.Tensor:
+    """``(N, C)`` flux entering the skin at ``N`` points, summed over the LED modules each point sees.
+
+    :func:`polarface.optics.subsurface_entry_flux` of every module ``k`` over the points whose shadow
+    ray to it is free (``visible[:, k]``); shadowed modules add nothing.
+
+    Args:
+        normal: ``(N, 3)`` unit shading normals; position: ``(N, 3)`` mm (one frame, float64 or 32).
+        up: ``(3,)`` or ``(N, 3)`` up vector of the lights' polarizer frame.
+        light_positions: ``(K, 3)`` mm (numpy). light_intensity: ``(K, C)`` radiant intensity per channel.
+        eta: ``(N, 1)`` or ``(N, C)`` refractive index > 1. visible: ``(N, K)`` bool.
+    """
+    flux = torch.zeros(normal.shape[0], light_intensity.shape[-1], dtype=position.dtype)
+    lights = torch.from_numpy(np.asarray(light_positions)).to(position.dtype)
+    for k in range(lights.shape[0]):
+        lit = torch.from_numpy(np.asarray(visible[:, k], bool))
+        if not bool(lit.any()):
+            continue
+        flux[lit] += subsurface_entry_flux(
+            normal[lit],
+            position[lit],
+            up if up.ndim == 1 else up[lit],
+            lights[k : k + 1],
+            light_intensity[k : k + 1],
+            eta[lit],
+        )
+    return flux
 
 
 def texture_space_exitance(
