@@ -10,7 +10,7 @@ from polarface.geometry.camera import PinholeCamera
 from polarface.geometry.mesh import TriangleMesh, load_mesh
 from polarface.geometry.poses import load_poses
 from polarface.geometry.raycast import RayCaster
-from polarface.inverse.polarimetric import render_view_texture
+from polarface.render import render_view_texture
 from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
 from polarface.texture import UnwrapConfig, UnwrapStore, footprint_sees_surface, unwrap_capture
 

@@ -74,7 +74,7 @@ def _map_errors(name: str, estimate: np.ndarray, truth: np.ndarray, mask: np.nda
 
 def polarimetric_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
     """Per-map absolute/relative errors and the normal angular error (module docstring)."""
-    from polarface.inverse.polarimetric import shading_normals
+    from polarface.render import texel_shading_normals
     from polarface.texture import UnwrapStore
 
     _, estimate, truth = _load(result_dir, gt_dir)
@@ -95,8 +95,8 @@ def polarimetric_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
             metrics[name] = _map_errors(name, estimate[name], truth[name], mask)
     unwrap = UnwrapStore.open(ResultFolder(result_dir).unwrap_path)
     if "displacement_mm" in estimate and "displacement_mm" in truth:
-        n_est = shading_normals(unwrap, estimate["displacement_mm"].astype(np.float32))[mask]
-        n_gt = shading_normals(unwrap, truth["displacement_mm"].astype(np.float32))[mask]
+        n_est = texel_shading_normals(unwrap, estimate["displacement_mm"].astype(np.float32))[mask]
+        n_gt = texel_shading_normals(unwrap, truth["displacement_mm"].astype(np.float32))[mask]
         angle = np.degrees(np.arccos(np.clip((n_est * n_gt).sum(-1), -1.0, 1.0)))
         metrics["normal_angular_error_deg"] = {
             "median": float(np.median(angle)),
@@ -108,7 +108,7 @@ def polarimetric_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
 def _rerender_sums(unwrap, maps: dict[str, np.ndarray], held: list[int], normal: np.ndarray,
                    mask: np.ndarray | None) -> tuple[dict[str, float], dict[str, float], int]:
     """Squared errors, observed sums and the sample count over the held-out views (channel-wise)."""
-    from polarface.inverse.polarimetric import render_view_texture
+    from polarface.render import render_view_texture
 
     sq = {"i_sss": 0.0, "i_s": 0.0}
     sums = {"i_sss": 0.0, "i_s_abs": 0.0}
@@ -130,7 +130,7 @@ def _rerender_sums(unwrap, maps: dict[str, np.ndarray], held: list[int], normal:
 
 def rerender_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
     """Held-out-view re-render RMSE of I_sss and I_s (module docstring)."""
-    from polarface.inverse.polarimetric import shading_normals
+    from polarface.render import texel_shading_normals
     from polarface.texture import UnwrapStore
 
     _, estimate, _ = _load(result_dir, gt_dir)
@@ -138,7 +138,7 @@ def rerender_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
     held = [i for i, v in enumerate(unwrap.views) if v.held_out]
     if not held:
         return {"held_out_views": 0, "note": "no held-out view (reconstruct --holdout-every 0)"}
-    normal = shading_normals(unwrap, estimate["displacement_mm"].astype(np.float32))
+    normal = texel_shading_normals(unwrap, estimate["displacement_mm"].astype(np.float32))
     maps = {k: v.astype(np.float32) for k, v in estimate.items() if k != "mask"}
     sq, sums, count = _rerender_sums(unwrap, maps, held, normal, estimate.get("mask"))
     if count == 0:

@@ -11,7 +11,10 @@ manner of a rasterizer -> fragments -> shader pipeline):
 3. :func:`fragment_material`, :func:`lobe_stokes`: polarimetric shading of fragments with the image
    formation of :mod:`polarface.optics` (exit Fresnel, specular and single-scattering Mueller lobes).
 
-:func:`render_view` composes them into a :class:`ViewRender`; :func:`render_result_view` and
+:func:`render_view` composes them into a :class:`ViewRender`. The texture-space counterpart of stage 1
+is :func:`texel_fragments` -> :class:`TexelFragments` (the texels a view of an unwrapped capture sees),
+shaded by the same physics in :func:`render_view_texture` (the inverse stage's re-render of a view).
+:func:`render_result_view` and
 :func:`mueller_images` render a RESULT folder's maps, :func:`render_demo` the optics-only sphere.
 """
 
@@ -38,6 +41,15 @@ from polarface.render.shading import (
     lobe_stokes,
 )
 from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
+from polarface.render.texture_view import (
+    TexelFragments,
+    render_view_texture,
+    shade_texels,
+    texel_fragments,
+    texel_material,
+    texel_shading_normals,
+    texture_observations,
+)
 
 __all__ = [
     "DemoParameters",
@@ -47,6 +59,7 @@ __all__ = [
     "SphereGeometry",
     "SubsurfaceModel",
     "SurfaceFragments",
+    "TexelFragments",
     "ViewRender",
     "analyzer_images",
     "apply_edits",
@@ -65,9 +78,15 @@ __all__ = [
     "render_result_outputs",
     "render_result_view",
     "render_view",
+    "render_view_texture",
     "rig_lighting",
     "ring_light_positions",
+    "shade_texels",
     "shading_normals",
+    "texel_fragments",
+    "texel_material",
+    "texel_shading_normals",
+    "texture_observations",
     "texture_space_exitance",
     "trace_sphere",
 ]

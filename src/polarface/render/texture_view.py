@@ -17,7 +17,7 @@ same physics as the camera renderer (:mod:`polarface.render.shading`, :mod:`pola
 
 The observations are those of the unwrap store (``src/polarface/texture/unwrap_store.py``):
 ``I_sss = s0 - s1``, ``I_zeta = -s2``, ``I_s = s1`` per channel. Positions are those of the rest
-mesh (model frame, mm): the displacement only turns the shading normal (:func:`shading_normals`).
+mesh (model frame, mm): the displacement only turns the shading normal (:func:`texel_shading_normals`).
 Radiance is in the light intensity unit per mm^2 per sr. Maps follow the ``SIM/ground_truth/maps``
 conventions: ``eta, alpha_s, alpha_ss, rho_s, rho_ss, displacement_mm`` ``(Ht, Wt)`` and
 ``rho_sss_bar`` ``(Ht, Wt, 6)``, float.
@@ -35,21 +35,21 @@ from polarface.optics.image_formation import subsurface_exit_stokes
 from polarface.render.renderer import shading_normals as _raster_shading_normals
 from polarface.render.shading import FragmentMaterial, lobe_stokes
 from polarface.render.subsurface import visible_entry_flux
+from polarface.results import POLARIMETRIC_MAPS, RHO_SSS_BAR
 from polarface.texture import UnwrapStore, ViewSpec
 
 __all__ = [
-    "MAP_NAMES",
     "TexelFragments",
     "render_view_texture",
     "shade_texels",
-    "shading_normals",
     "texel_fragments",
     "texel_material",
+    "texel_shading_normals",
     "texture_observations",
 ]
 
 #: The parameter maps a texture-space render reads (``rho_sss_bar`` has 6 channels, the others one).
-MAP_NAMES = ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss", "rho_sss_bar", "displacement_mm")
+MAP_NAMES = (*POLARIMETRIC_MAPS, RHO_SSS_BAR)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -163,7 +163,7 @@ def texture_observations(stokes: torch.Tensor) -> np.ndarray:
     return torch.stack([s0 - s1, -s2, s1], dim=1).numpy().astype(np.float32)
 
 
-def shading_normals(unwrap: UnwrapStore, displacement_mm: np.ndarray) -> np.ndarray:
+def texel_shading_normals(unwrap: UnwrapStore, displacement_mm: np.ndarray) -> np.ndarray:
     """``(Ht, Wt, 3)`` float32 unit shading normals (model frame) of the rest mesh displaced by
     ``displacement_mm`` ``(Ht, Wt)`` (mm along the base normal); ValueError on a wrong shape."""
     geometry = unwrap.geometry()
@@ -202,7 +202,7 @@ def render_view_texture(
 
     Args:
         unwrap: the unwrapped capture; maps: parameter maps (module docstring); view_index: view to render;
-        normal: optional precomputed :func:`shading_normals` ``(Ht, Wt, 3)``; patch: texels per side
+        normal: optional precomputed :func:`texel_shading_normals` ``(Ht, Wt, 3)``; patch: texels per side
             processed at once (memory bound).
 
     Returns:
@@ -217,7 +217,7 @@ def render_view_texture(
     _check_inputs(unwrap, maps, view_index, normal)
     view = unwrap.views[view_index]
     height, width = unwrap.resolution
-    normal = shading_normals(unwrap, maps["displacement_mm"]) if normal is None else normal
+    normal = texel_shading_normals(unwrap, maps["displacement_mm"]) if normal is None else normal
     observed = np.zeros((height, width, 3, 3), np.float32)
     predicted = np.zeros_like(observed)
     valid = np.zeros((height, width), bool)

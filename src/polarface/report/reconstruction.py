@@ -115,7 +115,7 @@ def _dop_images(folder: ResultFolder, index: int, label: str, observed: np.ndarr
 
 def _add_view_sections(page: HtmlPage, folder: ResultFolder, maps: dict[str, np.ndarray]) -> None:
     """Residual and DoP-validation sections for the first fitting and the first held-out view."""
-    from polarface.inverse.polarimetric import render_view_texture, shading_normals
+    from polarface.render import render_view_texture, texel_shading_normals
     from polarface.texture import UnwrapStore
 
     unwrap = UnwrapStore.open(folder.unwrap_path)
@@ -124,7 +124,7 @@ def _add_view_sections(page: HtmlPage, folder: ResultFolder, maps: dict[str, np.
         next((i for i, v in enumerate(views) if not v.held_out), None),
         next((i for i, v in enumerate(views) if v.held_out), None),
     ]
-    normal = shading_normals(unwrap, maps["displacement_mm"].astype(np.float32))
+    normal = texel_shading_normals(unwrap, maps["displacement_mm"].astype(np.float32))
     float_maps = {k: v.astype(np.float32) for k, v in maps.items()}
     residual_items, dop_items = [], []
     for index in [c for c in chosen if c is not None]:

@@ -5,13 +5,13 @@ the displacement ``H`` (mm) from an unwrapped capture (:mod:`polarface.texture`)
 the per-sample forward model of :mod:`~polarface.inverse.polarimetric.model` and the losses of
 :mod:`~polarface.inverse.polarimetric.losses`. The loss of a patch is evaluated by one of the
 :data:`POLARIMETRIC_ENGINES` (the fused numba kernel or the torch autograd reference).
-:func:`render_view_texture` re-renders one view in texture space from parameter maps.
+The re-render of a view in texture space from parameter maps is :func:`polarface.render.render_view_texture`.
 
 Modules: ``config`` (options, reparameterisation), ``model`` (per-sample forward model), ``losses``,
 ``init`` (closed-form starts), ``problem`` (a patch's samples and loss), ``fused``/``kernel``/
 ``kernel_math``/``step`` (the numba engine), ``engines`` (registry), ``optimise`` (first-order
-optimiser), ``refine`` (Levenberg-Marquardt on the lobe maps), ``fit`` (the patch loop),
-``texture_view`` (re-rendering in texture space), ``bench`` (throughput benchmark).
+optimiser), ``refine`` (Levenberg-Marquardt on the lobe maps), ``fit`` (the patch loop), ``bench``
+(throughput benchmark).
 
 Maps follow ``SIM/ground_truth/maps`` conventions: ``eta, alpha_s, alpha_ss, rho_s, rho_ss,
 displacement_mm`` as ``(Ht, Wt)`` float32 and ``rho_sss_bar`` as ``(Ht, Wt, 6)``.
@@ -56,7 +56,6 @@ from polarface.inverse.polarimetric.refine import (
     smoothness_hessian,
     weighted_residuals,
 )
-from polarface.inverse.polarimetric.texture_view import render_view_texture, shading_normals
 
 __all__ = [
     "PARAMETER_NAMES",
@@ -90,10 +89,8 @@ __all__ = [
     "refine_lobes",
     "refine_patch_lobes",
     "render_samples",
-    "render_view_texture",
     "resolve_engine",
     "run_benchmark",
-    "shading_normals",
     "smoothness_hessian",
     "smoothness_penalty",
     "weighted_residuals",
