@@ -23,7 +23,9 @@ enter (the paper's "near-coaxial" geometry is not approximated).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -127,27 +129,11 @@ def _ratio_prediction(
     return (-s2 / (s0 - s1)).T
 
 
-def estimate_ior(
-    intensities: dict[str, np.ndarray],
-    scene: SphereScene,
-    *,
-    eta_range: tuple[float, float] = (1.05, 3.0),
-    zenith_range_deg: tuple[float, float] = (25.0, 80.0),
-    max_pixels: int = 20000,
-    specular_threshold: float = 0.25,
-) -> IorResult:
-    """Estimate one refractive index from a sphere's four analyzer images (module docstring).
-
-    Args:
-        intensities: ``{"I0", "I45", "I90", "I135"}`` -> ``(H, W)`` or ``(H, W, C)`` linear float images.
-        scene: :class:`SphereScene`.
-        eta_range: search interval (> 1). zenith_range_deg: usable exit zenith angles.
-        max_pixels: pixels used at most (evenly subsampled, deterministic).
-        specular_threshold: pixels with ``(I0 - I90) > threshold * 2 I90`` are dropped (highlights).
-
-    Raises:
-        ValueError: missing/mismatched images, NaN/inf, no usable pixel.
-    """
+def _check_inputs(
+    intensities: dict[str, np.ndarray], scene: SphereScene, eta_range: tuple[float, float]
+) -> list[np.ndarray]:
+    """The four analyzer images ``I0, I45, I90, I135`` as float64 ``(H, W, C)`` arrays (ValueError on
+    missing/mismatched/non-finite images or a bad ``eta_range``)."""
     names = ("I0", "I45", "I90", "I135")
     missing = [n for n in names if n not in intensities]
     if missing:
@@ -167,6 +153,14 @@ def estimate_ior(
     lo, hi = eta_range
     if not 1.0 < lo < hi:
         raise ValueError(f"argument 'eta_range' must satisfy 1 < lo < hi; got {eta_range}")
+    return images
+
+
+def _sphere_geometry(
+    scene: SphereScene, zenith_range_deg: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``usable (H, W)`` bool (on the sphere, exit zenith in ``zenith_range_deg``), world ``position`` and
+    ``normal`` ``(H, W, 3)``, camera centre ``(3,)`` and camera up ``(3,)`` (world frame, mm)."""
     mask, position, normal, centre = sphere_pixels(scene)
     to_camera = centre - position
     to_camera /= np.linalg.norm(to_camera, axis=-1, keepdims=True)
@@ -174,67 +168,138 @@ def estimate_ior(
     zenith = np.degrees(np.arccos(cos_o))
     usable = mask & (zenith >= zenith_range_deg[0]) & (zenith <= zenith_range_deg[1])
     up = -scene.world_to_camera[1, :3]  # camera up = -y axis of the camera, in world coordinates
-    i0, i45, i90, i135 = images
-    estimates, residuals, counts = [], [], []
-    for channel in range(shape[2]):
-        i_sss = 2.0 * i90[..., channel]
-        good = usable & (i_sss > 1e-6 * max(float(i_sss.max()), 1e-30))
-        good &= (i0[..., channel] - i90[..., channel]) <= specular_threshold * i_sss
-        rows, cols = np.nonzero(good)
-        if rows.size > max_pixels:
-            keep = np.linspace(0, rows.size - 1, max_pixels).astype(np.int64)
-            rows, cols = rows[keep], cols[keep]
-        if rows.size < 10:
-            continue
-        ratio = torch.from_numpy((i135[rows, cols, channel] - i45[rows, cols, channel]) / i_sss[rows, cols])
-        t = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
-        n, p = t(normal[rows, cols]), t(position[rows, cols])
-        c, u = t(centre), t(up / np.linalg.norm(up))
+    return usable, position, normal, centre, up
 
-        # weight pixels by |zeta| (where the ratio carries eta) through the prediction's sensitivity
-        def cost(etas: torch.Tensor, n=n, p=p, c=c, u=u, ratio=ratio) -> torch.Tensor:
-            residual = _ratio_prediction(etas, n, p, c, u) - ratio[None]
-            scale = 1.4826 * residual.abs().median(dim=1, keepdim=True).values.clamp_min(1e-6)
-            huber = torch.where(
-                residual.abs() <= 2 * scale, 0.5 * residual**2, 2 * scale * residual.abs() - 2 * scale**2
-            )
-            return huber.mean(dim=1)
 
-        grid = torch.linspace(lo, hi, 141, dtype=torch.float64)
-        values = torch.cat([cost(chunk) for chunk in grid.split(20)])
-        best = int(torch.argmin(values))
-        a = float(grid[max(best - 1, 0)])
-        b = float(grid[min(best + 1, len(grid) - 1)])
-        golden = (math.sqrt(5) - 1) / 2
-        x1, x2 = b - golden * (b - a), a + golden * (b - a)
-        f1, f2 = (
-            float(cost(torch.tensor([x1], dtype=torch.float64))),
-            float(cost(torch.tensor([x2], dtype=torch.float64))),
-        )
-        for _ in range(40):
-            if f1 < f2:
-                b, x2, f2 = x2, x1, f1
-                x1 = b - golden * (b - a)
-                f1 = float(cost(torch.tensor([x1], dtype=torch.float64)))
-            else:
-                a, x1, f1 = x1, x2, f2
-                x2 = a + golden * (b - a)
-                f2 = float(cost(torch.tensor([x2], dtype=torch.float64)))
-        eta = 0.5 * (a + b)
-        residual = _ratio_prediction(torch.tensor([eta], dtype=torch.float64), n, p, c, u)[0] - ratio
-        estimates.append(eta)
-        residuals.append(float(torch.sqrt((residual**2).mean())))
-        counts.append(int(rows.size))
-    if not estimates:
+def _channel_pixels(
+    images: list[np.ndarray], channel: int, usable: np.ndarray, max_pixels: int, specular_threshold: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows and columns ``(N,)`` of the pixels used in ``channel`` (lit, no highlight, at most
+    ``max_pixels`` evenly subsampled) and the channel's subsurface image ``2 I90`` ``(H, W)``."""
+    i0, _, i90, _ = images
+    i_sss = 2.0 * i90[..., channel]
+    good = usable & (i_sss > 1e-6 * max(float(i_sss.max()), 1e-30))
+    good &= (i0[..., channel] - i90[..., channel]) <= specular_threshold * i_sss
+    rows, cols = np.nonzero(good)
+    if rows.size > max_pixels:
+        keep = np.linspace(0, rows.size - 1, max_pixels).astype(np.int64)
+        rows, cols = rows[keep], cols[keep]
+    return rows, cols, i_sss
+
+
+def _huber_cost(
+    etas: torch.Tensor,
+    n: torch.Tensor,
+    p: torch.Tensor,
+    c: torch.Tensor,
+    u: torch.Tensor,
+    ratio: torch.Tensor,
+) -> torch.Tensor:
+    """``(E,)`` mean Huber loss (threshold 2 robust sigmas, per eta) of the ratio residuals of float64
+    etas ``(E,)``; pixels weigh by |zeta| (where the ratio carries eta) through the prediction's
+    sensitivity. ``n, p``: ``(N, 3)`` world normals and positions (mm); ``c``: ``(3,)`` camera centre;
+    ``u``: ``(3,)`` unit camera up; ``ratio``: ``(N,)`` observed ``(I135 - I45) / (2 I90)``."""
+    residual = _ratio_prediction(etas, n, p, c, u) - ratio[None]
+    scale = 1.4826 * residual.abs().median(dim=1, keepdim=True).values.clamp_min(1e-6)
+    huber = torch.where(
+        residual.abs() <= 2 * scale, 0.5 * residual**2, 2 * scale * residual.abs() - 2 * scale**2
+    )
+    return huber.mean(dim=1)
+
+
+def _minimise_eta(cost: Callable[[torch.Tensor], torch.Tensor], lo: float, hi: float) -> float:
+    """Minimiser of ``cost`` (float64 etas ``(E,)`` -> ``(E,)``) on ``[lo, hi]``: a 141-point scan, then
+    40 golden-section steps between the best point's neighbours."""
+    grid = torch.linspace(lo, hi, 141, dtype=torch.float64)
+    values = torch.cat([cost(chunk) for chunk in grid.split(20)])
+    best = int(torch.argmin(values))
+    a = float(grid[max(best - 1, 0)])
+    b = float(grid[min(best + 1, len(grid) - 1)])
+    golden = (math.sqrt(5) - 1) / 2
+    x1, x2 = b - golden * (b - a), a + golden * (b - a)
+    f1, f2 = (
+        float(cost(torch.tensor([x1], dtype=torch.float64))),
+        float(cost(torch.tensor([x2], dtype=torch.float64))),
+    )
+    for _ in range(40):
+        if f1 < f2:
+            b, x2, f2 = x2, x1, f1
+            x1 = b - golden * (b - a)
+            f1 = float(cost(torch.tensor([x1], dtype=torch.float64)))
+        else:
+            a, x1, f1 = x1, x2, f2
+            x2 = a + golden * (b - a)
+            f2 = float(cost(torch.tensor([x2], dtype=torch.float64)))
+    return 0.5 * (a + b)
+
+
+def _channel_estimate(
+    images: list[np.ndarray],
+    channel: int,
+    geometry: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    eta_range: tuple[float, float],
+    max_pixels: int,
+    specular_threshold: float,
+) -> tuple[float, float, int] | None:
+    """``(eta, RMS ratio residual, pixels used)`` of one channel (``geometry`` of
+    :func:`_sphere_geometry`); ``None`` with fewer than 10 usable pixels."""
+    usable, position, normal, centre, up = geometry
+    rows, cols, i_sss = _channel_pixels(images, channel, usable, max_pixels, specular_threshold)
+    if rows.size < 10:
+        return None
+    _, i45, _, i135 = images
+    ratio = torch.from_numpy((i135[rows, cols, channel] - i45[rows, cols, channel]) / i_sss[rows, cols])
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
+    n, p = t(normal[rows, cols]), t(position[rows, cols])
+    c, u = t(centre), t(up / np.linalg.norm(up))
+    eta = _minimise_eta(functools.partial(_huber_cost, n=n, p=p, c=c, u=u, ratio=ratio), *eta_range)
+    residual = _ratio_prediction(torch.tensor([eta], dtype=torch.float64), n, p, c, u)[0] - ratio
+    return eta, float(torch.sqrt((residual**2).mean())), int(rows.size)
+
+
+def estimate_ior(
+    intensities: dict[str, np.ndarray],
+    scene: SphereScene,
+    *,
+    eta_range: tuple[float, float] = (1.05, 3.0),
+    zenith_range_deg: tuple[float, float] = (25.0, 80.0),
+    max_pixels: int = 20000,
+    specular_threshold: float = 0.25,
+) -> IorResult:
+    """Estimate one refractive index from a sphere's four analyzer images (module docstring).
+
+    Args:
+        intensities: ``{"I0", "I45", "I90", "I135"}`` -> ``(H, W)`` or ``(H, W, C)`` linear float images.
+        scene: :class:`SphereScene`.
+        eta_range: search interval (> 1). zenith_range_deg: usable exit zenith angles.
+        max_pixels: pixels used at most (evenly subsampled, deterministic).
+        specular_threshold: pixels with ``(I0 - I90) > threshold * 2 I90`` are dropped (highlights).
+
+    Returns:
+        :class:`IorResult`: the median of the per-channel estimates with more than two channels, else
+        their pixel-count-weighted mean.
+
+    Raises:
+        ValueError: missing/mismatched images, NaN/inf, no usable pixel.
+    """
+    images = _check_inputs(intensities, scene, eta_range)
+    geometry = _sphere_geometry(scene, zenith_range_deg)
+    fits = [
+        _channel_estimate(images, channel, geometry, eta_range, max_pixels, specular_threshold)
+        for channel in range(images[0].shape[2])
+    ]
+    fits = [fit for fit in fits if fit is not None]
+    if not fits:
         raise ValueError(
             "no usable sphere pixel: check the scene (sphere centre/radius, camera) and the images"
         )
-    weights = np.asarray(counts, dtype=np.float64)
+    estimates = [fit[0] for fit in fits]
+    weights = np.asarray([fit[2] for fit in fits], dtype=np.float64)
     eta = float(np.median(estimates)) if len(estimates) > 2 else float(np.average(estimates, weights=weights))
     return IorResult(
         eta=eta,
-        rms_residual=float(np.average(residuals, weights=weights)),
-        pixels=int(sum(counts)),
+        rms_residual=float(np.average([fit[1] for fit in fits], weights=weights)),
+        pixels=int(sum(fit[2] for fit in fits)),
         channels=tuple(float(e) for e in estimates),
     )
 

@@ -9,6 +9,8 @@ six-channel albedos, all samples at once, from one or several starts; :func:`gam
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from polarface._validation import array_api, as_float_tensor, broadcast_named, check_range
@@ -49,6 +51,47 @@ def _start_design(starts: int, dtype: torch.dtype, device: torch.device) -> torc
     low, high = _bounds(dtype, device)
     extra = torch.rand(starts - base.shape[0], 4, generator=torch.Generator().manual_seed(0), dtype=dtype)
     return torch.cat([base, low + (high - low) * extra.to(device)])
+
+
+@dataclasses.dataclass(frozen=True)
+class _BoundedProblem:
+    """The weighted least squares of :func:`fit_local_parameters` for ``n`` parameter rows ``(n, 4)``
+    (:data:`PARAMETER_ORDER`), with box bounds ``low, high`` ``(4,)`` and Tikhonov weights ``pull``
+    ``(4,)`` (zeros without a prior). Residuals ``(n, C + 4)``: ``C`` weighted channel misfits, then the
+    four prior pulls."""
+
+    table: TotalsTable
+    channel_weights: torch.Tensor
+    pull: torch.Tensor
+    low: torch.Tensor
+    high: torch.Tensor
+
+    def residual(
+        self, xs: torch.Tensor, goals: torch.Tensor, weights: torch.Tensor, anchors: torch.Tensor
+    ) -> torch.Tensor:
+        """``(n, C + 4)`` residuals of ``xs`` ``(n, 4)`` for targets ``goals`` ``(n, C)`` (weights
+        ``(n, C)``) and prior ``anchors`` ``(n, 4)``."""
+        data = (local_channel_albedo(xs, self.table, self.channel_weights) - goals) * weights
+        return torch.cat([data, self.pull * (xs - anchors)], dim=-1)
+
+    def step(self, xa: torch.Tensor, ra: torch.Tensor, da: torch.Tensor, wa: torch.Tensor) -> torch.Tensor:
+        """Bounded Marquardt trial point ``(n, 4)`` from ``xa`` (residuals ``ra`` ``(n, C + 4)``, damping
+        ``da`` ``(n,)``, channel weights ``wa`` ``(n, C)``): parameters at a bound with the gradient pushing
+        outwards are frozen, the step is clamped into the bounds."""
+        _, jac = local_channel_albedo_with_jacobian(xa, self.table, self.channel_weights)
+        jac = torch.cat(
+            [jac * wa[..., None], torch.diag(self.pull).expand(len(xa), 4, 4)], dim=1
+        )  # (n, C+4, 4)
+        jtj = jac.transpose(1, 2) @ jac
+        grad = (jac.transpose(1, 2) @ ra[..., None])[..., 0]
+        low, high = self.low, self.high
+        at_bound = ((xa <= low + 1e-9) & (grad > 0)) | ((xa >= high - 1e-9) & (grad < 0))
+        free = (~at_bound).to(xa.dtype)
+        jtj = jtj * free[:, :, None] * free[:, None, :] + torch.diag_embed(1.0 - free)
+        grad = grad * free
+        diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-12)
+        delta = torch.linalg.solve(jtj + da[:, None, None] * torch.diag_embed(diag), -grad[..., None])
+        return torch.minimum(torch.maximum(xa + delta[..., 0], low), high)
 
 
 def fit_local_parameters(
@@ -96,41 +139,18 @@ def fit_local_parameters(
     anchor = x.clone() if prior is None else prior.to(dtype=dtype, device=device).repeat(n_starts, 1)
     if prior is None:
         pull = torch.zeros_like(pull)
-
-    def residual(xs: torch.Tensor, goals: torch.Tensor, weights: torch.Tensor, anchors: torch.Tensor):
-        data = (local_channel_albedo(xs, table, channel_weights) - goals) * weights
-        return torch.cat([data, pull * (xs - anchors)], dim=-1)
-
+    problem = _BoundedProblem(table, channel_weights, pull, low, high)
     damping = torch.full((n,), 1e-2, dtype=dtype, device=device)
     with torch.no_grad():
-        res = residual(x, goal, weight, anchor)
+        res = problem.residual(x, goal, weight, anchor)
         cost = (res**2).sum(-1)
         active = torch.arange(n, device=device)
         for _ in range(iterations):
             if active.numel() == 0:
                 break
-            xa, ra, ca, da, ga, wa = (
-                x[active],
-                res[active],
-                cost[active],
-                damping[active],
-                goal[active],
-                weight[active],
-            )
-            _, jac = local_channel_albedo_with_jacobian(xa, table, channel_weights)
-            jac = torch.cat(
-                [jac * wa[..., None], torch.diag(pull).expand(len(xa), 4, 4)], dim=1
-            )  # (n, C+4, 4)
-            jtj = jac.transpose(1, 2) @ jac
-            grad = (jac.transpose(1, 2) @ ra[..., None])[..., 0]
-            at_bound = ((xa <= low + 1e-9) & (grad > 0)) | ((xa >= high - 1e-9) & (grad < 0))
-            free = (~at_bound).to(dtype)
-            jtj = jtj * free[:, :, None] * free[:, None, :] + torch.diag_embed(1.0 - free)
-            grad = grad * free
-            diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-12)
-            delta = torch.linalg.solve(jtj + da[:, None, None] * torch.diag_embed(diag), -grad[..., None])
-            trial = torch.minimum(torch.maximum(xa + delta[..., 0], low), high)
-            trial_res = residual(trial, ga, wa, anchor[active])
+            xa, ra, ca, da, ga, wa = (t[active] for t in (x, res, cost, damping, goal, weight))
+            trial = problem.step(xa, ra, da, wa)
+            trial_res = problem.residual(trial, ga, wa, anchor[active])
             trial_cost = (trial_res**2).sum(-1)
             better = trial_cost < ca
             x[active] = torch.where(better[:, None], trial, xa)

@@ -96,6 +96,73 @@ def _split(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return v[..., 0], v[..., 1], v[..., 2]
 
 
+def _as_tensor(value: np.ndarray | torch.Tensor) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(value) if not isinstance(value, torch.Tensor) else value)
+
+
+def _checked(
+    value: np.ndarray | torch.Tensor, name: str, dtype: torch.dtype, device: torch.device | str
+) -> torch.Tensor:
+    """``value`` as a ``dtype`` tensor on ``device``; ValueError naming ``name`` on NaN/inf (float
+    ``dtype``)."""
+    tensor = _as_tensor(value).to(device=device, dtype=dtype)
+    if dtype.is_floating_point and not bool(torch.isfinite(tensor).all()):
+        raise ValueError(f"argument '{name}' contains NaN/inf values")
+    return tensor
+
+
+def _check_shapes(count: int, lights: int, named: dict[str, torch.Tensor]) -> None:
+    """ValueError unless the per-sample inputs have their shapes (``count`` samples, ``lights`` lights)."""
+    shapes = {
+        "camera_center": (count, 3),
+        "camera_up": (count, 3),
+        "reference_up": (count, 3),
+        "observed": (count, 3, 3),
+        "light_intensity": (count, lights, 3),
+        "lit": (count, lights),
+    }
+    for name, shape in shapes.items():
+        if tuple(named[name].shape) != shape:
+            raise ValueError(f"argument '{name}' must have shape {shape}; got {tuple(named[name].shape)}")
+
+
+def _sample_geometry(
+    p: torch.Tensor, centre: torch.Tensor, up: torch.Tensor, ref_up: torch.Tensor, lights: torch.Tensor
+) -> tuple[torch.Tensor, ...]:
+    """Direction geometry (float64, mm) of ``S`` samples at ``p`` ``(S, 3)`` seen from ``centre``
+    ``(S, 3)`` (camera up ``up``, reference up ``ref_up``) and lit from ``lights`` ``(S, K, 3)``.
+
+    Returns:
+        ``(light_vectors (S, K, 4, 3), view_vectors (S, 3, 3), cos_d (S, K), spec_rotation (S, K, 4),
+        distance2 (S, K))`` (:class:`SampleBatch` fields before the dtype cast; ``distance2`` in mm^2).
+    """
+    w_o = _unit(centre - p)
+    p_o = _project(up, w_o)
+    to_light = lights - p[:, None]
+    distance2 = (to_light * to_light).sum(-1).clamp_min(1e-12)
+    w_i = to_light / distance2.sqrt()[..., None]
+    half = _unit(w_i + w_o[:, None])
+    entry_up = _project(ref_up[:, None].expand_as(w_i), w_i)
+    a_i = torch.linalg.cross(w_i, entry_up)  # n . (P x (-w_i)) = n . (w_i x P)
+    a_o = torch.linalg.cross(p_o, w_o)  # n . (P x w_o)
+    spec_up = _project(up[:, None].expand_as(w_i), w_i)
+    c_i, s_i = _double_angle(_split(half), _split(-w_i), _split(spec_up))
+    c_o, s_o = _double_angle(
+        _split(half),
+        _split(w_o[:, None].expand_as(w_i)),
+        _split(_project(up[:, None].expand_as(w_i), w_o[:, None].expand_as(w_i))),
+    )
+    c_i, s_i, c_o, s_o = -c_i, -s_i, -c_o, -s_o  # tilde angles (phi - pi/2), incident s = [1, 1, 0, 0]
+    rotation = torch.stack([c_i, -s_i, c_o, s_o], dim=-1)
+    return (
+        torch.stack([w_i, half, a_i, entry_up], dim=-2),
+        torch.stack([w_o, a_o, p_o], dim=-2),
+        (half * w_i).sum(-1).clamp(-1.0, 1.0),
+        rotation,
+        distance2,
+    )
+
+
 def precompute_samples(
     position: np.ndarray | torch.Tensor,
     texel: np.ndarray | torch.Tensor,
@@ -127,69 +194,31 @@ def precompute_samples(
         ValueError: on NaN/inf observations or geometry, or mismatched shapes.
     """
 
-    def t(value, name, kind=dtype):
-        tensor = torch.as_tensor(np.asarray(value) if not isinstance(value, torch.Tensor) else value)
-        tensor = tensor.to(device=device, dtype=kind)
-        if kind.is_floating_point and not bool(torch.isfinite(tensor).all()):
-            raise ValueError(f"argument '{name}' contains NaN/inf values")
-        return tensor
-
-    p = t(position, "position", torch.float64)
+    p = _checked(position, "position", torch.float64, device)
     count = p.shape[0]
-    centre = t(camera_center, "camera_center", torch.float64)
-    up = t(camera_up, "camera_up", torch.float64)
-    ref_up = t(reference_up, "reference_up", torch.float64)
-    lights = t(light_positions, "light_positions", torch.float64)
-    intensity = t(light_intensity, "light_intensity", torch.float64)
+    centre = _checked(camera_center, "camera_center", torch.float64, device)
+    up = _checked(camera_up, "camera_up", torch.float64, device)
+    ref_up = _checked(reference_up, "reference_up", torch.float64, device)
+    lights = _checked(light_positions, "light_positions", torch.float64, device)
+    intensity = _checked(light_intensity, "light_intensity", torch.float64, device)
     if lights.ndim == 2:
         lights = lights.expand(count, *lights.shape)
     if intensity.ndim == 2:
         intensity = intensity.expand(count, *intensity.shape)
-    obs = t(observed, "observed")
-    lit_t = torch.as_tensor(np.asarray(lit) if not isinstance(lit, torch.Tensor) else lit).to(device=device)
-    for name, value, shape in (
-        ("camera_center", centre, (count, 3)),
-        ("camera_up", up, (count, 3)),
-        ("reference_up", ref_up, (count, 3)),
-        ("observed", obs, (count, 3, 3)),
-        ("light_intensity", intensity, (count, lights.shape[1], 3)),
-        ("lit", lit_t, (count, lights.shape[1])),
-    ):
-        if tuple(value.shape) != shape:
-            raise ValueError(f"argument '{name}' must have shape {shape}; got {tuple(value.shape)}")
-    w_o = _unit(centre - p)
-    p_o = _project(up, w_o)
-    to_light = lights - p[:, None]
-    distance2 = (to_light * to_light).sum(-1).clamp_min(1e-12)
-    w_i = to_light / distance2.sqrt()[..., None]
-    half = _unit(w_i + w_o[:, None])
-    entry_up = _project(ref_up[:, None].expand_as(w_i), w_i)
-    a_i = torch.linalg.cross(w_i, entry_up)  # n . (P x (-w_i)) = n . (w_i x P)
-    a_o = torch.linalg.cross(p_o, w_o)  # n . (P x w_o)
-    spec_up = _project(up[:, None].expand_as(w_i), w_i)
-    c_i, s_i = _double_angle(_split(half), _split(-w_i), _split(spec_up))
-    c_o, s_o = _double_angle(
-        _split(half),
-        _split(w_o[:, None].expand_as(w_i)),
-        _split(_project(up[:, None].expand_as(w_i), w_o[:, None].expand_as(w_i))),
-    )
-    c_i, s_i, c_o, s_o = -c_i, -s_i, -c_o, -s_o  # tilde angles (phi - pi/2), incident s = [1, 1, 0, 0]
-    rotation = torch.stack([c_i, -s_i, c_o, s_o], dim=-1)
+    obs = _checked(observed, "observed", dtype, device)
+    lit_t = _as_tensor(lit).to(device=device)
+    named = {"camera_center": centre, "camera_up": up, "reference_up": ref_up, "observed": obs}
+    _check_shapes(count, lights.shape[1], {**named, "light_intensity": intensity, "lit": lit_t})
+    light_vectors, view_vectors, cos_d, rotation, distance2 = _sample_geometry(p, centre, up, ref_up, lights)
     weight = lit_t.to(torch.float64)[..., None] * intensity / distance2[..., None]
     return SampleBatch(
-        texel=torch.as_tensor(np.asarray(texel) if not isinstance(texel, torch.Tensor) else texel)
-        .to(device)
-        .long(),
-        view=torch.as_tensor(np.asarray(view) if not isinstance(view, torch.Tensor) else view)
-        .to(device)
-        .long(),
-        channels=torch.as_tensor(np.asarray(channels) if not isinstance(channels, torch.Tensor) else channels)
-        .to(device)
-        .long(),
-        light_vectors=torch.stack([w_i, half, a_i, entry_up], dim=-2).to(dtype),
-        view_vectors=torch.stack([w_o, a_o, p_o], dim=-2).to(dtype),
+        texel=_as_tensor(texel).to(device).long(),
+        view=_as_tensor(view).to(device).long(),
+        channels=_as_tensor(channels).to(device).long(),
+        light_vectors=light_vectors.to(dtype),
+        view_vectors=view_vectors.to(dtype),
         light_weight=weight.to(dtype),
-        cos_d=(half * w_i).sum(-1).clamp(-1.0, 1.0).to(dtype),
+        cos_d=cos_d.to(dtype),
         spec_rotation=rotation.to(dtype),
         observed=obs,
     )

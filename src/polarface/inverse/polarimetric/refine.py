@@ -35,6 +35,10 @@ ground-truth lobes re-optimised, while the rho_s error *grows* (15.4 % after 10 
 three LM + RMSprop rounds): on noisy data the objective's own minimiser is off along the valley, so
 better optimisation cannot reach the 10 % target. On the same patches with the noise-free simulator
 observations, 10 iterations take rho_s from 12.4 % to 7.2 % (bias +12 % -> 0).
+
+Code map: :class:`_LobeProblem` holds a patch's fixed state (subsurface image, prior Hessian) with the
+residuals, the Jacobian blocks and the damped step; :func:`_lm_iteration` is one iteration (solve, retry
+with more damping, accept); the linear algebra is in :mod:`polarface.inverse.polarimetric.refine_blocks`.
 """
 
 from __future__ import annotations
@@ -42,14 +46,18 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import numpy as np
 import scipy.sparse
-import scipy.sparse.linalg
 import torch
 
 from polarface.inverse.polarimetric.config import PolarimetricConfig, maps_from_raw
 from polarface.inverse.polarimetric.losses import LossWeights, smoothness_penalty
 from polarface.inverse.polarimetric.model import SampleBatch, SamplePrediction, render_samples
+from polarface.inverse.polarimetric.refine_blocks import (
+    per_texel_sum,
+    smoothness_hessian,
+    solve_lobe_system,
+    weighted_residuals,
+)
 
 __all__ = [
     "LOBE_NAMES",
@@ -64,80 +72,13 @@ __all__ = [
 _ATTEMPTS = 4
 #: Order of the refined maps (columns of the ``(T, 4)`` blocks).
 LOBE_NAMES = ("alpha_s", "alpha_ss", "rho_s", "rho_ss")
+#: Margin (dimensionless) keeping the projected parameters strictly inside their ranges.
+_EPS = 1e-4
 
-
-def weighted_residuals(
-    prediction: SamplePrediction, observed: torch.Tensor, scale: float, weights: LossWeights
-) -> torch.Tensor:
-    """Residuals ``(S, 15)`` whose squares summed equal the weighted data loss
-    ``w_sss L_sss + w_s L_s + w_phi L_phi + w_psi L_psi`` of
-    :func:`polarface.inverse.polarimetric.losses.data_losses`.
-
-    Per channel (3 each): ``sqrt(w_sss) r_sss``, ``sqrt(w_s + w_phi W_phi) r_s``,
-    ``sqrt(w_phi W_phi) r_zeta`` and the two signed-DoP residuals times ``sqrt(w_psi)``, with
-    ``r = (prediction - observed) / scale`` and ``W_phi = max(I_sss / scale, 0)`` (observed).
-
-    Args:
-        prediction: :class:`SamplePrediction` with ``(S, 3)`` tensors.
-        observed: ``(S, 3, 3)`` ``[I_sss, I_zeta, I_s]`` x channel.
-        scale: observation scale (> 0, radiance).
-        weights: :class:`LossWeights` (its four data weights).
-    """
-    if not scale > 0:
-        raise ValueError(f"argument 'scale' must be > 0; got {scale}")
-    if observed.ndim != 3 or observed.shape[1:] != (3, 3) or observed.shape[0] != prediction.i_s.shape[0]:
-        raise ValueError(
-            f"argument 'observed' must have shape ({prediction.i_s.shape[0]}, 3, 3); "
-            f"got {tuple(observed.shape)}"
-        )
-    inv = 1.0 / scale
-    obs_sss, obs_zeta, obs_s = observed[:, 0], observed[:, 1], observed[:, 2]
-    w_phi = (obs_sss * inv).clamp_min(0.0)
-    floor = 0.05 * scale
-    denom_obs = obs_sss.clamp_min(floor)
-    denom_pred = prediction.i_sss.clamp_min(floor)
-    psi_zeta = prediction.i_zeta / denom_pred - obs_zeta / denom_obs
-    psi_xi = (prediction.i_s - prediction.specular_s1) / denom_pred - (
-        obs_s - prediction.specular_s1
-    ) / denom_obs
-    return torch.cat(
-        [
-            math.sqrt(weights.sss) * (prediction.i_sss - obs_sss) * inv,
-            torch.sqrt(weights.s + weights.phi * w_phi) * (prediction.i_s - obs_s) * inv,
-            torch.sqrt(weights.phi * w_phi) * (prediction.i_zeta - obs_zeta) * inv,
-            math.sqrt(weights.psi) * psi_zeta,
-            math.sqrt(weights.psi) * psi_xi,
-        ],
-        dim=1,
-    )
-
-
-def smoothness_hessian(mask: np.ndarray, window: int = 5) -> scipy.sparse.csr_matrix:
-    """Hessian ``(T, T)`` (float64 CSR) of
-    :func:`polarface.inverse.polarimetric.losses.smoothness_penalty` over a row-major ``(h, w)`` map.
-
-    The penalty is ``||A x||^2`` with ``A = D_m (I - N^-1 B D_m)``: ``B`` the ``window x window`` box
-    (zero padded), ``D_m`` the mask, ``N`` the valid counts of the windows; the Hessian is ``2 A^T A``.
-    """
-    mask = np.asarray(mask, dtype=bool)
-    if mask.ndim != 2:
-        raise ValueError(f"argument 'mask' must be a (h, w) map; got shape {mask.shape}")
-    if window < 1 or window % 2 == 0:
-        raise ValueError(f"argument 'window' must be odd and >= 1; got {window}")
-    height, width = mask.shape
-    half = window // 2
-
-    def band(n: int) -> scipy.sparse.csr_matrix:
-        offsets = [k for k in range(-half, half + 1) if abs(k) < n]
-        return scipy.sparse.diags([np.ones(n - abs(k)) for k in offsets], offsets, shape=(n, n), format="csr")
-
-    valid = mask.reshape(-1).astype(np.float64)
-    box = scipy.sparse.kron(band(height), band(width), format="csr")
-    counts = box @ valid
-    inverse = np.where(counts > 0, 1.0 / np.maximum(counts, 1e-12), 0.0)
-    keep = scipy.sparse.diags(valid)
-    a = keep @ (scipy.sparse.identity(valid.size, format="csr") - scipy.sparse.diags(inverse) @ box @ keep)
-    return (2.0 * (a.T @ a)).tocsr()
+#: Unit-lobe images ``(U(alpha_s), dU/dalpha_s, U(alpha_ss), dU/dalpha_ss)``, each ``(4, S, 3)``
+#: ``[i_sss, i_zeta, i_s, specular_s1]`` x sample x channel (radiance per unit albedo); the derivatives
+#: are ``None`` where not needed.
+LobeImages = tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, torch.Tensor | None]
 
 
 @dataclasses.dataclass
@@ -158,34 +99,6 @@ class LobeRefinement:
     rho_ss: torch.Tensor
     objective: list[float]
     accepted: list[bool]
-
-
-def _per_texel(values: torch.Tensor, texel: torch.Tensor, count: int) -> torch.Tensor:
-    out = torch.zeros((count, *values.shape[1:]), dtype=values.dtype, device=values.device)
-    return out.index_add_(0, texel, values)
-
-
-def _solve(blocks: torch.Tensor, rhs: torch.Tensor, reg: scipy.sparse.csr_matrix) -> torch.Tensor:
-    """Solve ``(blockdiag(blocks) + blockdiag(reg, 0)) x = rhs`` exactly: the albedos (columns 2, 3,
-    only in the per-texel blocks) are eliminated per texel (Schur complement), the remaining
-    ``2 T`` roughness unknowns (field-major, coupled by ``reg`` ``(2 T, 2 T)``) are solved by sparse LU
-    (SuperLU, minimum-degree ordering of ``A^T + A``); float64 on the CPU."""
-    count = blocks.shape[0]
-    g = blocks.detach().cpu().double().numpy()
-    b = rhs.detach().cpu().double().numpy()
-    g_aa, g_ar, g_ra, g_rr = g[:, :2, :2], g[:, :2, 2:], g[:, 2:, :2], g[:, 2:, 2:]
-    rr_inv = np.linalg.inv(g_rr)
-    ar_rr = np.einsum("tij,tjk->tik", g_ar, rr_inv)
-    schur = g_aa - np.einsum("tij,tjk->tik", ar_rr, g_ra)
-    reduced = b[:, :2] - np.einsum("tij,tj->ti", ar_rr, b[:, 2:])
-    index = np.arange(count)[:, None, None]
-    rows = np.broadcast_to(np.arange(2)[None, :, None] * count + index, (count, 2, 2)).reshape(-1)
-    cols = np.broadcast_to(np.arange(2)[None, None, :] * count + index, (count, 2, 2)).reshape(-1)
-    matrix = scipy.sparse.csr_matrix((schur.reshape(-1), (rows, cols)), shape=(2 * count, 2 * count)) + reg
-    alphas = scipy.sparse.linalg.spsolve(matrix.tocsc(), reduced.T.reshape(-1), permc_spec="MMD_AT_PLUS_A")
-    alphas = alphas.reshape(2, count).T
-    albedos = np.einsum("tij,tj->ti", rr_inv, b[:, 2:] - np.einsum("tij,tj->ti", g_ra, alphas))
-    return torch.as_tensor(np.concatenate([alphas, albedos], axis=1), dtype=rhs.dtype, device=rhs.device)
 
 
 def _check_inputs(
@@ -231,6 +144,180 @@ def _check_inputs(
     return count
 
 
+@dataclasses.dataclass
+class _Iterate:
+    """One point of the LM path: ``params`` ``(T, 4)`` (physical, :data:`LOBE_NAMES` order), its lobe
+    images, the smoothness gradient ``reg_grad`` ``(T, 4)`` (zero albedo columns), the objective ``value``
+    (data + smoothness, not divided by T) and whether every texel's data loss is ``finite``."""
+
+    params: torch.Tensor
+    images: LobeImages
+    reg_grad: torch.Tensor
+    value: float
+    finite: bool
+
+
+class _LobeProblem:
+    """One patch's lobe problem with the normal, eta and rho_sss_bar held (module docstring).
+
+    Holds the per-sample inputs (``S`` samples of ``T`` texels, the batch's dtype/device): the
+    subsurface image ``base`` ``(4, S, 3)`` (zero lobes), the texels with samples ``seen`` ``(T,)``, and
+    half the smoothness Hessian ``reg`` ``(2 T, 2 T)`` (float64 CSR: the data part of the solved system
+    is ``J^T J``, half its Gauss-Newton Hessian).
+    """
+
+    def __init__(
+        self,
+        batch: SampleBatch,
+        normal: torch.Tensor,
+        eta: torch.Tensor,
+        rho_sss_bar: torch.Tensor,
+        mask: torch.Tensor,
+        count: int,
+        scale: float,
+        weights: LossWeights,
+        alpha_range: tuple[float, float],
+        rho_max: float,
+    ) -> None:
+        self.batch, self.count, self.scale, self.weights = batch, count, scale, weights
+        dtype, device = self.dtype, self.device = batch.observed.dtype, batch.observed.device
+        texel = self.texel = batch.texel
+        self.a_lo, self.a_hi = (float(v) for v in alpha_range)
+        self.rho_max = rho_max
+        with torch.no_grad():
+            normal_s = self.normal_s = normal.to(dtype=dtype, device=device)[texel]
+            eta_s = self.eta_s = eta.reshape(-1).to(dtype=dtype, device=device)[texel]
+            zero, one = self.zero, self.one = torch.zeros_like(eta_s), torch.ones_like(eta_s)
+            sss = self.sss = torch.gather(
+                rho_sss_bar.to(dtype=dtype, device=device)[texel], 1, batch.channels
+            )
+            base = render_samples(batch, normal_s, eta_s, eta_s * 0 + 0.5, one, zero, zero, sss)
+            self.base = torch.stack([base.i_sss, base.i_zeta, base.i_s, base.specular_s1])  # (4, S, 3)
+        self.mask = mask.to(device=device, dtype=torch.bool)
+        self.smooth_w = (weights.alpha_s, weights.alpha_ss)
+        self.seen = torch.zeros(count, dtype=torch.bool, device=device)
+        self.seen[self.texel] = True
+        single = smoothness_hessian(self.mask.cpu().numpy())
+        self.reg = 0.5 * scipy.sparse.block_diag(
+            [self.smooth_w[0] * single, self.smooth_w[1] * single], format="csr"
+        )
+        self.eye = torch.eye(4, dtype=dtype, device=device)
+
+    def project(self, p: torch.Tensor) -> torch.Tensor:
+        """``(T, 4)`` parameters clamped into the ranges (``alpha_ss > alpha_s``: no lobe swap)."""
+        alpha_s = p[:, 0].clamp(self.a_lo + _EPS, self.a_hi - 2 * _EPS)
+        alpha_ss = torch.maximum(p[:, 1], alpha_s + _EPS).clamp(max=self.a_hi - _EPS)
+        rho = p[:, 2:].clamp(_EPS * self.rho_max, (1 - _EPS) * self.rho_max)
+        return torch.cat([alpha_s[:, None], alpha_ss[:, None], rho], dim=1)
+
+    def unit_lobe(self, alpha: torch.Tensor) -> torch.Tensor:
+        """``(4, S, 3)`` image of a unit-albedo lobe of roughness ``alpha`` ``(S,)`` (no subsurface)."""
+        p = render_samples(
+            self.batch,
+            self.normal_s,
+            self.eta_s,
+            alpha,
+            alpha + 1.0,
+            self.one,
+            self.zero,
+            torch.zeros_like(self.sss),
+        )
+        return torch.stack([p.i_sss, p.i_zeta, p.i_s, p.specular_s1])
+
+    def lobe_images(self, p: torch.Tensor, derivatives: bool = True) -> LobeImages:
+        """Unit-lobe images of ``p`` ``(T, 4)`` and (forward mode) their alpha derivatives."""
+        texel = self.texel
+        with torch.no_grad():
+            if not derivatives:
+                return self.unit_lobe(p[texel, 0]), None, self.unit_lobe(p[texel, 1]), None
+            u_s, du_s = torch.func.jvp(self.unit_lobe, (p[texel, 0],), (self.one,))
+            u_ss, du_ss = torch.func.jvp(self.unit_lobe, (p[texel, 1],), (self.one,))
+        return u_s, du_s, u_ss, du_ss
+
+    def residuals(self, stack: torch.Tensor) -> torch.Tensor:
+        """``(S, 15)`` weighted residuals of a ``(4, S, 3)`` prediction stack."""
+        prediction = SamplePrediction(i_sss=stack[0], i_zeta=stack[1], i_s=stack[2], specular_s1=stack[3])
+        return weighted_residuals(prediction, self.batch.observed, self.scale, self.weights)
+
+    def predict(self, p: torch.Tensor, images: LobeImages) -> torch.Tensor:
+        """``(4, S, 3)`` prediction ``base + rho_s U(alpha_s) + rho_ss U(alpha_ss)``."""
+        u_s, _, u_ss, _ = images
+        return self.base + p[self.texel, 2][None, :, None] * u_s + p[self.texel, 3][None, :, None] * u_ss
+
+    def data_per_texel(self, p: torch.Tensor, images: LobeImages) -> torch.Tensor:
+        """``(T,)`` weighted data loss of each texel."""
+        r = self.residuals(self.predict(p, images))
+        return per_texel_sum((r * r).sum(1), self.texel, self.count)
+
+    def smoothness(self, p: torch.Tensor) -> tuple[float, torch.Tensor]:
+        """Alpha smoothness (total) and its gradient ``(T, 4)`` (zero for the albedos)."""
+        height, width = self.mask.shape
+        leaf = p[:, :2].detach().clone().requires_grad_(True)
+        with torch.enable_grad():
+            total = sum(
+                w * smoothness_penalty(leaf[:, j].reshape(height, width), self.mask)
+                for j, w in enumerate(self.smooth_w)
+            )
+            (grad,) = torch.autograd.grad(total, leaf)
+        return float(total.detach()), torch.cat([grad, torch.zeros_like(grad)], dim=1)
+
+    def evaluate(self, p: torch.Tensor, derivatives: bool) -> _Iterate:
+        """The iterate at ``p`` ``(T, 4)`` (lobe images with derivatives if another step follows)."""
+        images = self.lobe_images(p, derivatives=derivatives)
+        data = self.data_per_texel(p, images)
+        reg_total, reg_grad = self.smoothness(p)
+        value = float(data.sum()) + reg_total
+        return _Iterate(p, images, reg_grad, value, bool(torch.isfinite(data).all()))
+
+    def normal_equations(self, current: _Iterate) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-texel Gauss-Newton blocks ``J^T J`` ``(T, 4, 4)`` and half-gradient ``(T, 4)`` at
+        ``current`` (exact Jacobian: forward mode through the linear-fractional residuals)."""
+        params, texel = current.params, self.texel
+        u_s, du_s, u_ss, du_ss = current.images
+        stack = self.predict(params, current.images)
+        columns = (
+            params[texel, 2][None, :, None] * du_s,  # d/d alpha_s = rho_s dU/dalpha
+            params[texel, 3][None, :, None] * du_ss,
+            u_s,
+            u_ss,
+        )
+        jac = []
+        for tangent in columns:
+            r, column = torch.func.jvp(self.residuals, (stack,), (tangent,))
+            jac.append(column)
+        jac = torch.stack(jac, dim=-1)  # (S, 15, 4)
+        gram = per_texel_sum(torch.einsum("smi,smj->sij", jac, jac), texel, self.count)
+        grad = per_texel_sum(torch.einsum("smi,sm->si", jac, r), texel, self.count) + 0.5 * current.reg_grad
+        return gram, grad
+
+    def damped_step(
+        self, params: torch.Tensor, gram: torch.Tensor, diag: torch.Tensor, grad: torch.Tensor, lam: float
+    ) -> torch.Tensor:
+        """Projected ``params + delta`` ``(T, 4)`` with ``delta`` the Marquardt step of damping ``lam``
+        (``gram + lam diag(diag)`` per texel, identity blocks for texels without samples)."""
+        blocks = torch.where(self.seen[:, None, None], gram + lam * torch.diag_embed(diag), self.eye)
+        return self.project(params + solve_lobe_system(blocks, -grad, self.reg))
+
+
+def _lm_iteration(
+    problem: _LobeProblem, current: _Iterate, lam: float, derivatives: bool
+) -> tuple[_Iterate, float, bool]:
+    """One Levenberg-Marquardt iteration: Gauss-Newton system at ``current``, then damped steps with
+    10x the damping each until one lowers the objective (at most ``_ATTEMPTS``).
+
+    Returns:
+        ``(next iterate, next damping, accepted)``; a rejected iteration returns ``current`` itself.
+    """
+    gram, grad = problem.normal_equations(current)
+    diag = torch.diagonal(gram, dim1=1, dim2=2).clamp_min(1e-12)
+    for _attempt in range(_ATTEMPTS):
+        candidate = problem.evaluate(problem.damped_step(current.params, gram, diag, grad, lam), derivatives)
+        if candidate.finite and candidate.value < current.value:
+            return candidate, max(lam / 3.0, 1e-9), True
+        lam = min(lam * 10.0, 1e9)
+    return current, lam, False
+
+
 def refine_lobes(
     batch: SampleBatch,
     normal: torch.Tensor,
@@ -274,115 +361,21 @@ def refine_lobes(
     count = _check_inputs(
         batch, normal, eta, rho_sss_bar, lobes, mask, scale, alpha_range, rho_max, iterations, damping
     )
-    dtype, device = batch.observed.dtype, batch.observed.device
-    texel = batch.texel
-    a_lo, a_hi = (float(v) for v in alpha_range)
-    eps = 1e-4
-
-    def project(p: torch.Tensor) -> torch.Tensor:
-        alpha_s = p[:, 0].clamp(a_lo + eps, a_hi - 2 * eps)
-        alpha_ss = torch.maximum(p[:, 1], alpha_s + eps).clamp(max=a_hi - eps)
-        rho = p[:, 2:].clamp(eps * rho_max, (1 - eps) * rho_max)
-        return torch.cat([alpha_s[:, None], alpha_ss[:, None], rho], dim=1)
-
+    problem = _LobeProblem(batch, normal, eta, rho_sss_bar, mask, count, scale, weights, alpha_range, rho_max)
     with torch.no_grad():
-        params = project(
-            torch.stack([lobes[k].reshape(-1).to(dtype=dtype, device=device) for k in LOBE_NAMES], 1)
+        start = torch.stack(
+            [lobes[k].reshape(-1).to(dtype=problem.dtype, device=problem.device) for k in LOBE_NAMES], 1
         )
-        normal_s = normal.to(dtype=dtype, device=device)[texel]
-        eta_s = eta.reshape(-1).to(dtype=dtype, device=device)[texel]
-        zero = torch.zeros_like(eta_s)
-        one = torch.ones_like(eta_s)
-        sss = torch.gather(rho_sss_bar.to(dtype=dtype, device=device)[texel], 1, batch.channels)
-        base = render_samples(batch, normal_s, eta_s, eta_s * 0 + 0.5, one, zero, zero, sss)
-        base = torch.stack([base.i_sss, base.i_zeta, base.i_s, base.specular_s1])  # (4, S, 3) subsurface
-
-    def unit_lobe(alpha: torch.Tensor) -> torch.Tensor:
-        p = render_samples(batch, normal_s, eta_s, alpha, alpha + 1.0, one, zero, torch.zeros_like(sss))
-        return torch.stack([p.i_sss, p.i_zeta, p.i_s, p.specular_s1])
-
-    def lobe_images(p: torch.Tensor, derivatives: bool = True) -> tuple[torch.Tensor, ...]:
-        """Unit-lobe images ``U(alpha_s), U(alpha_ss)`` and their alpha derivatives, ``(4, S, 3)`` each."""
-        with torch.no_grad():
-            if not derivatives:
-                return unit_lobe(p[texel, 0]), None, unit_lobe(p[texel, 1]), None
-            u_s, du_s = torch.func.jvp(unit_lobe, (p[texel, 0],), (one,))
-            u_ss, du_ss = torch.func.jvp(unit_lobe, (p[texel, 1],), (one,))
-        return u_s, du_s, u_ss, du_ss
-
-    def residuals(stack: torch.Tensor) -> torch.Tensor:
-        prediction = SamplePrediction(i_sss=stack[0], i_zeta=stack[1], i_s=stack[2], specular_s1=stack[3])
-        return weighted_residuals(prediction, batch.observed, scale, weights)
-
-    def predict(p: torch.Tensor, images: tuple[torch.Tensor, ...]) -> torch.Tensor:
-        u_s, _, u_ss, _ = images
-        return base + p[texel, 2][None, :, None] * u_s + p[texel, 3][None, :, None] * u_ss
-
-    def data_per_texel(p: torch.Tensor, images: tuple[torch.Tensor, ...]) -> torch.Tensor:
-        r = residuals(predict(p, images))
-        return _per_texel((r * r).sum(1), texel, count)
-
-    mask_t = mask.to(device=device, dtype=torch.bool)
-    height, width = mask_t.shape
-    smooth_w = (weights.alpha_s, weights.alpha_ss)
-
-    def smoothness(p: torch.Tensor) -> tuple[float, torch.Tensor]:
-        """Alpha smoothness (total) and its gradient ``(T, 4)`` (zero for the albedos)."""
-        leaf = p[:, :2].detach().clone().requires_grad_(True)
-        with torch.enable_grad():
-            total = sum(
-                w * smoothness_penalty(leaf[:, j].reshape(height, width), mask_t)
-                for j, w in enumerate(smooth_w)
-            )
-            (grad,) = torch.autograd.grad(total, leaf)
-        return float(total.detach()), torch.cat([grad, torch.zeros_like(grad)], dim=1)
-
-    seen = torch.zeros(count, dtype=torch.bool, device=device)
-    seen[texel] = True
-    single = smoothness_hessian(mask_t.cpu().numpy())
-    # 0.5 x the smoothness Hessian (the data part below is J^T J = 0.5 x its Gauss-Newton Hessian)
-    reg = 0.5 * scipy.sparse.block_diag([smooth_w[0] * single, smooth_w[1] * single], format="csr")
-    eye = torch.eye(4, dtype=dtype, device=device)
+        params = problem.project(start)
+    current = problem.evaluate(params, derivatives=int(iterations) > 0)
     lam = float(damping)
-    images = lobe_images(params, derivatives=int(iterations) > 0)
-    data = float(data_per_texel(params, images).sum())
-    reg_total, reg_grad = smoothness(params)
-    objective = [data + reg_total]
+    objective = [current.value]
     accepted: list[bool] = []
     for iteration in range(int(iterations)):
-        u_s, du_s, u_ss, du_ss = images
-        stack = predict(params, images)
-        columns = (
-            params[texel, 2][None, :, None] * du_s,  # d/d alpha_s = rho_s dU/dalpha
-            params[texel, 3][None, :, None] * du_ss,
-            u_s,
-            u_ss,
-        )
-        jac = []
-        for tangent in columns:  # residuals are linear-fractional in the prediction: exact forward mode
-            r, column = torch.func.jvp(residuals, (stack,), (tangent,))
-            jac.append(column)
-        jac = torch.stack(jac, dim=-1)  # (S, 15, 4)
-        gram = _per_texel(torch.einsum("smi,smj->sij", jac, jac), texel, count)
-        grad = _per_texel(torch.einsum("smi,sm->si", jac, r), texel, count) + 0.5 * reg_grad
-        diag = torch.diagonal(gram, dim1=1, dim2=2).clamp_min(1e-12)
-        ok = False
-        for _attempt in range(_ATTEMPTS):  # raise the damping until the step lowers the objective
-            blocks = torch.where(seen[:, None, None], gram + lam * torch.diag_embed(diag), eye)
-            candidate = project(params + _solve(blocks, -grad, reg))
-            candidate_images = lobe_images(candidate, derivatives=iteration + 1 < int(iterations))
-            data_new = data_per_texel(candidate, candidate_images)
-            reg_new, reg_grad_new = smoothness(candidate)
-            value = float(data_new.sum()) + reg_new
-            ok = bool(torch.isfinite(data_new).all()) and value < objective[-1]
-            if ok:
-                params, images, reg_grad = candidate, candidate_images, reg_grad_new
-                lam = max(lam / 3.0, 1e-9)
-                break
-            lam = min(lam * 10.0, 1e9)
-        objective.append(value if ok else objective[-1])
+        current, lam, ok = _lm_iteration(problem, current, lam, derivatives=iteration + 1 < int(iterations))
+        objective.append(current.value)
         accepted.append(ok)
-    return LobeRefinement(*(params[:, j].detach() for j in range(4)), objective, accepted)
+    return LobeRefinement(*(current.params[:, j].detach() for j in range(4)), objective, accepted)
 
 
 def _logit(p: torch.Tensor) -> torch.Tensor:
