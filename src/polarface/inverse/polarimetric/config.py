@@ -41,23 +41,19 @@ class PolarimetricConfig:
             (:func:`polarface.inverse.polarimetric.init.init_eta`).
         min_views: fewest fitting views that must see a texel for it to count as reconstructed (the
             result mask): texels seen in 1-3 views (grazing, mostly at the atlas border) cannot
-            separate the 13 unknowns; on the demo preset their rho_sss_bar error was 7-15 % (vs 1.6-2.9 %
-            with >= 6 views) and they were most of the input the skin model cannot reproduce.
+            separate the 13 unknowns (their errors per view count: docs/reconstruct.md, "Reliability").
         boundary_margin: texels within this many texels (4-neighbour steps) of the edge of the region
             seen by ``min_views`` views are fitted but left out of the result mask. That edge runs where the
             surface turns away from or behind something for most views (eye sockets, nostrils, lips,
             ears, the sides of the head): its texels are seen at grazing angles next to occlusion edges,
-            and their 5x5 smoothness, H Laplacian and normals from H reach texels no data constrains.
-            On the demo preset the one-texel ring (2.3 % of the texels) held 62 % of the texels the skin
-            model cannot reproduce and had 4x the eta error of the rest, whatever its view count; 0 keeps
-            it.
+            and their 5x5 smoothness, H Laplacian and normals from H reach texels no data constrains
+            (measured effect: docs/reconstruct.md, "Reliability"); 0 keeps them.
         seed: torch seed (deterministic runs).
         refine_lobes_iterations: Levenberg-Marquardt iterations on the four lobe maps after each
             patch's optimisation (:func:`polarface.inverse.polarimetric.refine.refine_patch_lobes`; 0,
-            the default, disables it). It lowers the loss and, on the demo preset (whole texture), the
-            alpha_s error (0.046 -> 0.028 median abs with one iteration), but not the rho_s error
-            (19.4 % -> 21.3 %; rho_ss 29 % -> 41 %) and it doubles the optimisation time: with noisy
-            observations the objective's own minimum is off along the lobes' valley (docs/reconstruct.md).
+            the default, disables it). It lowers the loss and the alpha_s error but not the rho_s error,
+            and it doubles the optimisation time: with noisy observations the objective's own minimum is
+            off along the lobes' valley (measurements: docs/reconstruct.md).
         refine_lobes_damping: its initial Marquardt damping (relative to the Gauss-Newton diagonal).
     """
 

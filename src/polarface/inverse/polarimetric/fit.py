@@ -115,7 +115,7 @@ def fit_polarimetric(
         on_patch: callback ``(done, total)``.
         threads: torch intra-op threads during the fit (None: unchanged). Patch tensors hold ~1e5
             elements, where OpenMP threads gain little and, on a busy machine, spin against other
-            processes (measured 10-50x slower with 2 threads under load): 1 is a safe choice. The fused
+            processes (docs/reconstruct.md): 1 is a safe choice. The fused
             kernel's threads are numba's (``NUMBA_NUM_THREADS``, default: all cores).
         engine: data-loss implementation: ``fused`` (numba kernel with analytic gradients, CPU),
             ``torch`` (vectorised autograd reference, any device) or ``auto`` (fused on CPU, torch

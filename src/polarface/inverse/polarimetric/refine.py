@@ -26,15 +26,8 @@ exact Jacobian. Parameters are refined in physical units and kept inside the fit
 projection: ``alpha_s`` in ``alpha_range``, ``alpha_ss`` in ``(alpha_s, alpha_range[1])`` (the
 single-scattering lobe stays the broader one: no lobe swap), ``rho_s, rho_ss`` in ``(0, rho_max)``.
 
-Measured on the demo preset (8 interior 24^2 patches, real noisy observations, one iteration after
-the 150 RMSprop steps; docs/reconstruct.md): the collective alpha_s bias is mostly removed (median abs error
-0.043 -> 0.018, bias +0.038 -> +0.016), the loss falls in every patch (mean 0.0611 -> 0.0595), rho_s
-improves less (median relative error 14.3 % -> 13.4 %, bias +12.9 % -> +8.4 %); eta, rho_sss_bar and the
-normals are untouched. Run longer (or alternated with RMSprop) the loss keeps falling, below that of the
-ground-truth lobes re-optimised, while the rho_s error *grows* (15.4 % after 10 iterations, 19 % after
-three LM + RMSprop rounds): on noisy data the objective's own minimiser is off along the valley, so
-better optimisation cannot reach the 10 % target. On the same patches with the noise-free simulator
-observations, 10 iterations take rho_s from 12.4 % to 7.2 % (bias +12 % -> 0).
+Its measured effect on the demo preset, and why it cannot reach an unbiased rho_s on noisy data, are in
+docs/reconstruct.md.
 
 Code map: :class:`_LobeProblem` holds a patch's fixed state (subsurface image, prior Hessian) with the
 residuals, the Jacobian blocks and the damped step; :func:`_lm_iteration` is one iteration (solve, retry
