@@ -69,8 +69,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "shading_normals", "smoothness_hessian", "smoothness_penalty", "weighted_residuals",
     ),
     "polarface.io": (
-        "atomic_directory", "atomic_path", "colormap_png", "image_header", "read_exr", "read_png",
-        "write_exr", "write_json_atomic", "write_png",
+        "atomic_directory", "atomic_path", "colormap_png", "image_header", "read_exr", "read_gray",
+        "read_png", "write_exr", "write_json_atomic", "write_png",
     ),
     "polarface.optics": (
         "ANALYZER_ANGLES", "DEFAULT_LIGHT_STOKES", "FresnelTerms", "PolarimetricImages",
