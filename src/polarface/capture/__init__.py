@@ -73,7 +73,7 @@ from polarface.capture.sensor import (
     pattern_period,
     simulate_raw,
 )
-from polarface.capture.stokes_images import write_stokes_images
+from polarface.capture.stokes_images import StokesOptions, write_stokes_images
 from polarface.capture.store import CaptureStore
 from polarface.capture.synthetic import PATTERNS, DemosaicErrors, measure_demosaic, stokes_pattern
 
@@ -103,6 +103,7 @@ __all__ = [
     "SensorNoise",
     "SpectralModel",
     "StereoResult",
+    "StokesOptions",
     "angle_index_map",
     "calibrate_intrinsics",
     "calibrate_rig",

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from polarface.capture.rig import Rig
+from polarface.io import read_gray
 
 __all__ = [
     "CharucoBoardSpec",
@@ -104,17 +105,6 @@ class StereoResult:
     def baseline_mm(self) -> float:
         """Distance between the two camera centres, mm."""
         return float(np.linalg.norm(self.T))
-
-
-def read_gray(path: str | os.PathLike[str]) -> np.ndarray:
-    """An image file as 8-bit greyscale; errors name the file."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image '{path}' does not exist")
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise ValueError(f"cannot read image '{path}'")
-    return image
 
 
 def read_image_list(path: str | os.PathLike[str]) -> list[Path]:

@@ -21,11 +21,11 @@ from polarface.capture.calibration import (
     chessboard_object_points,
     detect_charuco,
     detect_chessboard,
-    read_gray,
     read_image_list,
     update_rig,
 )
 from polarface.capture.rig import Rig
+from polarface.io import read_gray
 from polarface.io.atomic import write_json_atomic
 
 __all__ = ["calibrate_rig"]

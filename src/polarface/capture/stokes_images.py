@@ -8,6 +8,7 @@ written atomically (:mod:`polarface.io.atomic`).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -17,7 +18,28 @@ from polarface.capture.demosaic import DemosaicMethod, demosaic
 from polarface.capture.observations import observations_from_intensities
 from polarface.io import colormap_png, read_png, write_exr, write_json_atomic, write_png
 
-__all__ = ["write_stokes_images"]
+__all__ = ["StokesOptions", "write_stokes_images"]
+
+
+@dataclasses.dataclass(frozen=True)
+class StokesOptions:
+    """How :func:`write_stokes_images` reads the raw mosaic (see :func:`polarface.capture.demosaic.demosaic`).
+
+    Attributes:
+        method: demosaicing method, ``"residual"`` or ``"bilinear"``.
+        bit_depth: ADC bit depth; None: 8 for an 8-bit file, else 16.
+        black_level: ADC offset, counts.
+        white_level: saturation count; None: ``2**bit_depth - 1``.
+        phase: mosaic phase ``(row, col)`` of the readout.
+        exposure: relative exposure to divide by (> 0).
+    """
+
+    method: DemosaicMethod = "residual"
+    bit_depth: int | None = None
+    black_level: float = 0.0
+    white_level: float | None = None
+    phase: tuple[int, int] = (0, 0)
+    exposure: float = 1.0
 
 
 def _preview_intensity(image: np.ndarray, scale: float) -> np.ndarray:
@@ -29,13 +51,7 @@ def write_stokes_images(
     raw_path: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
     sensor: str,
-    *,
-    method: DemosaicMethod = "residual",
-    bit_depth: int | None = None,
-    black_level: float = 0.0,
-    white_level: float | None = None,
-    phase: tuple[int, int] = (0, 0),
-    exposure: float = 1.0,
+    options: StokesOptions = StokesOptions(),
 ) -> dict:
     """Demosaic the raw mosaic at ``raw_path`` and write the images listed in the module docstring.
 
@@ -43,8 +59,7 @@ def write_stokes_images(
         raw_path: single-channel PNG or TIFF mosaic (8- or 16-bit counts).
         out_dir: output folder (created).
         sensor: ``"mono-polarization"`` or ``"color-polarization"``.
-        method, black_level, white_level, phase, exposure: see :func:`polarface.capture.demosaic.demosaic`.
-        bit_depth: ADC bit depth; None: 8 for an 8-bit file, else 16.
+        options: :class:`StokesOptions`.
 
     Returns:
         The ``summary.json`` content: saturated fraction, repaired defects, median DoP and mean s0 over
@@ -56,16 +71,16 @@ def write_stokes_images(
     raw = read_png(raw_path)
     if raw.ndim != 2:
         raise ValueError(f"raw file '{raw_path}' must be a single-channel mosaic; got shape {raw.shape}")
-    bit_depth = bit_depth or (8 if raw.dtype == np.uint8 else 16)
+    bit_depth = options.bit_depth or (8 if raw.dtype == np.uint8 else 16)
     stack = demosaic(
         raw,
         sensor,
-        method=method,
-        phase=tuple(phase),
-        black_level=black_level,
-        white_level=white_level,
+        method=options.method,
+        phase=tuple(options.phase),
+        black_level=options.black_level,
+        white_level=options.white_level,
         bit_depth=bit_depth,
-        exposure=exposure,
+        exposure=options.exposure,
     )
     obs = observations_from_intensities(*stack.intensities)
     colour = stack.intensities.ndim == 4
@@ -89,7 +104,7 @@ def write_stokes_images(
     summary = {
         "raw": str(raw_path),
         "sensor": sensor,
-        "method": method,
+        "method": options.method,
         "bit_depth": bit_depth,
         "shape": list(raw.shape),
         "saturated_fraction": float(stack.saturated.mean()),

@@ -2,4 +2,28 @@
 
 A command module defines ``NAME`` (str), ``HELP`` (one line), ``add_arguments(parser)`` and
 ``run(args) -> int``. It parses arguments, calls the library, and writes a documented artifact.
+A library job with several settings takes them as a frozen options dataclass, which the command
+builds with :func:`options_from_args` from the arguments of the same names (argparse ``dest``).
 """
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from typing import Any, TypeVar
+
+__all__ = ["options_from_args"]
+
+_Options = TypeVar("_Options")
+
+
+def options_from_args(options_type: type[_Options], args: argparse.Namespace, **values: Any) -> _Options:
+    """``options_type(**values)`` with every other field taken from the argument of the same name.
+
+    Args:
+        options_type: a dataclass; each of its fields not in ``values`` must be an attribute of ``args``.
+        args: the parsed command line.
+        values: fields set otherwise (renamed or converted arguments).
+    """
+    fields = (f.name for f in dataclasses.fields(options_type) if f.name not in values)  # type: ignore[arg-type]
+    return options_type(**{name: getattr(args, name) for name in fields}, **values)

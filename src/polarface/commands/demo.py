@@ -9,17 +9,12 @@
   4. DIR/index.html: a landing page linking the report, the metrics and the simulated frames.
 
 The demo preset (24 + 10 frames at 612x512) takes tens of minutes on a 2-core laptop; ``--preset tiny``
-takes a few minutes. ``polarface demo --sphere --out DIR`` instead renders the optics-only demo: a
-skin-like sphere under the 8 polarized LED modules, written as:
-  exr/I0.exr, I45, I90, I135      analyzer images, channels R, G, B (linear float32 radiance)
-  exr/I_sss.exr, I_zeta, I_s      observations 2 I90, I135 - I45, I0 - I90
-  exr/DoP.exr, AoLP.exr           linear DoP and AoLP in [0, pi) radians, per channel
-  exr/mask.exr                    1 on the sphere, 0 on the background
-  png/*.png                       previews (sRGB tone-mapped or colour-mapped, channel G for maps)
-  parameters.json                 the scene and material parameters used
-  index.html                      a page showing every image with a caption
+takes a few minutes. ``polarface demo --sphere --out DIR`` instead renders the optics-only demo in
+seconds: a skin-like sphere under the 8 polarized LED modules, as analyzer images, the observations,
+DoP, AoLP and a mask (EXR), PNG previews, parameters.json and an index.html.
 
-The jobs are :func:`polarface.pipeline.run_demo_pipeline` and :func:`polarface.pipeline.run_sphere_demo`.
+The jobs are :func:`polarface.pipeline.run_demo_pipeline` and :func:`polarface.pipeline.run_sphere_demo`
+(whose docstring lists the sphere demo's files).
 """
 
 from __future__ import annotations

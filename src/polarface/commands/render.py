@@ -25,6 +25,8 @@ import argparse
 import json
 from pathlib import Path
 
+from polarface.commands import options_from_args
+
 NAME = "render"
 HELP = "render a RESULT: polarizer/Stokes/Mueller/DoP/AoLP/sRGB images, strip light, chromophore edits"
 
@@ -34,34 +36,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("result", type=Path, help="RESULT folder")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default RESULT/render)")
     parser.add_argument("--camera", default=None, help="camera id of the rig (default: first polarimetric)")
-    parser.add_argument("--poses", type=Path, default=None, help="poses.json (model -> rig world per frame)")
+    parser.add_argument(
+        "--poses",
+        dest="poses_path",
+        metavar="POSES",
+        type=Path,
+        default=None,
+        help="poses.json (model -> rig world per frame)",
+    )
     parser.add_argument("--pose-frame", type=int, default=0, help="frame of --poses to use")
     parser.add_argument(
         "--polarizer-deg", type=float, default=0.0, help="analyzer angle, degrees from image x"
     )
     parser.add_argument("--edit", default=None, help="chromophore edits, e.g. C_h_out=2x,C_m=4x")
     parser.add_argument("--strip-width-mm", type=float, default=10.0, help="width of the light stripe, mm")
-    parser.add_argument("--no-mueller", action="store_true", help="skip the Mueller images (slowest part)")
-    parser.add_argument("--no-strip", action="store_true", help="skip the strip-light rendering")
+    parser.add_argument(
+        "--no-mueller", dest="mueller", action="store_false", help="skip the Mueller images (slowest part)"
+    )
+    parser.add_argument(
+        "--no-strip", dest="strip", action="store_false", help="skip the strip-light rendering"
+    )
     parser.add_argument("--exposure", type=float, default=None, help="sRGB exposure (default: auto)")
 
 
 def run(args: argparse.Namespace) -> int:
     """Render and write the images (module docstring); prints a JSON summary."""
-    from polarface.render.result_views import render_result_outputs
+    from polarface.render.result_views import RenderOptions, render_result_outputs
 
-    summary = render_result_outputs(
-        args.result,
-        args.out,
-        camera=args.camera,
-        poses_path=args.poses,
-        pose_frame=args.pose_frame,
-        polarizer_deg=args.polarizer_deg,
-        edit=args.edit,
-        strip_width_mm=args.strip_width_mm,
-        mueller=not args.no_mueller,
-        strip=not args.no_strip,
-        exposure=args.exposure,
-    )
+    summary = render_result_outputs(args.result, args.out, options_from_args(RenderOptions, args))
     print(json.dumps(summary, indent=1))
     return 0

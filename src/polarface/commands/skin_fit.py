@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from polarface.commands import options_from_args
 from polarface.skin.fitting import FitSettings
 
 NAME = "skin-fit"
@@ -45,17 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Fit and write the outputs (:func:`polarface.pipeline.skin_fit.fit_spectra_file`); returns 0."""
-    from polarface.pipeline.skin_fit import fit_spectra_file
+    from polarface.pipeline.skin_fit import SpectraFitOptions, fit_spectra_file
 
-    fit = fit_spectra_file(
-        args.spectra,
-        args.out,
-        min_nm=args.min_nm,
-        max_nm=args.max_nm,
-        max_offset=args.max_offset,
-        iterations=args.iterations,
-        starts=args.starts,
-    )
+    fit = fit_spectra_file(args.spectra, args.out, options_from_args(SpectraFitOptions, args))
     rmse = fit.rmse
     log.info("skin-fit: %d spectra in %.1f s, median RMSE %.4f", len(fit.names), fit.seconds, np.median(rmse))
     print(

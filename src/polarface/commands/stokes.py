@@ -11,6 +11,8 @@ import argparse
 import json
 from pathlib import Path
 
+from polarface.commands import options_from_args
+
 NAME = "stokes"
 HELP = "demosaic one raw polarization frame into I0/I45/I90/I135, DoP and AoLP images (EXR + PNG)"
 
@@ -41,19 +43,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Write the images (:func:`polarface.capture.stokes_images.write_stokes_images`), print the summary."""
-    from polarface.capture.stokes_images import write_stokes_images
+    from polarface.capture.stokes_images import StokesOptions, write_stokes_images
 
-    summary = write_stokes_images(
-        args.raw,
-        args.out,
-        args.sensor,
-        method=args.method,
-        bit_depth=args.bit_depth,
-        black_level=args.black_level,
-        white_level=args.white_level,
-        phase=tuple(args.phase),
-        exposure=args.exposure,
-    )
+    options = options_from_args(StokesOptions, args, phase=tuple(args.phase))
+    summary = write_stokes_images(args.raw, args.out, args.sensor, options)
     print(json.dumps(summary, indent=2))
     if summary["median_dop"] is None:
         print(f"polarface stokes: warning: every pixel of '{args.raw}' is saturated")

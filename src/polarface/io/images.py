@@ -15,7 +15,7 @@ import numpy as np
 
 from polarface.io.atomic import atomic_path
 
-__all__ = ["colormap_png", "image_header", "read_exr", "read_png", "write_exr", "write_png"]
+__all__ = ["colormap_png", "image_header", "read_exr", "read_gray", "read_png", "write_exr", "write_png"]
 
 
 def write_exr(
@@ -133,6 +133,19 @@ def write_png(path: str | os.PathLike[str], image: np.ndarray, *, bit_depth: int
     return Path(path)
 
 
+def _imread(path: str | os.PathLike[str], flags: int) -> np.ndarray:
+    """``cv2.imread(path, flags)`` of an image file that must exist and decode (errors name the file)."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image file '{path}' does not exist")
+    array = cv2.imread(str(path), flags)
+    if array is None:
+        raise ValueError(f"cannot read image '{path}' (truncated, corrupt or not an image)")
+    return array
+
+
 def read_png(path: str | os.PathLike[str]) -> np.ndarray:
     """Read a PNG (or TIFF) exactly as stored: uint8/uint16, ``(H, W)`` or ``(H, W, C)`` RGB order.
 
@@ -142,15 +155,17 @@ def read_png(path: str | os.PathLike[str]) -> np.ndarray:
     """
     import cv2
 
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image file '{path}' does not exist")
-    array = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if array is None:
-        raise ValueError(f"cannot read image '{path}' (truncated, corrupt or not an image)")
+    array = _imread(path, cv2.IMREAD_UNCHANGED)
     if array.ndim == 3 and array.shape[-1] in (3, 4):
         array = array[..., [2, 1, 0, 3][: array.shape[-1]]]  # OpenCV decodes BGR(A)
     return np.ascontiguousarray(array)
+
+
+def read_gray(path: str | os.PathLike[str]) -> np.ndarray:
+    """An image file as 8-bit greyscale ``(H, W)`` (OpenCV's conversion); errors as :func:`read_png`."""
+    import cv2
+
+    return _imread(path, cv2.IMREAD_GRAYSCALE)
 
 
 def image_header(path: str | os.PathLike[str]) -> tuple[int, int, int, int]:

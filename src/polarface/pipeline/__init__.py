@@ -27,7 +27,12 @@ from polarface.pipeline.reconstruct import (
     resolve_reconstruct_inputs,
     run_stages,
 )
-from polarface.pipeline.skin_fit import SkinFitSummary, fit_spectra_file, read_reflectance_csv
+from polarface.pipeline.skin_fit import (
+    SkinFitSummary,
+    SpectraFitOptions,
+    fit_spectra_file,
+    read_reflectance_csv,
+)
 
 __all__ = [
     "ANALYZER_IMAGE_NAMES",
@@ -36,6 +41,7 @@ __all__ = [
     "ReconstructContext",
     "ReconstructInputs",
     "SkinFitSummary",
+    "SpectraFitOptions",
     "biophysical_metrics",
     "estimate_ior_from_folder",
     "evaluate",

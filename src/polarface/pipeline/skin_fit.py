@@ -22,9 +22,27 @@ from polarface.io import atomic_path, write_json_atomic
 from polarface.skin.chromophores import HAEMOGLOBIN_TABLE_RANGE_NM
 from polarface.skin.fitting import FIT_PARAMETER_NAMES, FitSettings, fit_reflectance_spectra
 
-__all__ = ["SkinFitSummary", "fit_spectra_file", "read_reflectance_csv"]
+__all__ = ["SkinFitSummary", "SpectraFitOptions", "fit_spectra_file", "read_reflectance_csv"]
 
 _MIN_WAVELENGTHS = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class SpectraFitOptions:
+    """Fit band and settings of :func:`fit_spectra_file` (which checks them).
+
+    Attributes:
+        min_nm, max_nm: fit band, nm.
+        max_offset: upper bound in [0, 0.5] of the flat surface-reflection offset (reflectance factor).
+        iterations: Levenberg-Marquardt iterations (>= 1).
+        starts: starting points per sample (>= 1).
+    """
+
+    min_nm: float = 420.0
+    max_nm: float = 700.0
+    max_offset: float = FitSettings.max_surface_offset
+    iterations: int = FitSettings.iterations
+    starts: int = FitSettings.starts
 
 
 @dataclasses.dataclass(frozen=True)
@@ -215,30 +233,27 @@ def _write_fitted_csv(
 def fit_spectra_file(
     spectra: str | os.PathLike[str],
     out: str | os.PathLike[str],
-    *,
-    min_nm: float = 420.0,
-    max_nm: float = 700.0,
-    max_offset: float = FitSettings.max_surface_offset,
-    iterations: int = FitSettings.iterations,
-    starts: int = FitSettings.starts,
+    options: SpectraFitOptions = SpectraFitOptions(),
 ) -> SkinFitSummary:
-    """Fit every spectrum of the CSV ``spectra`` over ``min_nm``-``max_nm`` and write the outputs.
+    """Fit every spectrum of the CSV ``spectra`` over the band of ``options`` and write the outputs.
 
     Args:
         spectra: CSV path (format: :func:`read_reflectance_csv`).
         out: output folder (created): ``fit.json``, ``fit.png``, ``fitted_spectra.csv``.
-        min_nm, max_nm: fit band, nm. max_offset: upper bound in [0, 0.5] of the flat surface offset.
-        iterations, starts: Levenberg-Marquardt iterations and starting points per sample (>= 1).
+        options: :class:`SpectraFitOptions`.
 
     Raises:
         FileNotFoundError, ValueError: see :func:`read_reflectance_csv`; bad settings.
     """
+    min_nm, max_nm = options.min_nm, options.max_nm
     wavelengths, names, measured = read_reflectance_csv(Path(spectra), min_nm, max_nm)
-    if iterations < 1 or starts < 1:
+    if options.iterations < 1 or options.starts < 1:
         raise ValueError("--iterations and --starts must be >= 1")
-    if not 0.0 <= max_offset <= 0.5:
-        raise ValueError(f"--max-offset must lie in [0, 0.5]; got {max_offset}")
-    settings = FitSettings(max_surface_offset=max_offset, iterations=iterations, starts=starts)
+    if not 0.0 <= options.max_offset <= 0.5:
+        raise ValueError(f"--max-offset must lie in [0, 0.5]; got {options.max_offset}")
+    settings = FitSettings(
+        max_surface_offset=options.max_offset, iterations=options.iterations, starts=options.starts
+    )
     start = time.perf_counter()
     with tqdm(total=settings.iterations, desc=f"skin-fit {len(names)} spectra", unit="it") as bar:
         fit = fit_reflectance_spectra(

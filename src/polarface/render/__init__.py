@@ -30,7 +30,7 @@ from polarface.render.relight import (
     render_result_view,
 )
 from polarface.render.renderer import ViewRender, analyzer_images, render_view, rig_lighting, shading_normals
-from polarface.render.result_views import render_result_outputs
+from polarface.render.result_views import RenderOptions, render_result_outputs
 from polarface.render.scene import SphereGeometry, ring_light_positions, trace_sphere
 from polarface.render.shading import (
     FragmentMaterial,
@@ -56,6 +56,7 @@ __all__ = [
     "DemoRender",
     "FragmentMaterial",
     "FrameTextures",
+    "RenderOptions",
     "SphereGeometry",
     "SubsurfaceModel",
     "SurfaceFragments",

@@ -19,6 +19,7 @@ Images are linear radiance, channels-last ``(h, w, 6)``; Stokes in the camera fr
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -40,7 +41,35 @@ from polarface.render.relight import (
     render_result_view,
 )
 
-__all__ = ["render_result_outputs"]
+__all__ = ["RenderOptions", "render_result_outputs"]
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderOptions:
+    """What :func:`render_result_outputs` renders.
+
+    Attributes:
+        camera: camera id of the RESULT's rig; None: the first polarimetric camera.
+        poses_path: ``poses.json`` (model -> rig world per frame); None: the head at the rest placement
+            facing the polarimetric module.
+        pose_frame: frame of ``poses_path`` to use.
+        polarizer_deg: analyzer angle of ``polarizer.exr``, degrees from image x (finite).
+        edit: chromophore edits, e.g. ``"C_h_out=2x,C_m=4x"`` (:func:`~polarface.render.relight.parse_edits`).
+        strip_width_mm: width of the vertical light stripe, mm.
+        mueller: write the Mueller images (the slowest part).
+        strip: write the strip-light images.
+        exposure: sRGB exposure; None: automatic (99th percentile of the view at 0.85).
+    """
+
+    camera: str | None = None
+    poses_path: Path | None = None
+    pose_frame: int = 0
+    polarizer_deg: float = 0.0
+    edit: str | None = None
+    strip_width_mm: float = 10.0
+    mueller: bool = True
+    strip: bool = True
+    exposure: float | None = None
 
 
 def _channel_maps(prefix: str, images: np.ndarray, names: list[str]) -> dict[str, np.ndarray]:
@@ -57,49 +86,38 @@ def _load_pose(poses_path: Path | None, pose_frame: int) -> np.ndarray | None:
 
 
 def render_result_outputs(
-    result_dir: Path,
-    out: Path | None = None,
-    *,
-    camera: str | None = None,
-    poses_path: Path | None = None,
-    pose_frame: int = 0,
-    polarizer_deg: float = 0.0,
-    edit: str | None = None,
-    strip_width_mm: float = 10.0,
-    mueller: bool = True,
-    strip: bool = True,
-    exposure: float | None = None,
+    result_dir: Path, out: Path | None = None, options: RenderOptions = RenderOptions()
 ) -> dict:
-    """Render the RESULT at ``result_dir`` and write the images (module docstring) to ``out``
-    (default ``RESULT/render``); returns the summary also written to ``render.json``."""
+    """Render the RESULT at ``result_dir`` as ``options`` say and write the images (module docstring) to
+    ``out`` (default ``RESULT/render``); returns the summary also written to ``render.json``."""
     started = time.perf_counter()
-    edits = parse_edits(edit)
-    if not math.isfinite(polarizer_deg):
+    edits = parse_edits(options.edit)
+    if not math.isfinite(options.polarizer_deg):
         raise ValueError("argument '--polarizer-deg' must be finite")
     appearance = ResultAppearance.load(result_dir)
     out = out or (result_dir / "render")
-    pose = _load_pose(poses_path, pose_frame)
+    pose = _load_pose(options.poses_path, options.pose_frame)
     names = list(appearance.rig.spectral.channel_names)
-    steps = 1 + mueller + strip + bool(edits)
+    steps = 1 + options.mueller + options.strip + bool(edits)
     bar = tqdm(total=steps, desc="render", unit="pass")
-    view = render_result_view(appearance, camera, pose, edits=edits)
+    view = render_result_view(appearance, options.camera, pose, edits=edits)
     bar.update(1)
-    s0, polarizer, green = _write_polarization(out, view, names, polarizer_deg)
+    s0, polarizer, green = _write_polarization(out, view, names, options.polarizer_deg)
     rgb = linear_rgb_from_channels(s0, appearance.rig)
-    exposure = exposure or 0.85 / max(float(np.percentile(rgb[view.mask], 99)), 1e-12)
+    exposure = options.exposure or 0.85 / max(float(np.percentile(rgb[view.mask], 99)), 1e-12)
     write_exr(out / "srgb_linear.exr", rgb * exposure)
     write_png(out / "srgb.png", encode_srgb(rgb * exposure))
     pol_rgb = linear_rgb_from_channels(polarizer, appearance.rig)
     write_png(out / "previews" / "polarizer.png", encode_srgb(2.0 * pol_rgb * exposure))
     summary: dict = {
-        "camera": camera,
-        "polarizer_deg": polarizer_deg,
+        "camera": options.camera,
+        "polarizer_deg": options.polarizer_deg,
         "edits": edits,
         "exposure": exposure,
         "pixels": int(view.mask.sum()),
     }
     if edits:
-        plain = render_result_view(appearance, camera, pose)
+        plain = render_result_view(appearance, options.camera, pose)
         bar.update(1)
         plain_rgb = linear_rgb_from_channels(plain.images["i0"] + plain.images["i90"], appearance.rig)
         write_png(out / "srgb_unedited.png", encode_srgb(plain_rgb * exposure))
@@ -108,11 +126,11 @@ def render_result_outputs(
         lab_plain = linear_srgb_to_lab(np.clip(plain_rgb * exposure, 0, None)[both]).mean(0)
         summary["lab_unedited"] = lab_plain.tolist()
         summary["lab_edited"] = lab_edit.tolist()
-    if mueller:
+    if options.mueller:
         _write_mueller(out, view, names, green)
         bar.update(1)
-    if strip:
-        _write_strip(out, appearance, camera, pose, edits, strip_width_mm, names)
+    if options.strip:
+        _write_strip(out, appearance, options.camera, pose, edits, options.strip_width_mm, names)
         bar.update(1)
     bar.close()
     summary["seconds"] = time.perf_counter() - started

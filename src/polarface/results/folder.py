@@ -41,6 +41,11 @@ def _check_polarimetric_maps(maps: Mapping[str, np.ndarray], mask: np.ndarray) -
         raise ValueError(f"argument 'maps': shapes {wrong} do not match the mask's {np.shape(mask)}")
 
 
+def _under_root(name: str) -> property:
+    """A read-only property of a :class:`ResultFolder`: the path ``root / name``."""
+    return property(lambda folder: folder.root / name, doc=f"``root / {name!r}``")
+
+
 class ResultFolder:
     """A RESULT folder rooted at ``root`` (need not exist yet; writers create sub-folders).
 
@@ -57,37 +62,14 @@ class ResultFolder:
         return f"ResultFolder('{self.root}')"
 
     # ---- paths -------------------------------------------------------------------------------
-    @property
-    def maps_dir(self) -> Path:
-        return self.root / layout.MAPS_DIR
-
-    @property
-    def previews_dir(self) -> Path:
-        return self.root / layout.PREVIEWS_DIR
-
-    @property
-    def checkpoints_dir(self) -> Path:
-        return self.root / layout.CHECKPOINTS_DIR
-
-    @property
-    def exports_dir(self) -> Path:
-        return self.root / layout.EXPORTS_DIR
-
-    @property
-    def geometry_dir(self) -> Path:
-        return self.root / layout.GEOMETRY_DIR
-
-    @property
-    def result_json_path(self) -> Path:
-        return self.root / layout.RESULT_JSON
-
-    @property
-    def unwrap_path(self) -> Path:
-        return self.root / layout.UNWRAP_STORE
-
-    @property
-    def report_path(self) -> Path:
-        return self.root / layout.REPORT_HTML
+    maps_dir = _under_root(layout.MAPS_DIR)
+    previews_dir = _under_root(layout.PREVIEWS_DIR)
+    checkpoints_dir = _under_root(layout.CHECKPOINTS_DIR)
+    exports_dir = _under_root(layout.EXPORTS_DIR)
+    geometry_dir = _under_root(layout.GEOMETRY_DIR)
+    result_json_path = _under_root(layout.RESULT_JSON)
+    unwrap_path = _under_root(layout.UNWRAP_STORE)
+    report_path = _under_root(layout.REPORT_HTML)
 
     @property
     def rig_path(self) -> Path:

@@ -125,10 +125,7 @@ def problem() -> Problem:
 def test_smoke_shapes_and_empty_texels(problem):
     params = pack_parameters(*problem.leaves).detach().numpy()
     f = problem.fused
-    loss, grad, terms = fused_loss_and_grad(
-        f.offsets, f.position, params, f.sample_view, f.sample_lit, f.observed, f.view_center, f.view_up,
-        f.view_ref_up, f.light_pos, f.light_intensity, f.view_channels, (1.0, 1.0, 1.0, 0.002), problem.scale,
-    )  # fmt: skip
+    loss, grad, terms = fused_loss_and_grad(f, params, (1.0, 1.0, 1.0, 0.002), problem.scale)
     assert loss.shape == (30,) and grad.shape == (30, 14) and terms.shape == (4,)
     assert np.all(loss[-2:] == 0) and np.all(grad[-2:] == 0)  # texels without samples
     assert np.all(np.isfinite(grad)) and np.all(loss >= 0)
@@ -181,10 +178,7 @@ def test_float32_kernel_agrees_with_float64(problem):
 def test_result_does_not_depend_on_thread_count(problem):
     params = pack_parameters(*problem.leaves).detach().numpy()
     f = problem.fused
-    args = (
-        f.offsets, f.position, params, f.sample_view, f.sample_lit, f.observed, f.view_center, f.view_up,
-        f.view_ref_up, f.light_pos, f.light_intensity, f.view_channels, (1.0, 1.0, 1.0, 0.002), problem.scale,
-    )  # fmt: skip
+    args = (f, params, (1.0, 1.0, 1.0, 0.002), problem.scale)
     previous = numba.get_num_threads()
     try:
         numba.set_num_threads(1)
@@ -236,8 +230,4 @@ def test_bad_input(problem):
         with pytest.raises(ValueError, match=match):
             build_fused_samples(**{**base, **change})
     with pytest.raises(ValueError, match="float32 or float64"):
-        fused_loss_and_grad(
-            f.offsets, f.position, params.numpy().astype(np.float16), f.sample_view, f.sample_lit, f.observed,
-            f.view_center, f.view_up, f.view_ref_up, f.light_pos, f.light_intensity, f.view_channels,
-            (1.0, 1.0, 1.0, 0.002), 1.0,
-        )  # fmt: skip
+        fused_loss_and_grad(f, params.numpy().astype(np.float16), (1.0, 1.0, 1.0, 0.002), 1.0)

@@ -233,14 +233,7 @@ def fit_biophysical(
 
     started = time.perf_counter()
     coarse_rho, coarse_mask = _downsample(rho, mask_b, config.coarse_factor)
-    coarse_params, _ = fit_local_parameters(
-        coarse_rho[coarse_mask],
-        table,
-        weights,
-        starts=config.starts,
-        iterations=config.coarse_iterations,
-        channel_floor=config.channel_floor,
-    )
+    coarse_params = _local_fit(coarse_rho[coarse_mask], table, weights, config, config.coarse_iterations)
     coarse = torch.zeros(*coarse_mask.shape, 4, device=rho.device)
     coarse[coarse_mask] = coarse_params
     timings["coarse_s"] = time.perf_counter() - started
@@ -332,13 +325,8 @@ def _screened_fit(
         reliable[mask_b] = ~out_of_gamut
         coarse_rho, coarse_mask = _downsample(rho, reliable, config.coarse_factor)
     if bool(out_of_gamut.any()) and bool(coarse_mask.any()):
-        coarse_params, _ = fit_local_parameters(
-            coarse_rho[coarse_mask],
-            table,
-            weights,
-            start=coarse[coarse_mask],
-            iterations=config.coarse_iterations,
-            channel_floor=config.channel_floor,
+        coarse_params = _local_fit(
+            coarse_rho[coarse_mask], table, weights, config, config.coarse_iterations, coarse[coarse_mask]
         )
         coarse = torch.zeros_like(coarse)
         coarse[coarse_mask] = coarse_params
@@ -349,22 +337,16 @@ def _screened_fit(
     todo = refitted | out_of_gamut | ((start - prior).abs().amax(-1) > 1e-7)
     if bool(todo.any()):
         params_valid = params_valid.clone()
-        params_valid[todo], _ = fit_local_parameters(
-            local_target[todo],
-            table,
-            weights,
-            start=params_valid[todo],
-            iterations=config.fine_iterations,
-            channel_floor=config.channel_floor,
-            prior=start[todo],
-            prior_weight=config.prior_weight,
+        warm = params_valid[todo]
+        params_valid[todo] = _local_fit(
+            local_target[todo], table, weights, config, config.fine_iterations, warm, start[todo]
         )
     return _Screened(params_valid, observed, local_target, start, out_of_gamut, distance, projection)
 
 
 def _blurred_stage(params, mask_b, screened, table, weights, texel_size_mm, config, stretch, notify) -> None:
     """Residual correction of the blurred model (module docstring, stage 3), in place on ``params``."""
-    target = screened.local_target.clone()
+    target, prior = screened.local_target.clone(), screened.start
     for _ in range(config.shape_rounds):
         shapes, _ = median_shapes(params, mask_b, table)
         for _ in range(config.correction_iterations):
@@ -373,17 +355,9 @@ def _blurred_stage(params, mask_b, screened, table, weights, texel_size_mm, conf
                     params, table, weights, shapes, texel_size_mm, mask_b, stretch=stretch
                 )
             target = (target + screened.observed - rendered[mask_b]).clamp(1e-4, 0.999)
-            params_valid, _ = fit_local_parameters(
-                target,
-                table,
-                weights,
-                start=params[mask_b],
-                iterations=config.correction_lm_iterations,
-                channel_floor=config.channel_floor,
-                prior=screened.start,
-                prior_weight=config.prior_weight,
+            params[mask_b] = _local_fit(
+                target, table, weights, config, config.correction_lm_iterations, params[mask_b], prior
             )
-            params[mask_b] = params_valid
         notify("fine-blurred")
 
 
@@ -418,23 +392,30 @@ def _relative_rmse(estimate: torch.Tensor, reference: torch.Tensor) -> float:
     return float(diff.pow(2).mean().sqrt() / reference.double().pow(2).mean().sqrt().clamp_min(1e-12))
 
 
+def _local_fit(target, table, weights, config, iterations, start=None, prior=None) -> torch.Tensor:
+    """The parameters ``(N, 4)`` of :func:`fit_local_parameters` with ``config``'s starts (used without
+    a warm ``start``), channel floor and prior weight (used with a ``prior``)."""
+    params, _ = fit_local_parameters(
+        target,
+        table,
+        weights,
+        start=start,
+        starts=config.starts,
+        iterations=iterations,
+        channel_floor=config.channel_floor,
+        prior=prior,
+        prior_weight=config.prior_weight,
+    )
+    return params
+
+
 def _fine_local(target, coarse, coarse_mask, mask_b, table, weights, config):
     """Full-resolution local refinement warm-started from the upsampled coarse maps.
 
     Returns ``(prior (N, 4), parameters (N, 4))`` over the valid texels."""
     median = coarse[coarse_mask].median(dim=0).values
     start = _upsample(coarse, coarse_mask, tuple(mask_b.shape), median.float())[mask_b]
-    params, _ = fit_local_parameters(
-        target,
-        table,
-        weights,
-        start=start,
-        iterations=config.fine_iterations,
-        channel_floor=config.channel_floor,
-        prior=start,
-        prior_weight=config.prior_weight,
-    )
-    return start, params
+    return start, _local_fit(target, table, weights, config, config.fine_iterations, start, start)
 
 
 def _render(params, mask_b, table, weights, shapes, texel_size_mm, config, stretch):

@@ -158,8 +158,11 @@ def benchmark_problem(
         table("channels"),
         dtype=np.float64 if dtype == torch.float64 else np.float32,
     )
+    dev = torch.device(device)
     problems = {
-        name: engine.patch_problem(batch, geometry, config, scale, dtype, torch.device(device), fused)
+        name: PatchProblem(
+            batch, geometry, config, scale, dtype, dev, fused if engine.fused_samples else None
+        )
         for name, engine in POLARIMETRIC_ENGINES.items()
     }
     return BenchmarkProblem(problems, raw, views)

@@ -17,12 +17,6 @@ import dataclasses
 
 import torch
 
-from polarface.inverse.polarimetric.config import PolarimetricConfig
-from polarface.inverse.polarimetric.fused import FusedSamples
-from polarface.inverse.polarimetric.model import SampleBatch
-from polarface.inverse.polarimetric.problem import PatchProblem
-from polarface.texture import TexelGeometry
-
 __all__ = ["POLARIMETRIC_ENGINES", "PolarimetricEngine", "resolve_engine"]
 
 
@@ -32,8 +26,10 @@ class PolarimetricEngine:
 
     Attributes:
         name: registry key.
-        fused_samples: whether patches carry :class:`FusedSamples` (the fused kernel's input) besides
-            the :class:`SampleBatch`.
+        fused_samples: whether a patch's
+            :class:`~polarface.inverse.polarimetric.problem.PatchProblem` carries
+            :class:`~polarface.inverse.polarimetric.fused.FusedSamples` (the fused kernel's input) besides
+            its :class:`~polarface.inverse.polarimetric.model.SampleBatch`.
         device_types: torch device types it runs on (empty: any).
         description: one line for help texts.
     """
@@ -46,24 +42,6 @@ class PolarimetricEngine:
     def supports(self, device: torch.device | str) -> bool:
         """Whether the engine runs on ``device``."""
         return not self.device_types or torch.device(device).type in self.device_types
-
-    def patch_problem(
-        self,
-        batch: SampleBatch,
-        geometry: TexelGeometry,
-        config: PolarimetricConfig,
-        scale: float,
-        dtype: torch.dtype,
-        device: torch.device,
-        fused: FusedSamples | None = None,
-    ) -> PatchProblem:
-        """The :class:`PatchProblem` of one patch evaluated by this engine (``fused``: the patch's
-        fused samples, required when :attr:`fused_samples` is true, ignored otherwise)."""
-        if self.fused_samples and fused is None:
-            raise ValueError(f"engine '{self.name}' needs the patch's fused samples; got None")
-        return PatchProblem(
-            batch, geometry, config, scale, dtype, device, fused if self.fused_samples else None
-        )
 
 
 #: Engine name -> engine.

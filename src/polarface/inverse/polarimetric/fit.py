@@ -46,7 +46,7 @@ from polarface.inverse.polarimetric.config import PolarimetricConfig, initial_ra
 from polarface.inverse.polarimetric.engines import PolarimetricEngine, resolve_engine
 from polarface.inverse.polarimetric.init import apply_closed_form_starts
 from polarface.inverse.polarimetric.optimise import optimise_patch
-from polarface.inverse.polarimetric.problem import build_patch_samples
+from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
 from polarface.inverse.polarimetric.refine import refine_patch_lobes
 from polarface.texture import UnwrapStore, ViewSpec
 
@@ -234,7 +234,7 @@ def _fit_patch(
     batch, geometry = built[0], built[1]
     if batch is None:
         return
-    problem = engine.patch_problem(
+    problem = PatchProblem(
         batch, geometry, config, scale, dtype, device, built[2] if engine.fused_samples else None
     )
     patch_raw = {

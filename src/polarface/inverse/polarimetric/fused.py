@@ -161,11 +161,7 @@ class _FusedLoss(torch.autograd.Function):
     def forward(ctx, params, samples, weights, scale):  # type: ignore[override]
         array = np.ascontiguousarray(params.detach().cpu().numpy())
         s = samples if samples.observed.dtype == array.dtype else samples.astype(array.dtype)
-        loss, grad, _ = fused_loss_and_grad(
-            s.offsets, s.position, array, s.sample_view, s.sample_lit, s.observed,
-            s.view_center, s.view_up, s.view_ref_up, s.light_pos, s.light_intensity, s.view_channels,
-            weights, scale,
-        )  # fmt: skip
+        loss, grad, _ = fused_loss_and_grad(s, array, weights, scale)
         ctx.save_for_backward(torch.from_numpy(grad).to(params.device))
         return torch.as_tensor(loss.sum(dtype=np.float64), dtype=params.dtype, device=params.device)
 
@@ -199,18 +195,8 @@ def fused_data_loss(
 
 
 def fused_loss_and_grad(
-    offsets: np.ndarray,
-    position: np.ndarray,
+    samples: FusedSamples,
     params: np.ndarray,
-    sample_view: np.ndarray,
-    sample_lit: np.ndarray,
-    observed: np.ndarray,
-    view_center: np.ndarray,
-    view_up: np.ndarray,
-    view_ref_up: np.ndarray,
-    light_pos: np.ndarray,
-    light_intensity: np.ndarray,
-    view_channels: np.ndarray,
     weights: tuple[float, float, float, float],
     scale: float,
     chunks: int = 64,
@@ -219,15 +205,9 @@ def fused_loss_and_grad(
     (:mod:`polarface.inverse.polarimetric.kernel`). Unchecked: callers validate.
 
     Args:
-        offsets: ``(T + 1,)`` int64 CSR offsets of each texel's samples (samples sorted by texel).
-        position: ``(T, 3)`` texel positions (model frame, mm); params: ``(T, 14)`` in
-            :data:`~polarface.inverse.polarimetric.kernel.GRAD_LAYOUT` order (unit normal, eta > 1,
-            alphas > 0, albedos).
-        sample_view: ``(S,)`` int32 view index; sample_lit: ``(S,)`` int64 bitmask of unshadowed
-            lights (bit k = light k); observed: ``(S, 3, 3)`` ``[I_sss, I_zeta, I_s]`` x channel.
-        view_center, view_up, view_ref_up: ``(V, 3)``; light_pos, light_intensity: ``(V, 3, K)``
-            (lights on the last axis; K <= 63);
-        view_channels: ``(V, 3)`` int64 channel indices.
+        samples: :class:`FusedSamples` of ``T`` texels (its float arrays in the dtype of ``params``).
+        params: ``(T, 14)`` in :data:`~polarface.inverse.polarimetric.kernel.GRAD_LAYOUT` order (unit
+            normal, eta > 1, alphas > 0, albedos).
         weights: ``(w_sss, w_s, w_phi, w_psi)``; scale: observation scale (> 0).
         chunks: parallel work items: runs of consecutive texels holding about equal numbers of samples
             (numba hands each thread an equal share of them, so threads get equal work); the result
@@ -239,6 +219,7 @@ def fused_loss_and_grad(
     """
     dtype = params.dtype
     kernel = compiled_kernel(dtype)
+    offsets = samples.offsets
     texel_count = offsets.shape[0] - 1
     grad = np.empty((texel_count, PARAM_COUNT), dtype=dtype)
     loss = np.empty(texel_count, dtype=dtype)
@@ -249,9 +230,9 @@ def fused_loss_and_grad(
     term_sums = np.zeros((bounds.shape[0] - 1, 4), dtype=np.float64)
     tiny = float(np.finfo(dtype).eps) ** 4
     kernel(
-        offsets, position, params, sample_view, sample_lit, observed,
-        view_center, view_up, view_ref_up, light_pos, light_intensity, view_channels,
-        np.asarray(weights, dtype=dtype), dtype.type(scale), dtype.type(tiny), bounds,
+        offsets, samples.position, params, samples.sample_view, samples.sample_lit, samples.observed,
+        samples.view_center, samples.view_up, samples.view_ref_up, samples.light_pos, samples.light_intensity,
+        samples.view_channels, np.asarray(weights, dtype=dtype), dtype.type(scale), dtype.type(tiny), bounds,
         grad, loss, term_sums,
     )  # fmt: skip
     return loss, grad, term_sums.sum(0)

@@ -42,16 +42,14 @@ def init_albedos(
     zero = torch.zeros_like(params["eta"][texel, 0])
     one3 = torch.ones((batch.count, 3), dtype=normal.dtype, device=normal.device)
     with torch.no_grad():
-        unit = render_samples(
-            batch,
+        # the samples' normal, eta and alphas at their initial values (render_samples' leading arguments)
+        initial = (
             normal[texel],
             params["eta"][texel, 0],
             params["alpha_s"][texel, 0],
             params["alpha_ss"][texel, 0],
-            zero,
-            zero,
-            one3,
         )
+        unit = render_samples(batch, *initial, zero, zero, one3)
         num = torch.zeros(texel_count * 6, dtype=normal.dtype, device=normal.device)
         den = torch.zeros_like(num)
         flat = (texel[:, None] * 6 + ch).reshape(-1)
@@ -61,15 +59,9 @@ def init_albedos(
         has = den.reshape(texel_count, 6) > 0
         fallback = torch.where(has, rho_sss, torch.nan).nanmean(dim=1, keepdim=True).nan_to_num(0.4)
         rho_sss = torch.where(has, rho_sss, fallback).clamp(0.01, 0.98)
-        rest = render_samples(  # subsurface + single scattering at their initial values
-            batch,
-            normal[texel],
-            params["eta"][texel, 0],
-            params["alpha_s"][texel, 0],
-            params["alpha_ss"][texel, 0],
-            zero,
-            params["rho_ss"][texel, 0],
-            torch.gather(rho_sss[texel], 1, ch),
+        # subsurface + single scattering at their initial values
+        rest = render_samples(
+            batch, *initial, zero, params["rho_ss"][texel, 0], torch.gather(rho_sss[texel], 1, ch)
         )
         residual = batch.observed[:, 2] - rest.i_s
         energy = torch.zeros(texel_count, dtype=normal.dtype, device=normal.device)

@@ -282,11 +282,7 @@ def optimise_patch_fused(
     params = np.empty((rows * cols, 14), dtype=dtype)
     for step, lr in enumerate(learning_rates):
         height, unit = _forward(packed, ranges, *geometry, base_normal, keep_base, params)
-        loss, data_grad, _ = fused_loss_and_grad(
-            samples.offsets, samples.position, params, samples.sample_view, samples.sample_lit,
-            samples.observed, samples.view_center, samples.view_up, samples.view_ref_up, samples.light_pos,
-            samples.light_intensity, samples.view_channels, data_weights, problem.scale,
-        )  # fmt: skip
+        loss, data_grad, _ = fused_loss_and_grad(samples, params, data_weights, problem.scale)
         total = _backward(
             packed, square_avg, params, data_grad, float(loss.sum(dtype=np.float64)), height, unit, mask,
             count, lap_valid, reg_weights, ranges, inv_texels, stencil_u, stencil_v, per_dh_dv, per_dh_du,
