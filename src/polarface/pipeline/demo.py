@@ -46,11 +46,6 @@ _CAPTIONS = {
 }
 
 
-def _srgb(linear: np.ndarray) -> np.ndarray:
-    linear = np.clip(linear, 0.0, 1.0)
-    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1 / 2.4) - 0.055)
-
-
 # ---- the pipeline demo ---------------------------------------------------------------------------
 def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], None]) -> dict[str, Any]:
     """Simulate, reconstruct and evaluate; each step announced as the equivalent command line."""
@@ -191,11 +186,12 @@ def _render_sphere(params) -> tuple[dict[str, np.ndarray], np.ndarray, float]:
 def _write_sphere_preview(path: Path, name: str, value: np.ndarray, mask: np.ndarray, exposure: float,
                           green: int) -> None:
     from polarface.io import colormap_png, write_png
+    from polarface.render.colour import encode_srgb
 
     if name in ("I0", "I45", "I90", "I135", "I_sss"):
         preview = value[..., :3] if value.shape[-1] >= 3 else np.repeat(value[..., :1], 3, -1)
         scale = 2.0 * exposure if name == "I_sss" else exposure
-        write_png(path, _srgb(preview / scale).astype(np.float64))
+        write_png(path, encode_srgb(preview / scale).astype(np.float64))
     elif name in ("I_zeta", "I_s"):
         channel = value[..., green]
         limit = float(np.percentile(np.abs(channel[mask]), 99.5)) if mask.any() else 1.0

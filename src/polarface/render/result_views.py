@@ -30,16 +30,9 @@ from tqdm import tqdm
 from polarface.geometry.poses import load_poses
 from polarface.io import colormap_png, write_exr, write_json_atomic, write_png
 from polarface.optics.stokes import aolp, linear_dop
-from polarface.render.relight import (
-    RenderedResult,
-    ResultAppearance,
-    encode_srgb,
-    linear_rgb_from_channels,
-    linear_srgb_to_lab,
-    mueller_images,
-    parse_edits,
-    render_result_view,
-)
+from polarface.render.colour import encode_srgb, linear_rgb_from_channels, linear_srgb_to_lab
+from polarface.render.relight import RenderedResult, mueller_images, parse_edits, render_result_view
+from polarface.results import ResultAppearance
 
 __all__ = ["RenderOptions", "render_result_outputs"]
 
