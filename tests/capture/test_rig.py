@@ -145,3 +145,30 @@ def test_spectral_to_calibration_roundtrip():
 def test_look_at_is_opencv():
     pose = look_at(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 10.0]))
     np.testing.assert_allclose(pose, np.eye(4), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("edit", "field"),
+    [
+        (
+            lambda d: d["lights"][3].__setitem__("position_mm", [0.0, float("inf"), 1000.0]),
+            "lights[3].position_mm",
+        ),
+        (lambda d: d["lights"][0].__setitem__("polarizer_angle", float("nan")), "lights[0].polarizer_angle"),
+        (lambda d: d["cameras"][1].__setitem__("exposure", float("inf")), "cameras[1].exposure"),
+        (lambda d: d["cameras"][0].__setitem__("black_level", float("nan")), "cameras[0].black_level"),
+        (lambda d: d["cameras"][0]["K"][0].__setitem__(2, float("inf")), "cameras[0].K"),
+        (lambda d: d["spectral"]["led_spd"].__setitem__(0, float("nan")), "spectral.led_spd"),
+        (lambda d: d["cameras"][0].__setitem__("pattern_phase", [5, -1]), "pattern_phase"),
+    ],
+)
+def test_rig_load_rejects_non_finite_numbers_naming_the_field(tmp_path, edit, field):
+    """Infinity/NaN (valid to Python's json) and an out-of-period mosaic phase are rejected, on one line."""
+    data = json.loads(paper_rig(width=64, height=48).model_dump_json())
+    edit(data)
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=r"rig\.json") as info:
+        Rig.load(path)
+    assert field in str(info.value)
+    assert "\n" not in str(info.value)

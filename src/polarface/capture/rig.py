@@ -48,7 +48,21 @@ def _finite_matrix(value: Any, rows: int, cols: int, name: str) -> list[list[flo
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+
+def _field_path(loc: tuple[Any, ...]) -> str:
+    """``("lights", 3, "position_mm", 0)`` -> ``lights[3].position_mm[0]``."""
+    path = ""
+    for part in loc:
+        path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
+    return path or "rig"
+
+
+def _one_line(exc: ValidationError) -> str:
+    """Every error of a pydantic ``ValidationError`` on one line: ``field.path: message; ...``."""
+    parts = (f"{_field_path(tuple(e['loc']))}: {' '.join(str(e['msg']).split())}" for e in exc.errors())
+    return "; ".join(parts)
 
 
 class SpectralModel(_Model):
@@ -184,6 +198,12 @@ class Camera(_Model):
             )
         if self.sensor == "mono-polarization" and self.colour_channels:
             raise ValueError("colour_channels must be empty for a mono-polarization camera")
+        period = {"mono-polarization": 2, "color-polarization": 4}.get(self.sensor)
+        if period is not None and not all(0 <= p < period for p in self.pattern_phase):
+            raise ValueError(
+                f"pattern_phase must lie in 0..{period - 1} for a {self.sensor} camera; "
+                f"got {self.pattern_phase}"
+            )
         return self
 
     @property
@@ -304,7 +324,7 @@ class Rig(_Model):
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            raise ValueError(f"rig file '{path}' is invalid: {exc}") from exc
+            raise ValueError(f"rig file '{path}' is invalid: {_one_line(exc)}") from exc
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write ``rig.json`` atomically; returns the path."""
