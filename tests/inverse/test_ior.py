@@ -80,3 +80,72 @@ def test_cli_json(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["eta"] == pytest.approx(2.1, abs=5e-3)
     (tmp_path / "scene.json").unlink()
     assert main(["ior", str(tmp_path)]) == 2
+
+
+def _write_capture(folder, eta=1.5, size=64, **camera_overrides):
+    """An IOR capture folder of a rendered sphere; ``camera_overrides`` replace scene.json fields."""
+    scene = default_sphere_scene(size)
+    for name, image in render_sphere(scene, eta).items():
+        write_exr(folder / f"{name}.exr", {"Y": image})
+    camera = {
+        "K": scene.K.tolist(),
+        "world_to_camera": scene.world_to_camera.tolist(),
+        "width": size,
+        "height": size,
+    }
+    camera.update(camera_overrides)
+    payload = {
+        "units": "mm",
+        "camera": camera,
+        "lights": [{"position": p.tolist()} for p in scene.lights],
+        "sphere": {"center": scene.centre.tolist(), "radius": scene.radius},
+    }
+    (folder / "scene.json").write_text(json.dumps(payload))
+    return scene
+
+
+def _scaled_pose(scene, scale):
+    pose = scene.world_to_camera.copy()
+    pose[:3, :3] *= scale
+    return pose.tolist()
+
+
+@pytest.mark.parametrize(
+    ("edit", "field"),
+    [
+        (lambda s: {"K": (s.K * np.diag([-1.0, 1.0, 1.0])).tolist()}, "camera.K focal"),
+        (
+            lambda s: {"K": (s.K + np.array([[0, 0, 500.0], [0, 0, 0], [0, 0, 0]])).tolist()},
+            "principal point",
+        ),
+        (lambda s: {"world_to_camera": _scaled_pose(s, 1.2)}, "camera.world_to_camera must be rigid"),
+        (lambda s: {"world_to_camera": (np.diag([1.0, 1.0, -1.0, 1.0]) @ s.world_to_camera).tolist()}, "det"),
+        (
+            lambda s: {"world_to_camera": (np.diag([-1.0, 1.0, -1.0, 1.0]) @ s.world_to_camera).tolist()},
+            "front",
+        ),
+    ],
+)
+def test_ior_rejects_an_invalid_camera_naming_the_field(tmp_path, capsys, edit, field):
+    """A negative focal length or a non-rigid pose used to give eta 1.05 / 1.15 (true 1.5), exit 0."""
+    scene = default_sphere_scene(64)
+    _write_capture(tmp_path, **edit(scene))
+    assert main(["ior", str(tmp_path), "--json"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    err = captured.err.strip()
+    assert field in err and "scene.json" in err and "\n" not in err
+
+
+def test_ior_estimate_on_the_eta_range_bound_is_an_error(tmp_path, capsys):
+    """True eta 1.5 searched in [1.6, 3]: the fit sits on 1.6, which is not a measurement."""
+    _write_capture(tmp_path, eta=1.5)
+    scene = SphereScene.from_dict(json.loads((tmp_path / "scene.json").read_text()))
+    images = render_sphere(scene, 1.5)
+    assert estimate_ior(images, scene, eta_range=(1.6, 3.0)).at_bound
+    assert not estimate_ior(images, scene).at_bound
+    assert main(["ior", str(tmp_path), "--eta-range", "1.6", "3.0"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and "eta_range" in captured.err and "bound" in captured.err
+    assert main(["ior", str(tmp_path), "--eta-range", "3.0", "1.6"]) == 2
+    assert "eta_range" in capsys.readouterr().err

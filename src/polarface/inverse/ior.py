@@ -80,7 +80,44 @@ class SphereScene:
             raise ValueError(
                 f"scene: need sphere.radius > 0 and a positive image size; got {radius}, {width}x{height}"
             )
-        return cls(K, pose, width, height, centre, radius, lights.reshape(-1, 3))
+        if lights.size and not np.isfinite(lights).all():
+            raise ValueError("scene: lights[].position contains NaN/inf")
+        scene = cls(K, pose, width, height, centre, radius, lights.reshape(-1, 3))
+        scene.check_geometry()
+        return scene
+
+    def check_geometry(self) -> None:
+        """ValueError naming the field unless K has positive focal lengths, zero skew row ``[0, 0, 1]``
+        and the principal point inside the image, ``world_to_camera`` is rigid (orthonormal to 1e-6,
+        det +1, last row ``[0, 0, 0, 1]``) and the sphere lies wholly in front of the camera."""
+        K, pose = self.K, self.world_to_camera
+        if not (K[0, 0] > 0 and K[1, 1] > 0):
+            raise ValueError(f"scene: camera.K focal lengths must be > 0; got {K[0, 0]}, {K[1, 1]}")
+        if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+            raise ValueError(
+                f"scene: camera.K must be upper triangular with last row [0, 0, 1]; got {K.tolist()}"
+            )
+        if not (0 <= K[0, 2] <= self.width and 0 <= K[1, 2] <= self.height):
+            raise ValueError(
+                f"scene: camera.K principal point ({K[0, 2]}, {K[1, 2]}) lies outside the "
+                f"{self.width}x{self.height} image"
+            )
+        rotation = pose[:3, :3]
+        if not np.allclose(pose[3], [0, 0, 0, 1]) or not np.allclose(
+            rotation @ rotation.T, np.eye(3), atol=1e-6
+        ):
+            raise ValueError(
+                "scene: camera.world_to_camera must be rigid "
+                "(orthonormal rotation to 1e-6, last row [0, 0, 0, 1])"
+            )
+        if np.linalg.det(rotation) < 0:
+            raise ValueError("scene: camera.world_to_camera rotation must be proper (det +1)")
+        depth = float((rotation @ self.centre + pose[:3, 3])[2])
+        if depth <= self.radius:
+            raise ValueError(
+                f"scene: the sphere (sphere.center depth {depth:.6g} mm, radius {self.radius:.6g} mm) "
+                "must lie in front of the camera"
+            )
 
 
 def sphere_pixels(scene: SphereScene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -111,13 +148,16 @@ class IorResult:
 
     Attributes:
         eta: estimate; rms_residual: RMS of the ratio residual at the estimate; pixels: pixels used;
-        channels: per-channel estimates (when the input has several channels).
+        channels: per-channel estimates (when the input has several channels); at_bound: True when
+        ``eta`` lies on a bound of the search interval (within 1e-5 of its width): the cost's minimum is
+        at or beyond the bound, so ``eta`` is not a measurement.
     """
 
     eta: float
     rms_residual: float
     pixels: int
     channels: tuple[float, ...] = ()
+    at_bound: bool = False
 
 
 def _ratio_prediction(
@@ -277,7 +317,7 @@ def estimate_ior(
 
     Returns:
         :class:`IorResult`: the median of the per-channel estimates with more than two channels, else
-        their pixel-count-weighted mean.
+        their pixel-count-weighted mean; ``at_bound`` flags an estimate on a bound of ``eta_range``.
 
     Raises:
         ValueError: missing/mismatched images, NaN/inf, no usable pixel.
@@ -296,11 +336,13 @@ def estimate_ior(
     estimates = [fit[0] for fit in fits]
     weights = np.asarray([fit[2] for fit in fits], dtype=np.float64)
     eta = float(np.median(estimates)) if len(estimates) > 2 else float(np.average(estimates, weights=weights))
+    lo, hi = eta_range
     return IorResult(
         eta=eta,
         rms_residual=float(np.average([fit[1] for fit in fits], weights=weights)),
         pixels=int(sum(fit[2] for fit in fits)),
         channels=tuple(float(e) for e in estimates),
+        at_bound=min(eta - lo, hi - eta) <= 1e-5 * (hi - lo),
     )
 
 

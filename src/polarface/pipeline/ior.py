@@ -45,8 +45,13 @@ def estimate_ior_from_folder(
 
     Raises:
         FileNotFoundError: the folder, ``scene.json`` or an analyzer image is missing.
-        ValueError: invalid JSON or scene, or images the estimator rejects.
+        ValueError: invalid JSON or scene (:meth:`SphereScene.from_dict`), images the estimator rejects,
+            or an estimate on a bound of ``eta_range`` (``IorResult.at_bound``: not a measurement, so it
+            is an error rather than a number printed with exit status 0).
     """
+    lo, hi = (float(v) for v in eta_range)
+    if not 1.0 < lo < hi < float("inf"):
+        raise ValueError(f"argument 'eta_range' must satisfy 1 < lo < hi (finite); got {tuple(eta_range)}")
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"folder '{folder}' does not exist")
@@ -57,9 +62,21 @@ def estimate_ior_from_folder(
         payload = json.loads(scene_path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as exc:
         raise ValueError(f"'{scene_path}' is not valid JSON: {exc}") from exc
-    scene = SphereScene.from_dict(payload)
+    if not isinstance(payload, dict):
+        raise ValueError(f"'{scene_path}' must hold a JSON object")
+    try:
+        scene = SphereScene.from_dict(payload)
+    except ValueError as exc:
+        raise ValueError(f"'{scene_path}': {exc}") from exc
     images = {name: read_analyzer_image(folder / f"{name}.exr") for name in ANALYZER_IMAGE_NAMES}
-    return estimate_ior(images, scene, eta_range=tuple(eta_range))
+    result = estimate_ior(images, scene, eta_range=tuple(eta_range))
+    if result.at_bound:
+        raise ValueError(
+            f"eta estimate {result.eta:.4f} lies on the bound of argument 'eta_range' "
+            f"[{eta_range[0]}, {eta_range[1]}]: the best fit is at or beyond the bound, so it is not a "
+            "measurement (widen the range, or check scene.json and the images)"
+        )
+    return result
 
 
 def validate_ior(noise: bool = False) -> dict:
