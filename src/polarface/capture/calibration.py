@@ -112,14 +112,22 @@ def read_image_list(path: str | os.PathLike[str]) -> list[Path]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image list '{path}' does not exist")
-    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     try:
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:  # OpenCV's parser raises SystemError on malformed XML/YAML
+        reason = " ".join(str(getattr(exc, "__cause__", None) or exc).split())
+        raise ValueError(f"image list '{path}' is not a valid OpenCV XML/YAML file: {reason}") from exc
+    try:
+        if not storage.isOpened():
+            raise ValueError(f"image list '{path}' is not a valid OpenCV XML/YAML file")
         node = storage.getNode("imagelist")
         if node.empty() or not node.isSeq():
             raise ValueError(f"'{path}' has no <imagelist> sequence")
         names = [node.at(i).string() for i in range(node.size())]
     finally:
         storage.release()
+    if not names or any(not name for name in names):
+        raise ValueError(f"image list '{path}': <imagelist> must hold one or more non-empty file names")
     return [path.parent / name for name in names]
 
 

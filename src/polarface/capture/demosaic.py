@@ -38,7 +38,7 @@ from polarface.capture.sensor import Lattice, lattices, pattern_period
 if TYPE_CHECKING:
     from polarface.capture.rig import Camera
 
-__all__ = ["DEMOSAIC_METHODS", "PolarizationStack", "demosaic", "demosaic_camera"]
+__all__ = ["DEMOSAIC_METHODS", "PolarizationStack", "check_phase", "demosaic", "demosaic_camera"]
 
 DemosaicMethod = Literal["bilinear", "residual"]
 #: Available demosaicing methods.
@@ -227,6 +227,23 @@ def demosaic(
     saturated = cv2.dilate(saturated_raw.astype(np.uint8), np.ones((support, support), np.uint8)) > 0
     out = _interpolate_lattices(values, saturated_raw, saturated, lats, method)
     return PolarizationStack(intensities=out, saturated=saturated, defects=defects)
+
+
+def check_phase(sensor: str, phase: tuple[int, int]) -> tuple[int, int]:
+    """``phase`` as ``(row, col)`` ints with ``0 <= row, col < period`` of the sensor's mosaic (2 mono,
+    4 colour); ValueError naming argument 'phase' otherwise. (:func:`demosaic` itself takes any integer
+    phase modulo the period; user-facing jobs use this to reject a phase that is surely a typo.)"""
+    period = pattern_period(sensor)
+    try:
+        row, col = (int(v) for v in phase)
+    except (TypeError, ValueError):
+        raise ValueError(f"argument 'phase' must be two integers (row, col); got {phase!r}") from None
+    if not (0 <= row < period and 0 <= col < period):
+        raise ValueError(
+            f"argument 'phase' must lie in 0..{period - 1} per axis (the {sensor} mosaic period is "
+            f"{period}); got ({row}, {col})"
+        )
+    return row, col
 
 
 def _white_level(raw: np.ndarray, white_level: float | None, bit_depth: int | None) -> float:

@@ -9,12 +9,13 @@ written atomically (:mod:`polarface.io.atomic`).
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from pathlib import Path
 
 import numpy as np
 
-from polarface.capture.demosaic import DemosaicMethod, demosaic
+from polarface.capture.demosaic import DEMOSAIC_METHODS, DemosaicMethod, check_phase, demosaic
 from polarface.capture.observations import observations_from_intensities
 from polarface.io import colormap_png, read_png, write_exr, write_json_atomic, write_png
 
@@ -41,6 +42,25 @@ class StokesOptions:
     phase: tuple[int, int] = (0, 0)
     exposure: float = 1.0
 
+    def __post_init__(self) -> None:
+        """Check the options before any work (ValueError naming the argument); the phase is checked
+        against the sensor's mosaic period by :func:`write_stokes_images`."""
+        if self.method not in DEMOSAIC_METHODS:
+            raise ValueError(f"argument 'method' must be one of {DEMOSAIC_METHODS}; got {self.method!r}")
+        if self.bit_depth is not None and not 1 <= self.bit_depth <= 16:
+            raise ValueError(f"argument 'bit_depth' must lie in 1..16; got {self.bit_depth}")
+        if not (math.isfinite(self.black_level) and self.black_level >= 0):
+            raise ValueError(f"argument 'black_level' must be finite and >= 0; got {self.black_level}")
+        if self.white_level is not None and not (
+            math.isfinite(self.white_level) and self.white_level > self.black_level
+        ):
+            raise ValueError(
+                f"argument 'white_level' must be finite and above black_level ({self.black_level}); "
+                f"got {self.white_level}"
+            )
+        if not (math.isfinite(self.exposure) and self.exposure > 0):
+            raise ValueError(f"argument 'exposure' must be finite and > 0; got {self.exposure}")
+
 
 def _preview_intensity(image: np.ndarray, scale: float) -> np.ndarray:
     """Gamma-2.2 preview in [0, 1] of a linear image divided by ``scale``."""
@@ -66,8 +86,10 @@ def write_stokes_images(
         the unsaturated pixels (None for both when every pixel is saturated).
 
     Raises:
-        ValueError: a multi-channel file, or a mosaic that :func:`demosaic` rejects.
+        ValueError: an unknown sensor, a phase outside the mosaic period (checked before the file is
+            read), a multi-channel file, or a mosaic that :func:`demosaic` rejects.
     """
+    check_phase(sensor, options.phase)
     raw = read_png(raw_path)
     if raw.ndim != 2:
         raise ValueError(f"raw file '{raw_path}' must be a single-channel mosaic; got shape {raw.shape}")

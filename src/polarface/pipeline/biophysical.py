@@ -44,6 +44,7 @@ from polarface.inverse.biophysical import (
     per_texel_relative_residual,
 )
 from polarface.pipeline.biophysical_previews import write_previews, write_residual_previews
+from polarface.pipeline.evaluate_biophysical import check_ground_truth
 from polarface.results import RESULT_FORMAT, RESULT_VERSION, RHO_SSS_BAR, ResultFolder
 from polarface.results import layout as names_
 
@@ -207,6 +208,7 @@ def run_biophysical_stage(
     device: str | torch.device | None = None,
     progress: bool = True,
     threads: int | None = 1,
+    ground_truth: str | Path | None = None,
 ) -> dict[str, Any]:
     """Run the biophysical stage on a RESULT folder (module docstring); returns its summary.
 
@@ -219,9 +221,14 @@ def run_biophysical_stage(
         threads: torch intra-op threads during a CPU fit (restored afterwards; ``None`` leaves them).
             Default 1: the fit is many small batched kernels, where a second OpenMP thread costs more
             than it gains on a busy machine (measurements in ``docs/biophysical.md``).
+        ground_truth: the simulator folder a later
+            :func:`~polarface.pipeline.evaluate_biophysical.evaluate_biophysical` will read; checked
+            first (:func:`~polarface.pipeline.evaluate_biophysical.check_ground_truth`), so a bad one
+            fails before the fit and before anything is written.
 
     Raises:
         ValueError: ``threads < 1`` and the input errors of :func:`load_stage_inputs`.
+        FileNotFoundError: a missing input, or a ``ground_truth`` folder without the ground-truth maps.
 
     Returns:
         The summary stored under ``result.json``'s ``stages.biophysical``: timings (s), fit residual,
@@ -229,13 +236,15 @@ def run_biophysical_stage(
     """
     if threads is not None and int(threads) < 1:
         raise ValueError(f"argument 'threads' must be >= 1; got {threads}")
+    if ground_truth is not None:
+        check_ground_truth(ground_truth)
+    target = resolve_device(device) if device is not None else torch.device("cpu")
     started = time.perf_counter()
     folder = result_dir if isinstance(result_dir, ResultFolder) else ResultFolder(result_dir)
     inputs = load_stage_inputs(folder)
     calibration = inputs["calibration"]
     table = TotalsTable(calibration.wavelengths_nm, config.constants)
     read_s = time.perf_counter() - started
-    target = resolve_device(device) if device is not None else torch.device("cpu")
     fit, previous_threads = _fit(inputs, config, table, target, threads, progress)
     write_started = time.perf_counter()
     mask = inputs["mask"]

@@ -12,7 +12,7 @@ from polarface.inverse.biophysical import PARAMETER_ORDER, TotalsTable, local_ch
 from polarface.results import RHO_SSS_BAR, ResultFolder
 from polarface.results import layout as names_
 
-__all__ = ["evaluate_biophysical"]
+__all__ = ["check_ground_truth", "evaluate_biophysical"]
 
 
 def _chromophore_errors(estimate: dict, truth: dict, mask: np.ndarray) -> dict[str, dict[str, float]]:
@@ -25,6 +25,30 @@ def _chromophore_errors(estimate: dict, truth: dict, mask: np.ndarray) -> dict[s
             "p95_abs": float(np.percentile(error, 95)),
         }
     return out
+
+
+def _truth_folder(gt_dir: str | Path) -> ResultFolder:
+    gt_path = Path(gt_dir)
+    return ResultFolder(gt_path / "ground_truth" if (gt_path / "ground_truth").is_dir() else gt_path)
+
+
+def check_ground_truth(gt_dir: str | Path) -> Path:
+    """Check, before any work, that ``gt_dir`` (``SIM`` or ``SIM/ground_truth``) holds the ground-truth
+    maps :func:`evaluate_biophysical` reads (the four chromophore maps, ``rho_sss_bar`` and the mask);
+    returns the ground-truth folder.
+
+    Raises:
+        FileNotFoundError: naming ``gt_dir`` or the first missing map.
+    """
+    if not Path(gt_dir).is_dir():
+        raise FileNotFoundError(f"argument 'gt': ground-truth folder '{gt_dir}' does not exist")
+    folder = _truth_folder(gt_dir)
+    for name, suffix in [(n, ".exr") for n in (*PARAMETER_ORDER, RHO_SSS_BAR)] + [(names_.MASK, ".png")]:
+        if not folder.has_map(name, suffix):
+            raise FileNotFoundError(
+                f"argument 'gt': '{folder.map_path(name, suffix)}' does not exist (not a simulator folder?)"
+            )
+    return folder.root
 
 
 def evaluate_biophysical(result_dir: str | Path, gt_dir: str | Path) -> dict[str, Any]:
@@ -52,9 +76,13 @@ def evaluate_biophysical(result_dir: str | Path, gt_dir: str | Path) -> dict[str
           ``"input_vs_gt_relative_rmse"`` - the input itself against it (the polarimetric stage's
           error; with ground-truth input it is 0);
         * ``"fit_relative_rmse"`` - alias of ``rho_sss_bar_relative_rmse`` (older name).}
+
+    Raises:
+        FileNotFoundError: ``gt_dir`` lacks a ground-truth map (:func:`check_ground_truth`) or the
+            RESULT lacks a stage output.
     """
-    result, gt_path = ResultFolder(result_dir), Path(gt_dir)
-    truth_folder = ResultFolder(gt_path / "ground_truth" if (gt_path / "ground_truth").is_dir() else gt_path)
+    result = ResultFolder(result_dir)
+    truth_folder = ResultFolder(check_ground_truth(gt_dir))
     rig = result.read_rig()
     if rig.spectral is None:
         raise ValueError(f"'{result.rig_path}' has no spectral calibration")

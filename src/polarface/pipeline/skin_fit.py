@@ -95,7 +95,9 @@ def read_reflectance_csv(
         raise ValueError(f"'{path}' has no sample columns besides 'wavelength_nm'")
     if any(not n for n in names):
         raise ValueError(f"'{path}' has an unnamed column")
-    body = rows[1:]
+    body = [r for r in rows[1:] if any(v.strip() for v in r)]
+    if not body:
+        raise ValueError(f"'{path}' holds no spectra (a header and no data rows)")
     if any(len(r) != len(header) for r in body):
         bad = next(i for i, r in enumerate(body) if len(r) != len(header))
         raise ValueError(f"'{path}' row {bad + 2} has {len(body[bad])} fields, expected {len(header)}")
@@ -246,11 +248,11 @@ def fit_spectra_file(
         FileNotFoundError, ValueError: see :func:`read_reflectance_csv`; bad settings.
     """
     min_nm, max_nm = options.min_nm, options.max_nm
-    wavelengths, names, measured = read_reflectance_csv(Path(spectra), min_nm, max_nm)
     if options.iterations < 1 or options.starts < 1:
         raise ValueError("--iterations and --starts must be >= 1")
     if not 0.0 <= options.max_offset <= 0.5:
         raise ValueError(f"--max-offset must lie in [0, 0.5]; got {options.max_offset}")
+    wavelengths, names, measured = read_reflectance_csv(Path(spectra), min_nm, max_nm)
     settings = FitSettings(
         max_surface_offset=options.max_offset, iterations=options.iterations, starts=options.starts
     )

@@ -64,6 +64,20 @@ class RenderOptions:
     strip: bool = True
     exposure: float | None = None
 
+    def __post_init__(self) -> None:
+        """Check every option before any work (ValueError naming the option)."""
+        if not (math.isfinite(self.strip_width_mm) and self.strip_width_mm > 0):
+            raise ValueError(f"argument '--strip-width-mm' must be finite and > 0; got {self.strip_width_mm}")
+        if self.pose_frame < 0:
+            raise ValueError(f"argument '--pose-frame' must be >= 0; got {self.pose_frame}")
+        if not math.isfinite(self.polarizer_deg):
+            raise ValueError(f"argument '--polarizer-deg' must be finite; got {self.polarizer_deg}")
+        if self.exposure is not None and not (math.isfinite(self.exposure) and self.exposure > 0):
+            raise ValueError(f"argument '--exposure' must be finite and > 0; got {self.exposure}")
+        if self.camera is not None and not self.camera:
+            raise ValueError("argument '--camera' must not be empty")
+        parse_edits(self.edit)
+
 
 def _channel_maps(prefix: str, images: np.ndarray, names: list[str]) -> dict[str, np.ndarray]:
     return {f"{prefix}{n}": images[..., i] for i, n in enumerate(names)}
@@ -85,9 +99,12 @@ def render_result_outputs(
     ``out`` (default ``RESULT/render``); returns the summary also written to ``render.json``."""
     started = time.perf_counter()
     edits = parse_edits(options.edit)
-    if not math.isfinite(options.polarizer_deg):
-        raise ValueError("argument '--polarizer-deg' must be finite")
     appearance = ResultAppearance.load(result_dir)
+    if options.camera is not None:
+        try:
+            appearance.rig.camera(options.camera)
+        except ValueError as exc:
+            raise ValueError(f"argument '--camera': {exc}") from None
     out = out or (result_dir / "render")
     pose = _load_pose(options.poses_path, options.pose_frame)
     names = list(appearance.rig.spectral.channel_names)

@@ -85,6 +85,9 @@ class SimulationConfig:
     exposure_fill: float = 0.8
 
     def __post_init__(self) -> None:
+        """Check every field before any work (ValueError naming the argument)."""
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int | np.integer) or self.seed < 0:
+            raise ValueError(f"argument 'seed' must be an integer >= 0; got {self.seed!r}")
         get_preset(self.preset)
         get_skin_type(self.skin_type)
         bad = set(self.sequences) - {"static", "dynamic"}
@@ -92,7 +95,7 @@ class SimulationConfig:
             raise ValueError(
                 f"argument 'sequences' must be a non-empty subset of static/dynamic; got {self.sequences}"
             )
-        if not 0 < self.exposure_fill <= 1:
+        if not 0 < self.exposure_fill <= 1:  # NaN fails too
             raise ValueError(f"argument 'exposure_fill' must lie in (0, 1]; got {self.exposure_fill}")
 
 
@@ -278,10 +281,14 @@ def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = 
     config_dict = dataclasses.asdict(config)
     config_dict["sequences"] = list(config.sequences)
     if summary_path.exists():
-        previous = json.loads(summary_path.read_text(encoding="utf-8"))
-        if previous.get("config") != config_dict:
+        try:
+            previous = json.loads(summary_path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"'{summary_path}' is not valid JSON: {exc}") from exc
+        if not isinstance(previous, dict) or previous.get("config") != config_dict:
             raise ValueError(
-                f"'{out}' holds a simulation with another configuration {previous.get('config')}"
+                f"'{out}' holds a simulation with another configuration "
+                f"{previous.get('config') if isinstance(previous, dict) else previous!r}"
             )
     out.mkdir(parents=True, exist_ok=True)
     scene = SimulationScene.build(config)
