@@ -8,6 +8,7 @@ collects the views, runs them and writes the calibrated ``rig.json`` plus ``cali
 from __future__ import annotations
 
 import glob
+import math
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -132,10 +133,15 @@ def calibrate_rig(
         ValueError: bad board text, ``square_mm <= 0``, unknown camera, image count or size mismatch.
         FileNotFoundError: a pattern matching no image, a missing rig or image list.
     """
-    if not square_mm > 0:
-        raise ValueError("argument '--square-mm' must be > 0")
+    if not (square_mm > 0 and math.isfinite(square_mm)):
+        raise ValueError(f"argument '--square-mm' must be finite and > 0; got {square_mm}")
     rig = Rig.load(rig_path)
     rig.camera(camera)
+    if stereo_camera is not None:
+        rig.camera(stereo_camera)
+        if stereo_camera == camera:
+            raise ValueError(f"argument '--stereo-camera' must differ from '--camera' ({camera!r})")
+    detect = _board_detector(board, square_mm, marker_mm)
     if image_list is not None:
         listed = read_image_list(image_list)
         images_a, images_b = (listed[0::2], listed[1::2]) if stereo_camera else (listed, [])
@@ -145,7 +151,6 @@ def calibrate_rig(
         raise ValueError(
             f"stereo calibration needs as many images per camera; got {len(images_a)} and {len(images_b)}"
         )
-    detect = _board_detector(board, square_mm, marker_mm)
     obj, pts_a, pts_b, used, size = _detect_views(
         detect, images_a, images_b if stereo_camera else None, on_skip
     )

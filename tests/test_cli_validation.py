@@ -1,0 +1,184 @@
+"""Bad arguments and inputs fail first: exit status 2, one line naming the argument, field or file,
+and nothing written to the output path (``polarface.cli.main`` in process, one row per bad input)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from polarface.capture.rig import paper_rig
+from polarface.cli import main
+from polarface.geometry.mesh import TriangleMesh, save_obj
+from polarface.inverse.ior import default_sphere_scene, render_sphere
+from polarface.io import write_exr, write_png
+
+
+def _result(root: Path) -> Path:
+    """A small RESULT (a skin plane facing the polarimetric module) that ``render`` accepts."""
+    cells, resolution = 4, 16
+    u = np.linspace(0.0, 1.0, cells + 1)
+    uu, vv = np.meshgrid(u, u, indexing="xy")
+    vertices = np.stack([(uu - 0.5) * 60.0, (vv - 0.5) * 60.0, np.full_like(uu, 90.0)], -1).reshape(-1, 3)
+    faces = []
+    for row in range(cells):
+        for col in range(cells):
+            a = row * (cells + 1) + col
+            faces += [(a, a + 1, a + cells + 2), (a, a + cells + 2, a + cells + 1)]
+    mesh = TriangleMesh.from_arrays(vertices, np.array(faces), np.stack([uu, vv], -1).reshape(-1, 2))
+    values = {
+        "eta": 1.42,
+        "alpha_s": 0.5,
+        "alpha_ss": 0.95,
+        "rho_s": 0.5,
+        "rho_ss": 0.25,
+        "displacement_mm": 0.0,
+        "c_m": 0.05,
+        "beta_m": 0.1,
+        "c_h_in": 0.03,
+        "c_h_out": 0.05,
+    }
+    for name, value in values.items():
+        write_exr(root / "maps" / f"{name}.exr", {"Y": np.full((resolution, resolution), value, np.float32)})
+    write_png(root / "maps" / "mask.png", np.full((resolution, resolution), 255, np.uint8))
+    save_obj(root / "mesh.obj", mesh)
+    paper_rig(width=48, height=40).save(root / "rig.json")
+    return root
+
+
+def _render(tmp: Path, *extra: str) -> list[str]:
+    return ["render", str(_result(tmp / "result")), "--out", str(tmp / "out"), *extra]
+
+
+def _render_infinite_light(tmp: Path) -> list[str]:
+    result = _result(tmp / "result")
+    text = (result / "rig.json").read_text()
+    rig = json.loads(text)
+    rig["lights"][3]["position_mm"][1] = float("inf")  # json.dumps writes Infinity, which json reads
+    (result / "rig.json").write_text(json.dumps(rig))
+    return ["render", str(result), "--out", str(tmp / "out"), "--no-mueller", "--no-strip"]
+
+
+def _render_bad_pose_frame(tmp: Path) -> list[str]:
+    poses = tmp / "poses.json"
+    poses.write_text(json.dumps([np.eye(4).tolist()]))
+    return _render(tmp, "--poses", str(poses), "--pose-frame", "3")
+
+
+def _simulate(tmp: Path, *extra: str) -> list[str]:
+    return ["simulate", "--preset", "tiny", "--out", str(tmp / "out"), *extra]
+
+
+def _stokes(tmp: Path, *extra: str) -> list[str]:
+    raw = tmp / "raw.png"
+    write_png(raw, np.full((16, 16), 100, np.uint8))
+    return ["stokes", str(raw), "--sensor", "mono-polarization", "--out", str(tmp / "out"), *extra]
+
+
+def _skin_fit_header_only(tmp: Path) -> list[str]:
+    spectra = tmp / "spectra.csv"
+    spectra.write_text("wavelength_nm,forehead,cheek\n")
+    return ["skin-fit", str(spectra), "--out", str(tmp / "out")]
+
+
+def _calibrate_bad_list(tmp: Path) -> list[str]:
+    rig = paper_rig(width=64, height=48)
+    rig.save(tmp / "rig.json")
+    listing = tmp / "list.xml"
+    listing.write_text('<?xml version="1.0"?>\n<opencv_storage>\n<imagelist>\n"a.png" <b>\n</imagelist>\n')
+    return [
+        "calibrate",
+        "--rig",
+        str(tmp / "rig.json"),
+        "--camera",
+        rig.cameras[0].id,
+        "--list",
+        str(listing),
+        "--square-mm",
+        "20",
+        "--out",
+        str(tmp / "out" / "rig.json"),
+    ]
+
+
+def _ior(tmp: Path, *extra: str, **camera: object) -> list[str]:
+    folder = tmp / "capture"
+    folder.mkdir()
+    scene = default_sphere_scene(48)
+    for name, image in render_sphere(scene, 1.5).items():
+        write_exr(folder / f"{name}.exr", {"Y": image})
+    payload = {
+        "units": "mm",
+        "camera": {
+            "K": scene.K.tolist(),
+            "world_to_camera": scene.world_to_camera.tolist(),
+            "width": 48,
+            "height": 48,
+            **camera,
+        },
+        "lights": [{"position": p.tolist()} for p in scene.lights],
+        "sphere": {"center": scene.centre.tolist(), "radius": scene.radius},
+    }
+    (folder / "scene.json").write_text(json.dumps(payload))
+    return ["ior", str(folder), *extra]
+
+
+def _non_rigid_pose() -> list[list[float]]:
+    pose = default_sphere_scene(48).world_to_camera.copy()
+    pose[:3, :3] *= 1.2
+    return pose.tolist()
+
+
+CASES: list[tuple[str, Callable[[Path], list[str]], str]] = [
+    ("render strip width", lambda t: _render(t, "--strip-width-mm", "-3"), "--strip-width-mm"),
+    ("render exposure", lambda t: _render(t, "--exposure", "nan"), "--exposure"),
+    ("render camera", lambda t: _render(t, "--camera", "nosuch"), "--camera"),
+    ("render pose frame", _render_bad_pose_frame, "--pose-frame"),
+    ("render edit", lambda t: _render(t, "--edit", "C_m=-2x"), "edit"),
+    ("rig.json Infinity", _render_infinite_light, "lights[3].position_mm"),
+    ("simulate seed", lambda t: _simulate(t, "--seed", "-1"), "seed"),
+    ("simulate skin type", lambda t: _simulate(t, "--skin-type", "VII"), "skin_type"),
+    ("simulate sequences", lambda t: _simulate(t, "--sequences", "static,nosuch"), "sequences"),
+    ("stokes phase", lambda t: _stokes(t, "--phase", "5", "-1"), "phase"),
+    ("stokes exposure", lambda t: _stokes(t, "--exposure", "0"), "exposure"),
+    ("skin-fit header-only csv", _skin_fit_header_only, "holds no spectra"),
+    (
+        "skin-fit band",
+        lambda t: [*_skin_fit_header_only(t), "--min-nm", "800", "--max-nm", "700"],
+        "fit band",
+    ),
+    ("calibrate malformed list", _calibrate_bad_list, "list.xml"),
+    ("ior focal length", lambda t: _ior(t, K=[[-1500.0, 0, 24], [0, 1500.0, 24], [0, 0, 1]]), "camera.K"),
+    ("ior rigid pose", lambda t: _ior(t, world_to_camera=_non_rigid_pose()), "camera.world_to_camera"),
+    ("ior eta range", lambda t: _ior(t, "--eta-range", "3", "1.5"), "eta_range"),
+    ("ior eta on bound", lambda t: _ior(t, "--eta-range", "1.7", "3"), "bound"),
+]
+
+
+@pytest.mark.parametrize(("build", "needle"), [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_bad_input_exits_2_with_one_line_and_writes_nothing(tmp_path, capsys, build, needle):
+    argv = build(tmp_path)
+    out = tmp_path / "out"
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"polarface {argv[0]}: error: ") and "\n" not in err, err
+    assert needle in err, err
+    assert not out.exists() or not any(out.rglob("*")), sorted(out.rglob("*"))
+
+
+def test_biophysical_checks_the_ground_truth_before_the_fit(tmp_path):
+    """``biophysical --gt nosuch`` used to fail only after the fit had written the maps: the stage now
+    checks ``ground_truth`` first (the command passes ``--gt`` as ``ground_truth``)."""
+    from polarface.pipeline.biophysical import run_biophysical_stage
+
+    result = _result(tmp_path / "result")
+    before = sorted(p.relative_to(result) for p in result.rglob("*"))
+    with pytest.raises(FileNotFoundError, match=r"argument 'gt'.*nosuch"):
+        run_biophysical_stage(result, ground_truth=tmp_path / "nosuch", progress=False)
+    (tmp_path / "sim" / "ground_truth" / "maps").mkdir(parents=True)
+    with pytest.raises(FileNotFoundError, match=r"argument 'gt'.*c_m\.exr"):
+        run_biophysical_stage(result, ground_truth=tmp_path / "sim", progress=False)
+    assert sorted(p.relative_to(result) for p in result.rglob("*")) == before
