@@ -25,6 +25,9 @@ def test_config_errors():
         SimulationConfig(skin_type="VII")
     with pytest.raises(ValueError, match="sequences"):
         SimulationConfig(sequences=("rotation",))
+    for seed in (-1, 1.5, True):  # numpy's default_rng rejects a negative seed only after rendering began
+        with pytest.raises(ValueError, match="argument 'seed'"):
+            SimulationConfig(seed=seed)
     assert get_preset("demo").static_frames == 24
     assert [SKIN_TYPES[k].c_m for k in ("I", "II", "III", "IV")] == sorted(
         SKIN_TYPES[k].c_m for k in ("I", "II", "III", "IV")

@@ -103,6 +103,21 @@ def _detect_views(
     return obj, pts_a, pts_b, used, size
 
 
+def _load_checked(
+    rig_path: str | os.PathLike[str], camera: str, stereo_camera: str | None, square_mm: float
+) -> Rig:
+    """The rig at ``rig_path`` once ``square_mm`` (finite, > 0) and the camera ids are checked."""
+    if not (square_mm > 0 and math.isfinite(square_mm)):
+        raise ValueError(f"argument '--square-mm' must be finite and > 0; got {square_mm}")
+    rig = Rig.load(rig_path)
+    rig.camera(camera)
+    if stereo_camera is not None:
+        rig.camera(stereo_camera)
+        if stereo_camera == camera:
+            raise ValueError(f"argument '--stereo-camera' must differ from '--camera' ({camera!r})")
+    return rig
+
+
 def calibrate_rig(
     rig_path: str | os.PathLike[str],
     camera: str,
@@ -133,14 +148,7 @@ def calibrate_rig(
         ValueError: bad board text, ``square_mm <= 0``, unknown camera, image count or size mismatch.
         FileNotFoundError: a pattern matching no image, a missing rig or image list.
     """
-    if not (square_mm > 0 and math.isfinite(square_mm)):
-        raise ValueError(f"argument '--square-mm' must be finite and > 0; got {square_mm}")
-    rig = Rig.load(rig_path)
-    rig.camera(camera)
-    if stereo_camera is not None:
-        rig.camera(stereo_camera)
-        if stereo_camera == camera:
-            raise ValueError(f"argument '--stereo-camera' must differ from '--camera' ({camera!r})")
+    rig = _load_checked(rig_path, camera, stereo_camera, square_mm)
     detect = _board_detector(board, square_mm, marker_mm)
     if image_list is not None:
         listed = read_image_list(image_list)

@@ -267,6 +267,21 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _check_resumable(summary_path: Path, config_dict: dict) -> None:
+    """ValueError unless ``summary_path`` is absent or records the configuration ``config_dict``."""
+    if not summary_path.exists():
+        return
+    try:
+        previous = json.loads(summary_path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"'{summary_path}' is not valid JSON: {exc}") from exc
+    if not isinstance(previous, dict) or previous.get("config") != config_dict:
+        raise ValueError(
+            f"'{summary_path.parent}' holds a simulation with another configuration "
+            f"{previous.get('config') if isinstance(previous, dict) else previous!r}"
+        )
+
+
 def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = True) -> dict:
     """Render the configured sequences into ``out_dir`` (see the module docstring); returns the summary.
 
@@ -280,16 +295,7 @@ def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = 
     summary_path = out / "simulation.json"
     config_dict = dataclasses.asdict(config)
     config_dict["sequences"] = list(config.sequences)
-    if summary_path.exists():
-        try:
-            previous = json.loads(summary_path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"'{summary_path}' is not valid JSON: {exc}") from exc
-        if not isinstance(previous, dict) or previous.get("config") != config_dict:
-            raise ValueError(
-                f"'{out}' holds a simulation with another configuration "
-                f"{previous.get('config') if isinstance(previous, dict) else previous!r}"
-            )
+    _check_resumable(summary_path, config_dict)
     out.mkdir(parents=True, exist_ok=True)
     scene = SimulationScene.build(config)
     setup_s = time.perf_counter() - started
