@@ -210,3 +210,51 @@ def test_evaluate_bad_input(sim, tmp_path, capsys):
     (tmp_path / "result.json").write_text("{}")
     assert main(["evaluate", str(tmp_path), "--gt", str(tmp_path / "nothing")]) == 2
     assert main(["evaluate", str(tmp_path), "--gt", str(sim), "--groups", "nope"]) == 2
+
+
+def test_resume_refuses_other_options_or_capture(sim, tmp_path, capsys):
+    out = tmp_path / "fp"
+    assert main(_args(sim, out, "--iterations", "3")) == 0
+    recorded = json.loads((out / "result.json").read_text())["fingerprint"]
+    assert recorded["options"]["iterations"] == 3 and recorded["texture_resolution"] == RES
+    assert recorded["capture"]["frames"] == 4 and len(recorded["mesh"]["sha256"]) == 64
+    before = (out / "result.json").read_bytes()
+    capsys.readouterr()
+    # all stages done: a different --iterations used to be ignored silently
+    assert main(_args(sim, out, "--iterations", "20", "--resume")) == 2
+    err = capsys.readouterr().err
+    assert "option 'iterations' was 3, now 20" in err and "without --resume" in err
+    assert len(err.strip().splitlines()) == 1
+    # another capture (one frame's raw content changed) is refused, naming the capture
+    other = tmp_path / "other_sim"
+    shutil.copytree(sim, other)
+    marker = other / "static" / "frames" / "000000.json"
+    payload = json.loads(marker.read_text())
+    payload["timestamp"] = 99.0
+    marker.write_text(json.dumps(payload))
+    args = _args(other, out, "--iterations", "3", "--resume")
+    assert main(args) == 2 and "the capture differs" in capsys.readouterr().err
+    # another texture resolution
+    assert main([*_args(sim, out, "--iterations", "3", "--resume")[:-3], "--iterations", "3", "--resume",
+                 "--texture-resolution", "8"]) == 2
+    assert "'texture_resolution' was 16, now 8" in capsys.readouterr().err
+    assert (out / "result.json").read_bytes() == before
+    # the same options (threads and device do not count) resume fine
+    assert main(_args(sim, out, "--iterations", "3", "--resume", "--threads", "2")) == 0
+
+
+def test_resume_mid_fit_with_other_iterations_is_refused(sim, tmp_path):
+    def context(iterations, stop=None):
+        return ReconstructContext(
+            sim / "static", out, sim / "ground_truth" / "mesh_rest.obj",
+            sim / "ground_truth" / "static" / "poses.json", RES, "cpu", True, False, 0,
+            {"iterations": iterations, "patch": 8}, stop_after_patches=stop,
+        )
+
+    out = tmp_path / "mid"
+    out.mkdir()
+    with pytest.raises(InterruptedError):
+        run_stages(context(15, stop=1))
+    with pytest.raises(ValueError, match="option 'iterations' was 15, now 20"):
+        run_stages(context(20))
+    assert not (out / "maps" / "eta.exr").exists()

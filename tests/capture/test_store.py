@@ -239,4 +239,4 @@ def test_ingest_rejects_8_bit_and_leaves_no_frame(tmp_path):
     write_png(raw_dir / "pol_upper" / "0000.png", (_raw() // 16).astype(np.uint8))
     with pytest.raises(ValueError, match="8-bit"):
         ingest_directory(raw_dir, _rig(), tmp_path / "cap", progress=False)
-    assert not list((tmp_path / "cap" / "frames").iterdir())
+    assert not (tmp_path / "cap").exists()

@@ -9,23 +9,30 @@ RAW_DIR layout (documented in ``docs/capture_store.md``)::
 
 Every sub-folder must be a camera of the rig; every polarimetric camera needs a folder; every
 camera must hold the same frame numbers (a frame missing for one camera is an error naming it).
+
+Nothing half-written: every raw file is decoded and checked against its camera (readable, size, bit
+depth, range) before anything is written, and an error names the file; a run that fails removes the
+store it created (or, resuming, leaves the frames that were complete before; a frame without its
+marker is redone by the next run, and stale ``.tmp-*`` files are removed by it).
 """
 
 from __future__ import annotations
 
 import csv
 import os
+import shutil
 from pathlib import Path
 from typing import Literal
 
 from tqdm import tqdm
 
 from polarface.capture.demosaic import DemosaicMethod
+from polarface.capture.manifest import raw_bit_depth_ok
 from polarface.capture.rig import Rig
 from polarface.capture.store import CaptureStore
 from polarface.io.images import read_png
 
-__all__ = ["RAW_SUFFIXES", "ingest_directory", "scan_raw_directory"]
+__all__ = ["RAW_SUFFIXES", "check_raw_files", "ingest_directory", "scan_raw_directory"]
 
 #: File suffixes recognised as raw frames.
 RAW_SUFFIXES = (".png", ".tif", ".tiff")
@@ -68,6 +75,23 @@ def scan_raw_directory(raw_dir: str | os.PathLike[str], rig: Rig) -> dict[int, d
         if lacking:
             raise ValueError(f"frame {number} is missing for camera(s) {lacking} in '{root}'")
     return frames
+
+
+def check_raw_files(frames: dict[int, dict[str, Path]], rig: Rig, *, progress: bool = False) -> None:
+    """Decode every raw file of :func:`scan_raw_directory` and check it against its camera.
+
+    One file is in memory at a time.
+
+    Raises:
+        ValueError: naming the first file that is unreadable (truncated, not an image) or does not fit
+            its camera (not integer, wrong size, 8-bit for a deeper camera, values beyond the bit depth).
+    """
+    files = [(cam_id, path) for number in sorted(frames) for cam_id, path in sorted(frames[number].items())]
+    for cam_id, path in tqdm(files, desc="check raw", unit="file", disable=not progress):
+        try:
+            raw_bit_depth_ok(read_png(path), rig.camera(cam_id))
+        except (ValueError, FileNotFoundError) as exc:
+            raise ValueError(f"raw file '{path}': {exc}") from exc
 
 
 def _timestamps(root: Path, numbers: list[int], fps: float) -> dict[int, float]:
@@ -119,9 +143,30 @@ def ingest_directory(
     root = Path(raw_dir)
     frames = scan_raw_directory(root, rig)
     times = _timestamps(root, sorted(frames), fps)
-    store = CaptureStore.create(out, rig, sequence=sequence)
-    for number in tqdm(sorted(frames), desc="ingest", unit="frame", disable=not progress):
-        raws = {cam_id: read_png(path) for cam_id, path in frames[number].items()}
-        store.add_frame(number, times[number], raws, method=method)
-    store.finalize()
+    check_raw_files(frames, rig, progress=progress)
+    out = Path(out)
+    created = not out.exists()
+    fresh = created or not (out / "rig.json").exists()
+    try:
+        store = CaptureStore.create(out, rig, sequence=sequence)
+        for number in tqdm(sorted(frames), desc="ingest", unit="frame", disable=not progress):
+            raws = {cam_id: read_png(path) for cam_id, path in frames[number].items()}
+            store.add_frame(number, times[number], raws, method=method)
+        store.finalize()
+    except BaseException:
+        if created or (fresh and (out / "rig.json").exists()):  # this run created the store
+            _remove_created(out, created)
+        raise
     return store
+
+
+def _remove_created(out: Path, created: bool) -> None:
+    """Remove a store this run created: the folder, or its content when the folder was there (empty)."""
+    if created:
+        shutil.rmtree(out, ignore_errors=True)
+        return
+    for child in out.iterdir():
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child, ignore_errors=True)
+        else:
+            child.unlink(missing_ok=True)

@@ -69,6 +69,14 @@ def _digest(raw: np.ndarray) -> str:
     return hashlib.sha1(np.ascontiguousarray(raw).tobytes() + str(raw.shape).encode()).hexdigest()
 
 
+def _remove_stale_temporaries(root: Path) -> None:
+    """Delete ``.tmp-*`` files that an interrupted atomic write left (nothing ever reads them)."""
+    for pattern in (".tmp-*", "raw/*/.tmp-*", "frames/.tmp-*"):
+        for path in root.glob(pattern):
+            if path.is_file():
+                path.unlink(missing_ok=True)
+
+
 class CaptureStore:
     """A capture store directory (see the module docstring). Use :meth:`create` or :meth:`open`."""
 
@@ -92,6 +100,9 @@ class CaptureStore:
     ) -> CaptureStore:
         """Create a store, or reopen an unfinished/finished one with the same rig to resume.
 
+        Stale ``.tmp-*`` files of a killed run (in the root, ``raw/<camera>/`` and ``frames/``) are
+        removed first; a folder holding nothing else counts as empty.
+
         Raises:
             ValueError: on a bad ``sequence``, or an existing store with a different rig.
         """
@@ -99,6 +110,7 @@ class CaptureStore:
             raise ValueError(f"argument 'sequence' must be 'static' or 'dynamic'; got {sequence!r}")
         root = Path(path)
         rig_path = root / "rig.json"
+        _remove_stale_temporaries(root)
         if rig_path.exists():
             existing = Rig.load(rig_path)
             if existing.model_dump(mode="json") != rig.model_dump(mode="json"):

@@ -2,7 +2,9 @@
 
 The run is a sequence of stages over the RESULT folder (:data:`STAGES`); each reads and writes the
 documented artifacts (``docs/result_folder.md``) through :class:`polarface.results.ResultFolder`,
-records itself in ``result.json`` and is skipped when resuming once done:
+records itself in ``result.json`` and is skipped when resuming once done. ``result.json``'s
+``fingerprint`` (capture, mesh, poses, texture resolution, hold-out, fit options) is recorded when a
+run starts; a resumed run whose inputs or options differ is refused (:func:`check_fingerprint`):
 
 * ``prepare``: ``rig.json``, ``mesh.obj``, ``result.json`` header, ``unwrap.zarr`` (texture space);
 * ``polarimetric``: ``maps/*.exr`` + ``maps/mask.png``, ``previews/*.png``, ``checkpoints/``;
@@ -32,6 +34,8 @@ __all__ = [
     "STAGES",
     "ReconstructContext",
     "ReconstructInputs",
+    "check_fingerprint",
+    "input_fingerprint",
     "reconstruct",
     "resolve_reconstruct_inputs",
     "run_stages",
@@ -250,14 +254,64 @@ STAGES: list[tuple[str, Callable[[ReconstructContext], dict]]] = [
 ]
 
 
+def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
+    """What changes the result: capture, mesh, poses, texture resolution, hold-out and fit options.
+
+    The device and the thread count are left out (they change float rounding only, not what is
+    fitted); progress bars too. Keys: ``docs/result_folder.md``, "Resume fingerprint".
+    """
+    from polarface.inverse.polarimetric import PolarimetricConfig
+    from polarface.results.fingerprint import capture_identity, file_identity
+
+    return {
+        "capture": capture_identity(ctx.capture),
+        "mesh": file_identity(ctx.mesh_path),
+        "poses": file_identity(ctx.poses_path),
+        "texture_resolution": int(ctx.texture_resolution),
+        "holdout_every": int(ctx.holdout_every),
+        "options": _jsonable(dataclasses.asdict(PolarimetricConfig(**ctx.fit_options))),
+    }
+
+
+def check_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
+    """Record the run's :func:`input_fingerprint` in ``result.json``, or check it when resuming.
+
+    A folder without a recorded fingerprint (new, or written before fingerprints) gets this one.
+
+    Raises:
+        ValueError: resuming a folder whose recorded fingerprint differs, naming every difference.
+    """
+    from polarface.results.fingerprint import fingerprint_differences
+
+    folder = ctx.folder
+    current = input_fingerprint(ctx)
+    recorded = folder.read_result().get("fingerprint")
+    if ctx.resume and isinstance(recorded, dict):
+        differences = fingerprint_differences(recorded, current)
+        if differences:
+            raise ValueError(
+                f"resume of '{ctx.out}': {'; '.join(differences)}; rerun without --resume into a new "
+                "folder or with the same inputs and options"
+            )
+        return recorded
+    folder.update_result({"fingerprint": current})
+    return current
+
+
 def run_stages(ctx: ReconstructContext, stages=None) -> dict[str, Any]:
     """Run ``stages`` (default :data:`STAGES`) in order, skipping completed ones when resuming.
 
+    The fingerprint is checked (resume) or recorded first (:func:`check_fingerprint`).
+
     Returns:
         The final ``result.json`` content.
+
+    Raises:
+        ValueError: a resumed folder was started with other inputs or options.
     """
     stages = STAGES if stages is None else stages
     folder = ctx.folder
+    check_fingerprint(ctx)
     for name, function in stages:
         if ctx.resume and folder.stage_complete(name):
             LOGGER.info("stage %s already complete; skipped", name)

@@ -282,22 +282,28 @@ def _check_resumable(summary_path: Path, config_dict: dict) -> None:
         )
 
 
-def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = True) -> dict:
+def simulate(
+    out_dir: str | Path, config: SimulationConfig, *, progress: bool = True, resume: bool = True
+) -> dict:
     """Render the configured sequences into ``out_dir`` (see the module docstring); returns the summary.
 
-    Resumable: rerunning with the same configuration skips complete frames.
+    Resumable (``resume``): rerunning with the same configuration skips complete frames; a run killed
+    at any point and resumed writes the same files as an uninterrupted one. ``simulation.json`` is
+    written with ``complete: false`` and the configuration when the run starts, so an interrupted
+    folder is refused to another configuration too.
 
     Raises:
-        ValueError: if ``out_dir`` holds a simulation with another configuration.
+        ValueError: ``out_dir`` holds a simulation with another configuration, or (``resume`` False)
+            is not empty.
     """
     started = time.perf_counter()
     out = Path(out_dir)
     summary_path = out / "simulation.json"
-    config_dict = dataclasses.asdict(config)
-    config_dict["sequences"] = list(config.sequences)
-    _check_resumable(summary_path, config_dict)
+    config_dict = _check_resume(out, config, resume)
     out.mkdir(parents=True, exist_ok=True)
     scene = SimulationScene.build(config)
+    if not summary_path.exists():
+        write_json_atomic(summary_path, _summary_head(config_dict, scene, complete=False))
     setup_s = time.perf_counter() - started
     poses = static_poses(scene)
     gt = out / "ground_truth"
@@ -347,11 +353,7 @@ def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = 
             store.finalize()
         timings[f"{sequence}_s"] = time.perf_counter() - seq_started
     summary = {
-        "format": "polarface-simulation",
-        "version": 1,
-        "config": config_dict,
-        "preset": dataclasses.asdict(scene.preset),
-        "channel_names": list(scene.calibration.channel_names),
+        **_summary_head(config_dict, scene, complete=True),
         "exposure": scene.exposure,
         "frame_rate_hz": FRAME_RATE_HZ,
         "head_placement": scene.placement.tolist(),
@@ -360,6 +362,37 @@ def simulate(out_dir: str | Path, config: SimulationConfig, *, progress: bool = 
     }
     write_json_atomic(summary_path, summary)
     return summary
+
+
+def _check_resume(out: Path, config: SimulationConfig, resume: bool) -> dict:
+    """The configuration as recorded in ``simulation.json``; refuse a folder this run must not continue.
+
+    Stale ``.tmp-*`` files of a killed run under ``ground_truth/`` are removed (the capture stores
+    remove theirs in :meth:`polarface.capture.store.CaptureStore.create`).
+    """
+    config_dict = dataclasses.asdict(config)
+    config_dict["sequences"] = list(config.sequences)
+    if out.exists() and not resume and any(out.iterdir()):
+        raise ValueError(
+            f"output folder '{out}' exists and is not empty; pass '--resume' or choose another --out"
+        )
+    for stale in sorted((out / "ground_truth").rglob(".tmp-*")):  # left by a killed run
+        if stale.is_file():
+            stale.unlink(missing_ok=True)
+    _check_resumable(out / "simulation.json", config_dict)
+    return config_dict
+
+
+def _summary_head(config_dict: dict, scene: SimulationScene, *, complete: bool) -> dict:
+    """The keys of ``simulation.json`` known when the run starts (``complete`` false until it ends)."""
+    return {
+        "format": "polarface-simulation",
+        "version": 1,
+        "complete": complete,
+        "config": config_dict,
+        "preset": dataclasses.asdict(scene.preset),
+        "channel_names": list(scene.calibration.channel_names),
+    }
 
 
 def _with_exposure(rig: Rig, exposure: float) -> Rig:
