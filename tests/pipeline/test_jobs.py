@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -53,7 +54,9 @@ def test_resolve_reconstruct_inputs_errors(tmp_path):
 def test_summary_line():
     record = {"stages": {"polarimetric": {"texels": 12, "throughput_texel_view_iterations_per_s": 1234.5}}}
     line = reconstruct_summary_line("R", record)
-    assert line == "polarface reconstruct: wrote R (12 texels, 1.23e+03 texel-view it/s)"
+    expected = "polarface reconstruct: wrote R (12 texels, 1.23e+03 texel-view it/s); report: R/report.html"
+    assert line == expected
+    assert reconstruct_summary_line(Path("out") / "R", {}).endswith(str(Path("out") / "R" / "report.html"))
 
 
 def test_sphere_demo_bad_arguments_write_nothing(tmp_path):

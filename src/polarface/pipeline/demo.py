@@ -74,12 +74,20 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
     return metrics
 
 
-def reconstruct_summary_line(out: Path, result: dict[str, Any]) -> str:
-    """The one-line summary ``polarface reconstruct`` prints after a run."""
+def reconstruct_summary_line(out: str | Path, result: dict[str, Any]) -> str:
+    """The one-line summary ``polarface reconstruct`` prints after a run; it ends with the report's path.
+
+    Args:
+        out: the RESULT folder.
+        result: its ``result.json`` content (``stages.polarimetric`` gives texels and throughput).
+    """
+    from polarface.results import ResultFolder
+
     stage = result.get("stages", {}).get("polarimetric", {})
     return (
         f"polarface reconstruct: wrote {out} ({stage.get('texels', 0)} texels, "
-        f"{stage.get('throughput_texel_view_iterations_per_s', 0):.3g} texel-view it/s)"
+        f"{stage.get('throughput_texel_view_iterations_per_s', 0):.3g} texel-view it/s); "
+        f"report: {ResultFolder(out).report_path}"
     )
 
 
