@@ -65,4 +65,4 @@ def test_demo_pipeline_tiny_end_to_end(tmp_path):
     metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
     assert {"polarimetric", "rerender", "biophysical"} <= set(metrics)
     assert metrics["polarimetric"]["eta"]["median_abs_error"] < 0.1
-    assert metrics["biophysical"]["c_m"]["median_abs"] < 0.02
+    assert metrics["biophysical"]["c_m"]["median_abs_error"] < 0.02

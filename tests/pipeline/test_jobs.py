@@ -65,3 +65,37 @@ def test_sphere_demo_bad_arguments_write_nothing(tmp_path):
     with pytest.raises(ValueError, match="--eta"):
         run_sphere_demo(tmp_path / "x", size=16, eta=1.0)
     assert not (tmp_path / "x").exists()
+
+
+def _keys(value, prefix=""):
+    """Every key path of a nested dict."""
+    if not isinstance(value, dict):
+        return []
+    return [p for k, v in value.items() for p in [prefix + k, *_keys(v, prefix + k + ".")]]
+
+
+def test_evaluate_json_uses_one_naming_scheme(tmp_path, monkeypatch):
+    """The biophysical group's ``median_abs`` etc. become ``median_abs_error`` and its alias is dropped."""
+    import importlib
+
+    evaluate_module = importlib.import_module("polarface.pipeline.evaluate")  # the package shadows the name
+    fake = {
+        "texels": 9,
+        "c_m": {"median_abs": 0.1, "mean_abs": 0.2, "p95_abs": 0.3},
+        "rho_sss_bar_relative_rmse": 0.01,
+        "fit_relative_rmse": 0.01,
+        "rerender_vs_gt_relative_rmse": 0.02,
+    }
+    monkeypatch.setattr(evaluate_module, "evaluate_biophysical", lambda result, gt: fake)
+    for root in (tmp_path / "result", tmp_path / "gt"):
+        (root / "maps").mkdir(parents=True)
+        (root / "maps" / "c_m.exr").write_bytes(b"")
+    ResultFolder(tmp_path / "result").update_result({"format": "polarface-result"})
+    metrics = evaluate(tmp_path / "result", tmp_path / "gt", ["biophysical"])["biophysical"]
+    assert metrics == {
+        "texels": 9,
+        "c_m": {"median_abs_error": 0.1, "mean_abs_error": 0.2, "p95_abs_error": 0.3},
+        "rho_sss_bar_relative_rmse": 0.01,
+        "rerender_vs_gt_relative_rmse": 0.02,
+    }
+    assert not [k for k in _keys(metrics) if k.endswith("_abs")]
