@@ -190,6 +190,15 @@ def _flat(config: Any, prefix: str = "") -> list[str]:
     return out
 
 
+def _wrapped(head: str, items: list[str], indent: str = "  ") -> list[str]:
+    """``head`` followed by comma-separated ``items``, wrapped at 100 columns."""
+    import textwrap
+
+    text = f"{indent}{head}: {', '.join(items) or 'none'}"
+    return textwrap.wrap(text, 100, subsequent_indent=indent + "    ", break_on_hyphens=False,
+                         break_long_words=False) or [text]
+
+
 def _capture_lines(info: dict[str, Any], indent: str = "  ") -> list[str]:
     state = "complete" if info["complete"] else "INCOMPLETE"
     lines = [
@@ -217,12 +226,12 @@ def _result_lines(info: dict[str, Any]) -> list[str]:
     for name, stage in info["stages"].items():
         state = "done" if stage["complete"] else "not complete"
         lines.append(f"    {name:<14} {state:<13} {_number(stage['seconds'], ' s')}")
-    lines.append(f"  maps ({len(info['maps'])}): {', '.join(info['maps']) or 'none'}")
+    lines += _wrapped(f"maps ({len(info['maps'])})", info["maps"])
     lines.append(f"  previews: {info['previews']} PNG; report: {info['report'] or 'not written'}")
     if info["frames"]:
         lines.append(f"  frames: {len(info['frames'])} ({info['frames'][0]} .. {info['frames'][-1]})")
     for name, config in info["configuration"].items():
-        lines.append(f"  configuration of {name}: {', '.join(_flat(config))}")
+        lines += _wrapped(f"configuration of {name}", _flat(config))
     return lines
 
 
@@ -245,9 +254,9 @@ def format_info(info: dict[str, Any]) -> str:
             lines.append(f"  {name}/:")
             lines += _capture_lines(sequence, "    ")
         maps = info["ground_truth_maps"]
-        lines.append(f"  ground truth maps ({len(maps)}): {', '.join(maps) or 'none'}")
+        lines += _wrapped(f"ground truth maps ({len(maps)})", maps)
         if info["configuration"]:
-            lines.append(f"  configuration: {', '.join(_flat(info['configuration']))}")
+            lines += _wrapped("configuration", _flat(info["configuration"]))
     else:
         lines += _result_lines(info)
     if info.get("fingerprint") is not None:
