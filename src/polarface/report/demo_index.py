@@ -147,7 +147,7 @@ def _comparison_png(path: Path, name: str, truth: np.ndarray, estimate: np.ndarr
     limit = float(np.percentile(np.abs(error[valid]), 99)) if valid.any() else 1.0
     limit = limit if limit > 0 else 1e-6
     unit = _UNITS.get(name, "1")
-    figure, axes = plt.subplots(1, 3, figsize=(15.0, 4.6), dpi=100)
+    figure, axes = plt.subplots(1, 3, figsize=(15.0, 4.6), dpi=100, layout="constrained")
     panels = (("ground truth", truth, lo, hi, "viridis"), ("reconstruction", estimate, lo, hi, "viridis"),
               ("error (reconstruction - truth)", error, -limit, limit, "coolwarm"))
     handles = []
