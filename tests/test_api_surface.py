@@ -88,6 +88,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "ANALYZER_IMAGE_NAMES", "METRIC_GROUPS", "ReconstructContext", "ReconstructInputs",
         "STAGES", "SkinFitSummary", "SpectraFitOptions", "biophysical_metrics",
         "estimate_ior_from_folder", "evaluate", "evaluate_biophysical", "fit_spectra_file",
+        "folder_info", "format_info",
         "ground_truth_root", "load_stage_inputs", "polarimetric_metrics", "read_analyzer_image",
         "read_reflectance_csv", "reconstruct", "reconstruct_summary_line", "rerender_metrics",
         "resolve_reconstruct_inputs", "run_biophysical_stage", "run_demo_pipeline",

@@ -23,7 +23,9 @@ def test_demo_command_writes_everything(tmp_path):
         assert images[name].shape == (96, 96, 3)
         assert np.isfinite(images[name]).all(), name
         png = read_png(out / "png" / f"{name}.png")
-        assert png.shape[:2] == (96, 96)
+        # analyzer images are pixel-exact; the colour-mapped ones are figures with a labelled colour bar
+        exact = name in ("I0", "I45", "I90", "I135", "I_sss")
+        assert png.shape[:2] == (96, 96) if exact else png.shape[1] > 96
     mask = read_exr(out / "exr" / "mask.exr")["Y"] > 0.5
     assert 0.3 < mask.mean() < 0.9
     np.testing.assert_allclose(images["I_sss"], 2 * images["I90"], rtol=1e-6)
@@ -65,4 +67,4 @@ def test_demo_pipeline_tiny_end_to_end(tmp_path):
     metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
     assert {"polarimetric", "rerender", "biophysical"} <= set(metrics)
     assert metrics["polarimetric"]["eta"]["median_abs_error"] < 0.1
-    assert metrics["biophysical"]["c_m"]["median_abs"] < 0.02
+    assert metrics["biophysical"]["c_m"]["median_abs_error"] < 0.02

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -53,7 +54,9 @@ def test_resolve_reconstruct_inputs_errors(tmp_path):
 def test_summary_line():
     record = {"stages": {"polarimetric": {"texels": 12, "throughput_texel_view_iterations_per_s": 1234.5}}}
     line = reconstruct_summary_line("R", record)
-    assert line == "polarface reconstruct: wrote R (12 texels, 1.23e+03 texel-view it/s)"
+    expected = "polarface reconstruct: wrote R (12 texels, 1.23e+03 texel-view it/s); report: R/report.html"
+    assert line == expected
+    assert reconstruct_summary_line(Path("out") / "R", {}).endswith(str(Path("out") / "R" / "report.html"))
 
 
 def test_sphere_demo_bad_arguments_write_nothing(tmp_path):
@@ -62,3 +65,37 @@ def test_sphere_demo_bad_arguments_write_nothing(tmp_path):
     with pytest.raises(ValueError, match="--eta"):
         run_sphere_demo(tmp_path / "x", size=16, eta=1.0)
     assert not (tmp_path / "x").exists()
+
+
+def _keys(value, prefix=""):
+    """Every key path of a nested dict."""
+    if not isinstance(value, dict):
+        return []
+    return [p for k, v in value.items() for p in [prefix + k, *_keys(v, prefix + k + ".")]]
+
+
+def test_evaluate_json_uses_one_naming_scheme(tmp_path, monkeypatch):
+    """The biophysical group's ``median_abs`` etc. become ``median_abs_error`` and its alias is dropped."""
+    import importlib
+
+    evaluate_module = importlib.import_module("polarface.pipeline.evaluate")  # the package shadows the name
+    fake = {
+        "texels": 9,
+        "c_m": {"median_abs": 0.1, "mean_abs": 0.2, "p95_abs": 0.3},
+        "rho_sss_bar_relative_rmse": 0.01,
+        "fit_relative_rmse": 0.01,
+        "rerender_vs_gt_relative_rmse": 0.02,
+    }
+    monkeypatch.setattr(evaluate_module, "evaluate_biophysical", lambda result, gt: fake)
+    for root in (tmp_path / "result", tmp_path / "gt"):
+        (root / "maps").mkdir(parents=True)
+        (root / "maps" / "c_m.exr").write_bytes(b"")
+    ResultFolder(tmp_path / "result").update_result({"format": "polarface-result"})
+    metrics = evaluate(tmp_path / "result", tmp_path / "gt", ["biophysical"])["biophysical"]
+    assert metrics == {
+        "texels": 9,
+        "c_m": {"median_abs_error": 0.1, "mean_abs_error": 0.2, "p95_abs_error": 0.3},
+        "rho_sss_bar_relative_rmse": 0.01,
+        "rerender_vs_gt_relative_rmse": 0.02,
+    }
+    assert not [k for k in _keys(metrics) if k.endswith("_abs")]

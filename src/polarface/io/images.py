@@ -210,6 +210,7 @@ def colormap_png(
     mask: np.ndarray | None = None,
     title: str | None = None,
     colorbar: bool = False,
+    label: str | None = None,
 ) -> Path:
     """Write a scalar ``(H, W)`` map as a colour-mapped 8-bit PNG preview.
 
@@ -218,7 +219,9 @@ def colormap_png(
         cmap: matplotlib colour map name (``twilight`` suits AoLP in [0, pi)).
         mask: boolean ``(H, W)``; False pixels are drawn black.
         title, colorbar: when either is given the map is drawn with matplotlib with a labelled scale
-            bar (a figure, not pixel-exact); otherwise the PNG is pixel-exact, one pixel per value.
+            bar (a figure about 560 x 440 px, not pixel-exact, with tick labels legible when shown a
+            third of a 1400 px page wide); otherwise the PNG is pixel-exact, one pixel per value.
+        label: the scale bar's label, e.g. its units (``"AoLP (rad)"``); implies ``colorbar``.
     """
     import matplotlib
 
@@ -240,25 +243,34 @@ def colormap_png(
     )
     if hi <= lo:
         hi = lo + 1e-12
+    colorbar = colorbar or label is not None
     if title is None and not colorbar:
         normalised = np.clip((np.where(valid, image, lo) - lo) / (hi - lo), 0.0, 1.0)
         rgba = colormaps[cmap](normalised)
         rgba[~valid] = (0.0, 0.0, 0.0, 1.0)
         return write_png(path, rgba[..., :3].astype(np.float64), bit_depth=8)
 
+    _figure_png(path, np.ma.array(image, mask=~valid), (lo, hi), cmap, title, label, colorbar)
+    return Path(path)
+
+
+def _figure_png(path: str | os.PathLike[str], shown: np.ma.MaskedArray, limits: tuple[float, float],
+                cmap: str, title: str | None, label: str | None, colorbar: bool) -> None:
+    """Draw a masked ``(H, W)`` map with matplotlib (title, scale bar with ``label``) as a PNG."""
     import matplotlib.pyplot as plt
 
-    height, width = image.shape
-    fig, ax = plt.subplots(figsize=(max(3.0, 4.0 * width / max(height, 1)) + 1.0, 4.0), dpi=100)
-    shown = np.ma.array(image, mask=~valid)
-    handle = ax.imshow(shown, cmap=cmap, vmin=lo, vmax=hi, interpolation="nearest")
+    height, width = shown.shape
+    fig, ax = plt.subplots(figsize=(max(3.0, 4.0 * width / max(height, 1)) + 1.6, 4.4), dpi=100)
+    handle = ax.imshow(shown, cmap=cmap, vmin=limits[0], vmax=limits[1], interpolation="nearest")
     ax.set_axis_off()
     if title:
-        ax.set_title(title)
+        ax.set_title(title, fontsize=16)
     if colorbar:
-        fig.colorbar(handle, ax=ax, fraction=0.046, pad=0.04)
+        bar = fig.colorbar(handle, ax=ax, fraction=0.046, pad=0.04)
+        bar.ax.tick_params(labelsize=14)
+        if label:
+            bar.set_label(label, fontsize=15)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)
-    return Path(path)

@@ -1,6 +1,6 @@
 """Orchestration over folders: the reconstruct stages and checkpoints, the biophysical stage's files,
-the evaluation against ground truth, the demo jobs, the skin fit of a spectra file and the IOR of a
-sphere capture. Commands call one function of here."""
+the evaluation against ground truth, the description of a folder (``info``), the demo jobs, the skin
+fit of a spectra file and the IOR of a sphere capture. Commands call one function of here."""
 
 from polarface.pipeline.biophysical import load_stage_inputs, run_biophysical_stage
 from polarface.pipeline.demo import reconstruct_summary_line, run_demo_pipeline, run_sphere_demo
@@ -13,6 +13,7 @@ from polarface.pipeline.evaluate import (
     rerender_metrics,
 )
 from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
+from polarface.pipeline.info import folder_info, format_info
 from polarface.pipeline.ior import (
     ANALYZER_IMAGE_NAMES,
     estimate_ior_from_folder,
@@ -47,6 +48,8 @@ __all__ = [
     "evaluate",
     "evaluate_biophysical",
     "fit_spectra_file",
+    "folder_info",
+    "format_info",
     "ground_truth_root",
     "load_stage_inputs",
     "polarimetric_metrics",

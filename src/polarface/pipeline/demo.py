@@ -6,7 +6,9 @@
   2. reconstruction: texture-space polarimetric inverse rendering, then the biophysical stage
      -> DIR/result (maps as EXR, previews, report.html)
   3. evaluation: errors against the simulator's ground truth -> DIR/metrics.json
-  4. DIR/index.html: a landing page linking the report, the metrics and the simulated frames.
+  4. DIR/index.html: a landing page linking the report, the metrics and the simulated frames, with the
+     metrics as a table of value, target and pass, and per parameter the ground truth, the
+     reconstruction and the error side by side (DIR/comparison/*.png; frame previews in DIR/frames/).
 
 :func:`run_sphere_demo` (``polarface demo --sphere --out DIR``) renders a skin-like sphere under the 8
 polarized LED modules (:func:`polarface.render.demo.render_demo`), written as:
@@ -74,43 +76,30 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
     return metrics
 
 
-def reconstruct_summary_line(out: Path, result: dict[str, Any]) -> str:
-    """The one-line summary ``polarface reconstruct`` prints after a run."""
+def reconstruct_summary_line(out: str | Path, result: dict[str, Any]) -> str:
+    """The one-line summary ``polarface reconstruct`` prints after a run; it ends with the report's path.
+
+    Args:
+        out: the RESULT folder.
+        result: its ``result.json`` content (``stages.polarimetric`` gives texels and throughput).
+    """
+    from polarface.results import ResultFolder
+
     stage = result.get("stages", {}).get("polarimetric", {})
     return (
         f"polarface reconstruct: wrote {out} ({stage.get('texels', 0)} texels, "
-        f"{stage.get('throughput_texel_view_iterations_per_s', 0):.3g} texel-view it/s)"
+        f"{stage.get('throughput_texel_view_iterations_per_s', 0):.3g} texel-view it/s); "
+        f"report: {ResultFolder(out).report_path}"
     )
 
 
 def _demo_page(out: Path, preset: str, skin_type: str, elapsed: float, metrics: dict[str, Any]):
-    from polarface.report.html import HtmlPage
+    """The landing page (:func:`polarface.report.demo_index.demo_index_page`): links, metrics table with
+    targets, ground truth / reconstruction / error per parameter, simulated frames."""
+    from polarface.report.demo_index import demo_index_page
 
-    page = HtmlPage(
-        "polarface demo: simulate -> reconstruct -> evaluate",
-        subtitle=f"preset {preset}, skin type {skin_type}, {elapsed / 60:.1f} min on this machine",
-    )
-    report = page.section(
-        "Reconstruction",
-        "Recovered maps (EXR in result/maps/); the full report has loss curves, per-view residuals, "
-        "the DoP validation and the chromophore maps.",
-    ).link("result/report.html", "Open the reconstruction report (result/report.html)")
-    previews = [
-        (f"result/previews/{name}.png", caption)
-        for name, caption in (
-            ("rho_sss_bar_rgb", "subsurface albedo rho_sss_bar (upper bands)"),
-            ("eta", "index of refraction eta"),
-            ("alpha_s", "specular roughness alpha_s"),
-            ("rho_s", "specular albedo rho_s"),
-        )
-        if (out / "result" / "previews" / f"{name}.png").is_file()
-    ]
-    if previews:
-        report.image_grid(previews, columns=4)
-    for group, values in metrics.items():
-        flat = {k: (json.dumps(v) if isinstance(v, dict) else v) for k, v in values.items()}
-        page.section(f"Errors against the ground truth: {group}").table(flat)
-    return page
+    subtitle = f"preset {preset}, skin type {skin_type}, {elapsed / 60:.1f} min on this machine"
+    return demo_index_page(out, subtitle, metrics)
 
 
 def _print_now(line: str) -> None:
@@ -195,11 +184,13 @@ def _write_sphere_preview(path: Path, name: str, value: np.ndarray, mask: np.nda
     elif name in ("I_zeta", "I_s"):
         channel = value[..., green]
         limit = float(np.percentile(np.abs(channel[mask]), 99.5)) if mask.any() else 1.0
-        colormap_png(path, channel, vmin=-limit, vmax=limit or 1.0, cmap="coolwarm", mask=mask)
+        colormap_png(path, channel, vmin=-limit, vmax=limit or 1.0, cmap="coolwarm", mask=mask,
+                     label=f"{name} (linear radiance)")
     elif name == "DoP":
-        colormap_png(path, value[..., green], vmin=0.0, mask=mask)
+        colormap_png(path, value[..., green], vmin=0.0, mask=mask, label="DoP (1)")
     else:
-        colormap_png(path, value[..., green], vmin=0.0, vmax=np.pi, cmap="twilight", mask=mask)
+        colormap_png(path, value[..., green], vmin=0.0, vmax=np.pi, cmap="twilight", mask=mask,
+                     label="AoLP (rad)")
 
 
 def _sphere_page(params, render_seconds: float, parameters: dict[str, Any]):

@@ -1,17 +1,20 @@
 """Metrics of a RESULT folder against simulator ground truth (``polarface evaluate``).
 
 Metric groups (:data:`METRIC_GROUPS`, name -> function(result_dir, gt_dir) -> dict; downstream stages
-add theirs):
+add theirs). One naming scheme: an error statistic is ``<statistic>_<kind>_error`` (``median_abs_error``,
+``mean_abs_error``, ``p95_abs_error``, ``median_relative_error``), a normalised RMSE ends in ``_rmse``,
+and no value appears under two keys (keys listed in ``docs/reconstruct.md``, "evaluate"):
 
 * ``polarimetric``: per map (eta, alpha_s, alpha_ss, rho_s, rho_ss, displacement_mm, rho_sss_bar) the
   median and mean absolute error over valid texels (reconstruction mask and ground-truth mask), the
-  median relative error of the albedos, and the normal angular error in degrees (normals of the base
-  mesh displaced by each displacement map);
+  median relative error of the albedos, and ``normal_angular_error_deg`` (median and mean absolute
+  angle in degrees between the normals of the base mesh displaced by each displacement map);
 * ``rerender``: RMSE of ``I_sss`` and ``I_s`` re-rendered from the maps on the views held out of fitting,
   in texture space (visible texels), divided by the mean observed ``I_sss`` of those views (``*_rmse``)
   and, for ``I_s``, also by its own mean absolute value (``i_s_rmse_over_mean_abs``);
-* ``biophysical``: :func:`evaluate_biophysical` (skipped when the RESULT or the ground truth has no
-  chromophore maps).
+* ``biophysical``: :func:`evaluate_biophysical` with its keys renamed to the scheme above
+  (``median_abs`` -> ``median_abs_error`` ...; its alias ``fit_relative_rmse`` dropped); skipped
+  when the RESULT or the ground truth has no chromophore maps.
 
 The ground truth (``SIM/ground_truth`` or that folder itself) has the RESULT's ``maps/`` layout.
 """
@@ -99,8 +102,8 @@ def polarimetric_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
         n_gt = texel_shading_normals(unwrap, truth["displacement_mm"].astype(np.float32))[mask]
         angle = np.degrees(np.arccos(np.clip((n_est * n_gt).sum(-1), -1.0, 1.0)))
         metrics["normal_angular_error_deg"] = {
-            "median": float(np.median(angle)),
-            "mean": float(np.mean(angle)),
+            "median_abs_error": float(np.median(angle)),
+            "mean_abs_error": float(np.mean(angle)),
         }
     return metrics
 
@@ -154,14 +157,31 @@ def rerender_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
     }
 
 
+#: Per-chromophore keys of :func:`evaluate_biophysical` -> their names in ``evaluate``'s JSON.
+_BIOPHYSICAL_KEYS = {
+    "median_abs": "median_abs_error",
+    "mean_abs": "mean_abs_error",
+    "p95_abs": "p95_abs_error",
+}
+
+#: Keys of :func:`evaluate_biophysical` that repeat another key's value (left out of ``evaluate``'s JSON).
+_BIOPHYSICAL_ALIASES = ("fit_relative_rmse",)
+
+
 def biophysical_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
-    """Chromophore errors and rho_sss_bar re-render error (:func:`evaluate_biophysical`)."""
+    """Chromophore errors and rho_sss_bar re-render error (:func:`evaluate_biophysical`, keys renamed)."""
     if not ResultFolder(result_dir).has_map("c_m"):
         return {"skipped": "the RESULT has no biophysical maps (stage not run)"}
     gt = Path(gt_dir)
     if not any(ResultFolder(root).has_map("c_m") for root in (gt, gt / "ground_truth")):
         return {"skipped": "the ground truth has no chromophore maps"}
-    return evaluate_biophysical(result_dir, gt_dir)
+    metrics = evaluate_biophysical(result_dir, gt_dir)
+    renamed = {}
+    for key, value in metrics.items():
+        if key not in _BIOPHYSICAL_ALIASES:
+            is_dict = isinstance(value, dict)
+            renamed[key] = {_BIOPHYSICAL_KEYS.get(k, k): v for k, v in value.items()} if is_dict else value
+    return renamed
 
 
 #: Metric groups: name -> function(result_dir, gt_dir) -> dict.

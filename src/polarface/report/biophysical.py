@@ -21,13 +21,19 @@ def _summary_rows(summary: dict[str, Any]) -> dict[str, Any]:
     return rows
 
 
+def _error(entry: dict[str, Any], statistic: str) -> Any:
+    """``<statistic>_abs_error`` (``polarface evaluate``'s key) or ``<statistic>_abs`` (the library's)."""
+    return entry.get(f"{statistic}_abs_error", entry.get(f"{statistic}_abs"))
+
+
 def biophysical_section(
     page: HtmlPage, result_dir: str | Path | ResultFolder, metrics: dict[str, Any] | None = None
 ) -> Section:
     """Add the biophysical section to ``page`` for a RESULT folder; returns the section.
 
     Image paths are relative to the RESULT (the report lives at ``RESULT/report.html``). ``metrics``
-    (from :func:`polarface.pipeline.evaluate_biophysical`) adds the error tables.
+    (from :func:`polarface.pipeline.evaluate_biophysical`, or ``polarface evaluate``'s ``biophysical``
+    group, whose keys end in ``_error``) adds the error tables.
     """
     folder = result_dir if isinstance(result_dir, ResultFolder) else ResultFolder(result_dir)
     summary = folder.stage_record("biophysical")
@@ -45,7 +51,11 @@ def biophysical_section(
         section.table(_summary_rows(summary))
     if metrics:
         section.table(
-            [(n, metrics[n]["median_abs"], metrics[n]["mean_abs"]) for n in CHROMOPHORE_MAPS if n in metrics],
+            [
+                (n, _error(metrics[n], "median"), _error(metrics[n], "mean"))
+                for n in CHROMOPHORE_MAPS
+                if n in metrics
+            ],
             header=("parameter", "median |error|", "mean |error|"),
         )
         keys = ("rerender_vs_gt_relative_rmse", "input_vs_gt_relative_rmse")

@@ -1,7 +1,8 @@
 """A small generic HTML page builder for run reports: sections, image grids, tables, plots.
 
-Pages are self-contained HTML5 with inline CSS; images and plots are referenced by **relative** paths
-(so a run folder can be moved or zipped as a whole). All text is HTML-escaped. Writing is atomic.
+Pages are self-contained HTML5 with inline CSS, laid out for a 1400 px wide window; images and plots
+are referenced by **relative** paths (so a run folder can be moved or zipped as a whole), and every
+grid thumbnail links to its full-size image. All text is HTML-escaped. Writing is atomic.
 
 Example::
 
@@ -26,15 +27,19 @@ from polarface.io.atomic import atomic_path
 __all__ = ["HtmlPage", "ImageItem", "Section"]
 
 _STYLE = """
-body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1200px; color: #222; }
+body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1400px; padding: 0 1em;
+       color: #222; }
 h1 { margin-bottom: 0.2em; } .subtitle { color: #666; margin-top: 0; }
 section { margin: 2em 0; } h2 { border-bottom: 1px solid #ddd; padding-bottom: 0.2em; }
 .grid { display: grid; gap: 1em; }
 figure { margin: 0; } figure img { width: 100%; image-rendering: pixelated; border: 1px solid #ccc; }
+figure a { display: block; }
 figcaption { font-size: 0.9em; color: #444; margin-top: 0.3em; }
 table { border-collapse: collapse; margin: 0.5em 0; }
 td, th { border: 1px solid #ddd; padding: 0.3em 0.8em; text-align: left; }
 th { background: #f4f4f4; } .plot img { max-width: 100%; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; }
+.pass { color: #176f2c; font-weight: 600; } .fail { color: #b3261e; font-weight: 600; }
 """
 
 
@@ -83,7 +88,7 @@ class Section:
         return self
 
     def image_grid(self, items: Iterable[ImageItem | tuple[str, str]], columns: int = 4) -> Section:
-        """Append a grid of images with captions (``columns`` per row)."""
+        """Append a grid of images with captions (``columns`` per row); each links to its full size."""
         if columns < 1:
             raise ValueError(f"argument 'columns' must be >= 1; got {columns}")
         figures = []
@@ -92,23 +97,31 @@ class Section:
                 item = ImageItem(*item)
             src = html.escape(_check_relative(item.path), quote=True)
             alt = html.escape(item.alt or item.caption, quote=True)
-            figures.append(f'<figure><img src="{src}" alt="{alt}" loading="lazy">'
-                           f"<figcaption>{html.escape(item.caption)}</figcaption></figure>")
+            figures.append(f'<figure><a href="{src}" title="open full size"><img src="{src}" alt="{alt}" '
+                           f'loading="lazy"></a><figcaption>{html.escape(item.caption)}</figcaption></figure>')
         style = f"grid-template-columns: repeat({columns}, 1fr);"
         self.blocks.append(f'<div class="grid" style="{style}">' + "".join(figures) + "</div>")
         return self
 
-    def table(self, rows: Mapping[str, Any] | Sequence[Sequence[Any]], header: Sequence[str] | None = None
-              ) -> Section:
-        """Append a table: a key/value mapping, or a list of rows with an optional header."""
+    def table(self, rows: Mapping[str, Any] | Sequence[Sequence[Any]], header: Sequence[str] | None = None,
+              column_classes: Sequence[str] = ()) -> Section:
+        """Append a table: a key/value mapping, or a list of rows with an optional header.
+
+        ``column_classes`` gives each column's CSS class (``num``: right-aligned numbers; ``""``: none).
+        """
         body = list(rows.items()) if isinstance(rows, Mapping) else [tuple(r) for r in rows]
         if header is None and isinstance(rows, Mapping):
             header = ("quantity", "value")
+        attrs = [f' class="{html.escape(c, quote=True)}"' if c else "" for c in column_classes]
         parts = ["<table>"]
         if header:
             parts.append("<tr>" + "".join(f"<th>{html.escape(str(h))}</th>" for h in header) + "</tr>")
         for row in body:
-            parts.append("<tr>" + "".join(f"<td>{html.escape(_format(c))}</td>" for c in row) + "</tr>")
+            cells = (
+                f"<td{attrs[i] if i < len(attrs) else ''}>{html.escape(_format(c))}</td>"
+                for i, c in enumerate(row)
+            )
+            parts.append("<tr>" + "".join(cells) + "</tr>")
         parts.append("</table>")
         self.blocks.append("".join(parts))
         return self

@@ -1,9 +1,10 @@
 """HTML report of a RESULT folder's polarimetric stage (built with :mod:`polarface.report.html`).
 
-Sections: parameter maps (colour-mapped previews with scale bars), the loss curve, per-view residual
+Sections: parameter maps (colour-mapped, scale bars labelled with units), the loss curve, per-view residual
 images of ``I_sss`` and ``I_s`` in texture space (one fitting and one held-out view when there is one),
 and the paper's "DoP validation": DoP ``sqrt(I_zeta^2 + I_xi^2) / I_sss`` and AoLP of the observation
-vs the re-render (texture space, channel G of the view). Images go to ``RESULT/previews/report_*.png``.
+vs the re-render (texture space, channel G of the view). Images go to ``RESULT/previews/report_*.png``;
+they are drawn three to a row of a 1400 px page, and each links to its full-size file.
 The RESULT is read through :class:`polarface.results.ResultFolder`.
 """
 
@@ -24,6 +25,19 @@ __all__ = ["write_report"]
 #: Channel of the view shown in the residual and DoP images (G).
 _GREEN = 1
 
+#: Scale bar labels (units) of the parameter maps (``docs/result_folder.md``).
+_MAP_UNITS = {
+    "eta": "eta (refractive index, 1)",
+    "alpha_s": "alpha_s (GGX roughness, 1)",
+    "alpha_ss": "alpha_ss (GGX roughness, 1)",
+    "rho_s": "rho_s (albedo, 1)",
+    "rho_ss": "rho_ss (albedo, 1)",
+    "displacement_mm": "displacement (mm)",
+}
+
+#: Images per row of the report's grids (legible scale bars at 1400 px).
+_COLUMNS = 3
+
 
 def _dop_aolp(values: np.ndarray, specular_s1: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """DoP and AoLP of the diffuse polarization from ``[I_sss, I_zeta, I_s]`` ``(..., 3)`` (one channel)."""
@@ -35,14 +49,39 @@ def _dop_aolp(values: np.ndarray, specular_s1: np.ndarray | None = None) -> tupl
     return dop, aolp
 
 
-def _add_map_section(page: HtmlPage, folder: ResultFolder, stage: dict[str, Any]) -> None:
-    items = [ImageItem(f"previews/{n}.png", n) for n in POLARIMETRIC_MAPS]
+def _map_images(folder: ResultFolder, maps: dict[str, np.ndarray], mask: np.ndarray) -> list[ImageItem]:
+    """``previews/report_map_<name>.png``: each parameter map over its masked 1st..99th percentile,
+    with a scale bar labelled with its units."""
+    items = []
+    for name in POLARIMETRIC_MAPS:
+        if name not in maps:
+            continue
+        values = maps[name]
+        inside = values[mask] if mask.any() else np.zeros(1)
+        lo, hi = float(np.percentile(inside, 1)), float(np.percentile(inside, 99))
+        path = f"previews/report_map_{name}.png"
+        colormap_png(
+            folder.root / path,
+            np.where(mask, values, np.nan),
+            vmin=lo,
+            vmax=hi if hi > lo else lo + 1e-6,
+            mask=mask,
+            title=name,
+            label=_MAP_UNITS.get(name, f"{name} (1)"),
+        )
+        items.append(ImageItem(path, name))
+    return items
+
+
+def _add_map_section(page: HtmlPage, folder: ResultFolder, stage: dict[str, Any],
+                     maps: dict[str, np.ndarray], mask: np.ndarray) -> None:
+    items = _map_images(folder, maps, mask)
     items.append(ImageItem("previews/rho_sss_bar_rgb.png", "rho_sss_bar (upper-half R, G, B)"))
     min_views = stage.get("config", {}).get("min_views", "?")
     for name, spec in DIAGNOSTIC_MAPS.items():
         if folder.preview_path(name).exists():
             items.append(ImageItem(f"previews/{name}.png", spec.caption.format(min_views=min_views)))
-    page.section("Parameter maps", "Texture-space maps (EXR in maps/).").image_grid(items, columns=4)
+    page.section("Parameter maps", "Texture-space maps (EXR in maps/).").image_grid(items, columns=_COLUMNS)
 
 
 def _add_loss_section(page: HtmlPage, folder: ResultFolder) -> None:
@@ -83,7 +122,7 @@ def _residual_images(folder: ResultFolder, index: int, label: str, observed: np.
             cmap="coolwarm",
             mask=valid,
             title=f"{obs_name} residual",
-            colorbar=True,
+            label="linear radiance",
         )
         items.append(ImageItem(path, f"{obs_name} re-render - observation, {label}"))
     return items
@@ -95,7 +134,8 @@ def _dop_images(folder: ResultFolder, index: int, label: str, observed: np.ndarr
     items = []
     for source, values in (("observed", observed), ("re-rendered", predicted)):
         dop, aolp = _dop_aolp(values[..., _GREEN])
-        for kind, image, cmap, vmax in (("DoP", dop, "viridis", None), ("AoLP", aolp, "twilight", np.pi)):
+        for kind, image, cmap, vmax, unit in (("DoP", dop, "viridis", None, "DoP (1)"),
+                                              ("AoLP", aolp, "twilight", np.pi, "AoLP (rad)")):
             path = f"previews/report_{kind.lower()}_{index}_{source.replace('-', '')}.png"
             shown = np.where(valid, image, np.nan)
             top = vmax if vmax is not None else (float(np.nanpercentile(shown, 99)) if valid.any() else 1.0)
@@ -107,7 +147,7 @@ def _dop_images(folder: ResultFolder, index: int, label: str, observed: np.ndarr
                 cmap=cmap,
                 mask=valid,
                 title=kind,
-                colorbar=True,
+                label=unit,
             )
             items.append(ImageItem(path, f"{kind} {source}, {label}"))
     return items
@@ -135,13 +175,13 @@ def _add_view_sections(page: HtmlPage, folder: ResultFolder, maps: dict[str, np.
         dop_items += _dop_images(folder, index, label, observed, predicted, valid)
     if residual_items:
         page.section("Residuals", "Per-view residual images in texture space (channel G).").image_grid(
-            residual_items, columns=4
+            residual_items, columns=_COLUMNS
         )
         page.section(
             "DoP validation",
             "Diffuse DoP and AoLP (s1 from I_s, s2 = -I_zeta) of the observation vs "
             "the re-render (paper Fig. 'DoP validation').",
-        ).image_grid(dop_items, columns=4)
+        ).image_grid(dop_items, columns=_COLUMNS)
 
 
 def write_report(
@@ -159,14 +199,14 @@ def write_report(
     folder = result_dir if isinstance(result_dir, ResultFolder) else ResultFolder(result_dir)
     result = folder.read_result()
     maps = folder.read_maps(list(result.get("channel_names", [])))
-    maps.pop("mask")
+    mask = maps.pop("mask")
     stage = result.get("stages", {}).get("polarimetric", {})
     page = HtmlPage(
         "polarface reconstruction",
         subtitle=f"texture {result.get('texture_resolution')}, "
         f"texel {result.get('texel_size_mm', 0):.3f} mm, {stage.get('texels', 0)} texels fitted",
     )
-    _add_map_section(page, folder, stage)
+    _add_map_section(page, folder, stage, maps, mask)
     _add_loss_section(page, folder)
     _add_view_sections(page, folder, maps)
     page.section("Stage summary").table({k: v for k, v in stage.items() if not isinstance(v, dict)})

@@ -1,0 +1,28 @@
+"""``polarface info PATH [--json]``: what a capture store, a simulation folder or a RESULT folder holds.
+
+Frames, cameras and their resolution, stages done with their times, maps present, configuration and
+fingerprint (when recorded); human-readable by default, one JSON object with ``--json``
+(:func:`polarface.pipeline.info.folder_info`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+NAME = "info"
+HELP = "describe a capture store, simulation folder or RESULT folder (--json for machines)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("path", type=Path, metavar="PATH", help="capture store, simulation folder or RESULT")
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+
+
+def run(args: argparse.Namespace) -> int:
+    from polarface.pipeline import folder_info, format_info
+
+    info = folder_info(args.path)
+    print(json.dumps(info, indent=2) if args.json else format_info(info))
+    return 0

@@ -1,0 +1,264 @@
+"""What a folder holds (``polarface info PATH``): a capture store, a simulation folder or a RESULT folder.
+
+:func:`folder_info` reads only the small files (``manifest.json``, ``rig.json``, ``simulation.json``,
+``result.json``, frame markers, directory listings) and never decodes images or zarr arrays, so it
+is fast on any size of folder. :func:`format_info` renders its dict for people. Layouts:
+``docs/capture_store.md`` (capture store), ``docs/simulate.md`` (simulation folder) and
+``docs/result_folder.md`` (RESULT folder).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from polarface.results import ResultFolder
+
+__all__ = ["folder_info", "format_info"]
+
+#: Sequences a simulation folder may hold, each a capture store.
+_SEQUENCES = ("static", "dynamic")
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"'{path}' is not valid JSON: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ValueError(f"'{path}' must hold a JSON object; got {type(data).__name__}")
+    return data
+
+
+def _fingerprint(*records: dict[str, Any]) -> Any:
+    """The first ``fingerprint`` found at the top level or under ``config`` of ``records`` (else None)."""
+    for record in records:
+        for holder in (record, record.get("config") if isinstance(record.get("config"), dict) else {}):
+            if "fingerprint" in holder:
+                return holder["fingerprint"]
+    return None
+
+
+def _cameras(rig_path: Path) -> list[dict[str, Any]]:
+    """``id``, ``role``, ``sensor`` and ``resolution`` ``[width, height]`` (px) of each rig camera."""
+    if not rig_path.is_file():
+        return []
+    rig = _read_json(rig_path)
+    return [
+        {"id": c.get("id"), "role": c.get("role"), "sensor": c.get("sensor"),
+         "resolution": [c.get("width"), c.get("height")]}
+        for c in rig.get("cameras", []) if isinstance(c, dict)
+    ]
+
+
+def capture_info(root: Path) -> dict[str, Any]:
+    """Frames (listed, with a completion marker), cameras and resolutions of a capture store."""
+    from polarface.capture import read_manifest
+
+    manifest = read_manifest(root / "manifest.json")
+    frames = manifest["frames"]
+    stamps = [float(f["timestamp"]) for f in frames]
+    markers = sum((root / "frames" / f"{int(f['index']):06d}.json").is_file() for f in frames)
+    return {
+        "kind": "capture",
+        "path": str(root),
+        "sequence": manifest.get("sequence"),
+        "complete": bool(manifest.get("complete", False)),
+        "frames": len(frames),
+        "frames_with_marker": int(markers),
+        "frames_derived": sum(bool(f.get("derived")) for f in frames),
+        "duration_s": (max(stamps) - min(stamps)) if stamps else 0.0,
+        "demosaicing": sorted({str(f.get("method")) for f in frames if f.get("method")}),
+        "cameras": _cameras(root / "rig.json"),
+        "derived_store": (root / str(manifest.get("derived_store", "derived.zarr"))).is_dir(),
+        "fingerprint": _fingerprint(manifest),
+    }
+
+
+def _map_files(maps_dir: Path) -> list[str]:
+    return sorted(p.name for p in maps_dir.iterdir() if p.is_file()) if maps_dir.is_dir() else []
+
+
+def simulation_info(root: Path) -> dict[str, Any]:
+    """Configuration, timings, sequences (as :func:`capture_info`) and ground-truth maps of a simulation."""
+    summary = _read_json(root / "simulation.json") if (root / "simulation.json").is_file() else {}
+    timings = summary.get("timings", {})
+    return {
+        "kind": "simulation",
+        "path": str(root),
+        "complete": bool(summary),
+        "configuration": summary.get("config", {}),
+        "channel_names": summary.get("channel_names", []),
+        "seconds": timings.get("total_s") if isinstance(timings, dict) else None,
+        "timings_s": timings,
+        "peak_rss_mb": summary.get("peak_rss_mb"),
+        "sequences": {
+            name: capture_info(root / name)
+            for name in _SEQUENCES
+            if (root / name / "manifest.json").is_file()
+        },
+        "ground_truth_maps": _map_files(root / "ground_truth" / "maps"),
+        "fingerprint": _fingerprint(summary),
+    }
+
+
+def _stage_seconds(record: dict[str, Any]) -> float | None:
+    """A stage's wall time (s): ``total_s`` or ``stage_s`` of its timings, or their only entry."""
+    timings = record.get("timings") or record.get("timings_s") or {}
+    if not isinstance(timings, dict):
+        return None
+    for key in ("total_s", "stage_s"):
+        if isinstance(timings.get(key), int | float):
+            return float(timings[key])
+    numbers = [v for v in timings.values() if isinstance(v, int | float)]
+    return float(numbers[0]) if len(numbers) == 1 else None
+
+
+def result_info(root: Path) -> dict[str, Any]:
+    """Header, stages done (with their times), maps, previews, report and configuration of a RESULT."""
+    folder = ResultFolder(root)
+    result = folder.read_result()
+    stages = result.get("stages", {}) if isinstance(result.get("stages"), dict) else {}
+    frames_dir = root / "frames"
+    frames = sorted(p.name for p in frames_dir.iterdir() if p.is_dir()) if frames_dir.is_dir() else []
+    previews = sorted(folder.previews_dir.glob("*.png")) if folder.previews_dir.is_dir() else []
+    return {
+        "kind": "result",
+        "path": str(root),
+        "format": result.get("format"),
+        "version": result.get("version"),
+        "channel_names": result.get("channel_names", []),
+        "texture_resolution": result.get("texture_resolution"),
+        "texel_size_mm": result.get("texel_size_mm"),
+        "stages": {
+            name: {"complete": bool(rec.get("complete", False)), "seconds": _stage_seconds(rec)}
+            for name, rec in stages.items() if isinstance(rec, dict)
+        },
+        "texels": stages.get("polarimetric", {}).get("texels"),
+        "maps": _map_files(folder.maps_dir),
+        "previews": len(previews),
+        "report": folder.report_path.name if folder.report_path.is_file() else None,
+        "frames": frames,
+        "configuration": {
+            name: rec["config"] for name, rec in stages.items() if isinstance(rec, dict) and "config" in rec
+        },
+        "fingerprint": _fingerprint(result, *[r for r in stages.values() if isinstance(r, dict)]),
+    }
+
+
+def folder_info(path: str | Path) -> dict[str, Any]:
+    """What ``path`` holds, as a JSON-ready dict with ``kind`` = ``capture``, ``simulation`` or ``result``.
+
+    A RESULT has ``result.json``, a capture store ``manifest.json``, a simulation folder
+    ``simulation.json`` or a ``static/``/``dynamic/`` capture store beside ``ground_truth/``.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: ``path`` is none of the three, or one of its JSON files is malformed (named).
+    """
+    root = Path(path)
+    if not root.exists():
+        raise FileNotFoundError(f"argument 'PATH': '{root}' does not exist")
+    if (root / "result.json").is_file():
+        return result_info(root)
+    if (root / "manifest.json").is_file():
+        return capture_info(root)
+    sequences = any((root / s / "manifest.json").is_file() for s in _SEQUENCES)
+    if (root / "simulation.json").is_file() or (sequences and (root / "ground_truth").is_dir()):
+        return simulation_info(root)
+    raise ValueError(
+        f"argument 'PATH': '{root}' is not a capture store, simulation folder or RESULT folder "
+        "(no manifest.json, simulation.json or result.json)"
+    )
+
+
+def _number(value: Any, unit: str = "") -> str:
+    if isinstance(value, float):
+        return f"{value:.3g}{unit}"
+    return "?" if value is None else f"{value}{unit}"
+
+
+def _flat(config: Any, prefix: str = "") -> list[str]:
+    """``key=value`` strings of a nested configuration dict (lists shown compactly)."""
+    if not isinstance(config, dict):
+        return [f"{prefix}={config}"] if prefix else [str(config)]
+    out: list[str] = []
+    for key, value in config.items():
+        name = f"{prefix}.{key}" if prefix else str(key)
+        out += _flat(value, name) if isinstance(value, dict) else [f"{name}={json.dumps(value)}"]
+    return out
+
+
+def _wrapped(head: str, items: list[str], indent: str = "  ") -> list[str]:
+    """``head`` followed by comma-separated ``items``, wrapped at 100 columns."""
+    import textwrap
+
+    text = f"{indent}{head}: {', '.join(items) or 'none'}"
+    return textwrap.wrap(text, 100, subsequent_indent=indent + "    ", break_on_hyphens=False,
+                         break_long_words=False) or [text]
+
+
+def _capture_lines(info: dict[str, Any], indent: str = "  ") -> list[str]:
+    state = "complete" if info["complete"] else "INCOMPLETE"
+    lines = [
+        f"{indent}sequence {info['sequence']} ({state}): {info['frames']} frames "
+        f"({info['frames_with_marker']} with a completion marker, {info['frames_derived']} demosaiced"
+        f"{', ' + '/'.join(info['demosaicing']) if info['demosaicing'] else ''}), "
+        f"{_number(info['duration_s'], ' s')} long",
+        f"{indent}cameras ({len(info['cameras'])}):",
+    ]
+    for cam in info["cameras"]:
+        width, height = cam["resolution"]
+        lines.append(f"{indent}  {cam['id']:<12} {cam['role'] or '?':<14} {cam['sensor'] or '?':<20} "
+                     f"{width} x {height} px")
+    return lines
+
+
+def _result_lines(info: dict[str, Any]) -> list[str]:
+    resolution = info["texture_resolution"] or ["?", "?"]
+    lines = [
+        f"  {info['format']} v{info['version']}: texture {resolution[0]} x {resolution[1]} texels, texel "
+        f"{_number(info['texel_size_mm'], ' mm')}, {_number(info['texels'])} texels fitted",
+        f"  channels: {', '.join(info['channel_names']) or '?'}",
+        "  stages:" if info["stages"] else "  stages: none done",
+    ]
+    for name, stage in info["stages"].items():
+        state = "done" if stage["complete"] else "not complete"
+        lines.append(f"    {name:<14} {state:<13} {_number(stage['seconds'], ' s')}")
+    lines += _wrapped(f"maps ({len(info['maps'])})", info["maps"])
+    lines.append(f"  previews: {info['previews']} PNG; report: {info['report'] or 'not written'}")
+    if info["frames"]:
+        lines.append(f"  frames: {len(info['frames'])} ({info['frames'][0]} .. {info['frames'][-1]})")
+    for name, config in info["configuration"].items():
+        lines += _wrapped(f"configuration of {name}", _flat(config))
+    return lines
+
+
+def format_info(info: dict[str, Any]) -> str:
+    """The human-readable text of a :func:`folder_info` dict (several lines, no trailing newline)."""
+    kind = info["kind"]
+    lines = [f"{ {'capture': 'capture store', 'simulation': 'simulation folder'}.get(kind, 'RESULT folder')} "
+             f"{info['path']}"]
+    if kind == "capture":
+        lines += _capture_lines(info)
+    elif kind == "simulation":
+        seconds, memory = _number(info["seconds"], " s"), _number(info["peak_rss_mb"], " MB")
+        lines.append(
+            f"  simulated in {seconds}, peak memory {memory}"
+            if info["complete"]
+            else "  no simulation.json (not written by polarface simulate, or interrupted)"
+        )
+        lines.append(f"  channels: {', '.join(info['channel_names']) or '?'}")
+        for name, sequence in info["sequences"].items():
+            lines.append(f"  {name}/:")
+            lines += _capture_lines(sequence, "    ")
+        maps = info["ground_truth_maps"]
+        lines += _wrapped(f"ground truth maps ({len(maps)})", maps)
+        if info["configuration"]:
+            lines += _wrapped("configuration", _flat(info["configuration"]))
+    else:
+        lines += _result_lines(info)
+    if info.get("fingerprint") is not None:
+        lines.append(f"  fingerprint: {info['fingerprint']}")
+    return "\n".join(lines)

@@ -1,0 +1,253 @@
+"""The pipeline demo's landing page ``DIR/index.html`` (``polarface demo``, :mod:`polarface.pipeline.demo`).
+
+The page links the reconstruction report, ``metrics.json`` and the simulated frames; shows the metrics
+as a table of value, target and pass (:data:`METRIC_TARGETS`, the issue's targets, also in
+``docs/reconstruct.md`` "Measured"); previews frame 0 of the simulated static sequence; and, per
+parameter, the ground truth, the reconstruction and their difference side by side
+(``DIR/comparison/<name>.png``): ground truth and reconstruction share one colour scale and one scale
+bar, the error (reconstruction - ground truth, same units) has a symmetric scale of its own.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from polarface.report.html import HtmlPage, ImageItem
+from polarface.results import CHROMOPHORE_MAPS, POLARIMETRIC_MAPS, RHO_SSS_BAR, ResultFolder
+
+__all__ = [
+    "METRIC_TARGETS",
+    "MetricTarget",
+    "demo_index_page",
+    "metric_rows",
+    "write_comparisons",
+    "write_frame_previews",
+]
+
+
+@dataclass(frozen=True)
+class MetricTarget:
+    """One row of the metrics table: where the value lives in ``metrics.json`` and its target.
+
+    ``key`` is the path of keys (``("polarimetric", "eta", "median_abs_error")``); the value passes when
+    it is ``<= limit`` (``< limit`` when ``strict``). ``scale`` and ``unit`` format it (100, ``"%"``
+    shows a fraction as a percentage); ``digits`` is the number of significant digits.
+    """
+
+    label: str
+    key: tuple[str, ...]
+    limit: float
+    strict: bool = False
+    scale: float = 1.0
+    unit: str = ""
+    digits: int = 3
+
+
+#: The issue's targets, in the order of the table.
+METRIC_TARGETS: tuple[MetricTarget, ...] = (
+    MetricTarget("eta median abs error", ("polarimetric", "eta", "median_abs_error"), 0.02),
+    MetricTarget("normal median angular error",
+                 ("polarimetric", "normal_angular_error_deg", "median_abs_error"), 2.0, unit=" deg"),
+    MetricTarget("rho_sss_bar median relative error", ("polarimetric", RHO_SSS_BAR, "median_relative_error"),
+                 0.03, scale=100.0, unit=" %"),
+    MetricTarget("alpha_s median abs error", ("polarimetric", "alpha_s", "median_abs_error"), 0.05),
+    MetricTarget("rho_s median relative error", ("polarimetric", "rho_s", "median_relative_error"), 0.10,
+                 scale=100.0, unit=" %"),
+    MetricTarget("held-out I_s RMSE / mean I_sss", ("rerender", "i_s_rmse"), 0.0394, strict=True),
+    MetricTarget("C_m median abs error", ("biophysical", "c_m", "median_abs_error"), 0.005),
+    MetricTarget("beta_m median abs error", ("biophysical", "beta_m", "median_abs_error"), 0.03),
+    MetricTarget("C_h_in median abs error", ("biophysical", "c_h_in", "median_abs_error"), 0.01),
+    MetricTarget("C_h_out median abs error", ("biophysical", "c_h_out", "median_abs_error"), 0.01),
+    MetricTarget("re-rendered rho_sss_bar relative RMSE (vs its input)",
+                 ("biophysical", "rho_sss_bar_relative_rmse"), 0.02, scale=100.0, unit=" %"),
+)
+
+#: Units of the compared parameters (scale bar labels).
+_UNITS = {
+    "eta": "refractive index", "alpha_s": "GGX roughness", "alpha_ss": "GGX roughness",
+    "rho_s": "albedo", "rho_ss": "albedo", "displacement_mm": "mm", RHO_SSS_BAR: "albedo",
+    "c_m": "volume fraction", "beta_m": "fraction", "c_h_in": "volume fraction", "c_h_out": "volume fraction",
+}
+
+
+def _lookup(metrics: Mapping[str, Any], key: tuple[str, ...]) -> float | None:
+    value: Any = metrics
+    for part in key:
+        if not isinstance(value, Mapping) or part not in value:
+            return None
+        value = value[part]
+    return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
+
+
+def _rounded(value: float, target: MetricTarget) -> str:
+    return f"{value * target.scale:.{target.digits}g}{target.unit}"
+
+
+def metric_rows(metrics: Mapping[str, Any]) -> list[tuple[str, str, str, str]]:
+    """``(quantity, value, target, verdict)`` per :data:`METRIC_TARGETS`, rounded for people.
+
+    The verdict is ``pass``, ``FAIL``, or ``not computed`` when ``metrics`` lacks the value (a group
+    skipped or failed, e.g. no held-out view).
+    """
+    rows = []
+    for target in METRIC_TARGETS:
+        value = _lookup(metrics, target.key)
+        limit = f"{'<' if target.strict else '<='} {_rounded(target.limit, target)}"
+        if value is None or not np.isfinite(value):
+            rows.append((target.label, "-", limit, "not computed"))
+            continue
+        passed = value < target.limit if target.strict else value <= target.limit
+        rows.append((target.label, _rounded(value, target), limit, "pass" if passed else "FAIL"))
+    return rows
+
+
+def _pairs(result: ResultFolder, truth: ResultFolder) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``name -> (truth, estimate, valid)`` ``(H, W)`` float64 for every parameter present in both."""
+    names = result.channel_names()
+    estimate, reference = result.read_maps(names), truth.read_maps(names)
+    valid = estimate.get("mask")
+    if valid is None:
+        return {}
+    if "mask" in reference and reference["mask"].shape == valid.shape:
+        valid = valid & reference["mask"]
+    out = {}
+    for name in (*POLARIMETRIC_MAPS, RHO_SSS_BAR):
+        if name in estimate and name in reference and estimate[name].shape == reference[name].shape:
+            if name == RHO_SSS_BAR:  # one channel of six: the second (green of the upper bands)
+                out[name] = (reference[name][..., 1], estimate[name][..., 1], valid)
+            else:
+                out[name] = (reference[name], estimate[name], valid)
+    for name in CHROMOPHORE_MAPS:
+        if result.has_map(name) and truth.has_map(name):
+            a, b = truth.read_scalar_map(name), result.read_scalar_map(name)
+            if a.shape == valid.shape == b.shape:
+                out[name] = (a.astype(np.float64), b.astype(np.float64), valid)
+    return out
+
+
+def _comparison_png(path: Path, name: str, truth: np.ndarray, estimate: np.ndarray,
+                    valid: np.ndarray) -> None:
+    """Ground truth | reconstruction (one shared scale bar) | error (its own symmetric scale bar)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    from polarface.io import atomic_path
+
+    both = np.concatenate([truth[valid], estimate[valid]])
+    lo, hi = (float(np.percentile(both, 1)), float(np.percentile(both, 99))) if both.size else (0.0, 1.0)
+    hi = hi if hi > lo else lo + 1e-6
+    error = estimate - truth
+    limit = float(np.percentile(np.abs(error[valid]), 99)) if valid.any() else 1.0
+    limit = limit if limit > 0 else 1e-6
+    unit = _UNITS.get(name, "1")
+    figure, axes = plt.subplots(1, 3, figsize=(15.0, 4.6), dpi=100, layout="constrained")
+    panels = (("ground truth", truth, lo, hi, "viridis"), ("reconstruction", estimate, lo, hi, "viridis"),
+              ("error (reconstruction - truth)", error, -limit, limit, "coolwarm"))
+    handles = []
+    for ax, (title, image, vmin, vmax, cmap) in zip(axes, panels, strict=True):
+        handles.append(ax.imshow(np.ma.array(image, mask=~valid), cmap=cmap, vmin=vmin, vmax=vmax,
+                                 interpolation="nearest"))
+        ax.set_title(title, fontsize=15)
+        ax.set_axis_off()
+    for handle, ax_list, label in ((handles[0], list(axes[:2]), f"{name} ({unit})"),
+                                   (handles[2], [axes[2]], f"error ({unit})")):
+        bar = figure.colorbar(handle, ax=ax_list, fraction=0.046, pad=0.03)
+        bar.ax.tick_params(labelsize=13)
+        bar.set_label(label, fontsize=14)
+    with atomic_path(path) as tmp:
+        figure.savefig(tmp, format="png")
+    plt.close(figure)
+
+
+def write_comparisons(out: str | Path, result_dir: str | Path, gt_dir: str | Path) -> list[ImageItem]:
+    """Write ``out/comparison/<name>.png`` for every parameter in both folders; items relative to ``out``.
+
+    Args:
+        out: the demo folder (the page's folder).
+        result_dir: the RESULT folder.
+        gt_dir: the folder holding the ground truth's ``maps/`` (``SIM/ground_truth``).
+    """
+    out, result = Path(out), ResultFolder(result_dir)
+    channel = result.channel_names()[1]
+    items = []
+    for name, (truth, estimate, valid) in _pairs(result, ResultFolder(gt_dir)).items():
+        _comparison_png(out / "comparison" / f"{name}.png", name, truth, estimate, valid)
+        shown = f"{name} (channel {channel})" if name == RHO_SSS_BAR else name
+        items.append(ImageItem(f"comparison/{name}.png", f"{shown}: ground truth, reconstruction, error"))
+    return items
+
+
+def write_frame_previews(out: str | Path, capture: str | Path, frame_index: int = 0) -> list[ImageItem]:
+    """sRGB previews of I0 and I90 of one frame of each polarimetric camera of a capture store.
+
+    Written as ``out/frames/<camera>_<frame>_I0.png`` (``_I90``), one exposure for all (99.5th percentile
+    of I0); returns items relative to ``out`` whose captions name the raw file (``raw/...``).
+    """
+    from polarface.capture import CaptureStore
+    from polarface.io import write_png
+    from polarface.render import encode_srgb
+
+    out, store = Path(out), CaptureStore.open(capture, validate=False)
+    cameras = [c.id for c in store.rig.polarimetric_cameras()]
+    if not store.has_frame(frame_index) or not cameras:
+        return []
+    stacks = {camera: store.stack(frame_index, camera) for camera in cameras}
+    exposure = float(np.percentile(np.concatenate([s[0].ravel() for s in stacks.values()]), 99.5)) or 1.0
+    items = []
+    for camera, stack in stacks.items():
+        for k, angle in ((0, "I0"), (2, "I90")):
+            image = stack[k] if stack.ndim == 4 else np.repeat(stack[k][..., None], 3, -1)
+            name = f"frames/{camera}_{frame_index:04d}_{angle}.png"
+            write_png(out / name, encode_srgb(np.clip(image / exposure, 0.0, None)).astype(np.float64))
+            items.append(ImageItem(name, f"{camera}, frame {frame_index}, {angle} (sRGB preview)"))
+    return items
+
+
+def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any]) -> HtmlPage:
+    """The landing page of a demo folder ``out`` holding ``sim/``, ``result/`` and ``metrics.json``.
+
+    Writes the comparison and frame images it shows (:func:`write_comparisons`,
+    :func:`write_frame_previews`); the caller writes the page (``page.write(out / "index.html")``).
+    """
+    out = Path(out)
+    page = HtmlPage("polarface demo: simulate -> reconstruct -> evaluate", subtitle=subtitle)
+    section = page.section(
+        "Reconstruction",
+        "Recovered maps (EXR in result/maps/); the full report has loss curves, per-view residuals, "
+        "the DoP validation and the chromophore maps.",
+    )
+    section.link("result/report.html", "Open the reconstruction report (result/report.html)")
+    section.link("metrics.json", "The metrics against the ground truth (metrics.json)")
+    checks = page.section(
+        "Errors against the ground truth",
+        "Value, target and verdict of each measured quantity (all numbers in metrics.json).",
+    )
+    checks.table(metric_rows(metrics), header=("quantity", "value", "target", "pass"),
+                 column_classes=("", "num", "num", ""))
+    comparisons = write_comparisons(out, out / "result", out / "sim" / "ground_truth")
+    if comparisons:
+        page.section(
+            "Ground truth, reconstruction and error per parameter",
+            "Ground truth and reconstruction share one colour scale; the error is reconstruction minus "
+            "ground truth in the same units. Masked texels are blank.",
+        ).image_grid(comparisons, columns=1)
+    frames = page.section(
+        "Simulated frames",
+        "Frame 0 of the static sequence (sim/static/, a capture store: docs/capture_store.md).",
+    )
+    store = out / "sim" / "static"
+    if (store / "manifest.json").is_file():
+        frames.image_grid(write_frame_previews(out, store), columns=4)
+        for camera in sorted(p.name for p in (store / "raw").iterdir() if p.is_dir()):
+            raw = store / "raw" / camera / "000000.png"
+            if raw.is_file():
+                frames.link(raw.relative_to(out).as_posix(), f"raw mosaic of {camera}, frame 0 ({raw.name})")
+        frames.link("sim/simulation.json", "Simulation configuration and timings (sim/simulation.json)")
+    return page
