@@ -81,9 +81,8 @@ def test_evaluate_json_uses_one_naming_scheme(tmp_path, monkeypatch):
     evaluate_module = importlib.import_module("polarface.pipeline.evaluate")  # the package shadows the name
     fake = {
         "texels": 9,
-        "c_m": {"median_abs": 0.1, "mean_abs": 0.2, "p95_abs": 0.3},
+        "c_m": {"median_abs_error": 0.1, "mean_abs_error": 0.2, "p95_abs_error": 0.3},
         "rho_sss_bar_relative_rmse": 0.01,
-        "fit_relative_rmse": 0.01,
         "rerender_vs_gt_relative_rmse": 0.02,
     }
     monkeypatch.setattr(evaluate_module, "evaluate_biophysical", lambda result, gt: fake)

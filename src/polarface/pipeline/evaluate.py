@@ -12,8 +12,7 @@ and no value appears under two keys (keys listed in ``docs/reconstruct.md``, "ev
 * ``rerender``: RMSE of ``I_sss`` and ``I_s`` re-rendered from the maps on the views held out of fitting,
   in texture space (visible texels), divided by the mean observed ``I_sss`` of those views (``*_rmse``)
   and, for ``I_s``, also by its own mean absolute value (``i_s_rmse_over_mean_abs``);
-* ``biophysical``: :func:`evaluate_biophysical` with its keys renamed to the scheme above
-  (``median_abs`` -> ``median_abs_error`` ...; its alias ``fit_relative_rmse`` dropped); skipped
+* ``biophysical``: :func:`evaluate_biophysical` (same naming scheme: ``median_abs_error`` ...); skipped
   when the RESULT or the ground truth has no chromophore maps.
 
 The ground truth (``SIM/ground_truth`` or that folder itself) has the RESULT's ``maps/`` layout.
@@ -157,31 +156,14 @@ def rerender_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
     }
 
 
-#: Per-chromophore keys of :func:`evaluate_biophysical` -> their names in ``evaluate``'s JSON.
-_BIOPHYSICAL_KEYS = {
-    "median_abs": "median_abs_error",
-    "mean_abs": "mean_abs_error",
-    "p95_abs": "p95_abs_error",
-}
-
-#: Keys of :func:`evaluate_biophysical` that repeat another key's value (left out of ``evaluate``'s JSON).
-_BIOPHYSICAL_ALIASES = ("fit_relative_rmse",)
-
-
 def biophysical_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
-    """Chromophore errors and rho_sss_bar re-render error (:func:`evaluate_biophysical`, keys renamed)."""
+    """Chromophore errors and rho_sss_bar re-render error (:func:`evaluate_biophysical`)."""
     if not ResultFolder(result_dir).has_map("c_m"):
         return {"skipped": "the RESULT has no biophysical maps (stage not run)"}
     gt = Path(gt_dir)
     if not any(ResultFolder(root).has_map("c_m") for root in (gt, gt / "ground_truth")):
         return {"skipped": "the ground truth has no chromophore maps"}
-    metrics = evaluate_biophysical(result_dir, gt_dir)
-    renamed = {}
-    for key, value in metrics.items():
-        if key not in _BIOPHYSICAL_ALIASES:
-            is_dict = isinstance(value, dict)
-            renamed[key] = {_BIOPHYSICAL_KEYS.get(k, k): v for k, v in value.items()} if is_dict else value
-    return renamed
+    return evaluate_biophysical(result_dir, gt_dir)
 
 
 #: Metric groups: name -> function(result_dir, gt_dir) -> dict.

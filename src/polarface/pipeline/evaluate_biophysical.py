@@ -20,9 +20,9 @@ def _chromophore_errors(estimate: dict, truth: dict, mask: np.ndarray) -> dict[s
     for name in PARAMETER_ORDER:
         error = np.abs(estimate[name][mask] - truth[name][mask])
         out[name] = {
-            "median_abs": float(np.median(error)),
-            "mean_abs": float(np.mean(error)),
-            "p95_abs": float(np.percentile(error, 95)),
+            "median_abs_error": float(np.median(error)),
+            "mean_abs_error": float(np.mean(error)),
+            "p95_abs_error": float(np.percentile(error, 95)),
         }
     return out
 
@@ -62,7 +62,7 @@ def evaluate_biophysical(result_dir: str | Path, gt_dir: str | Path) -> dict[str
     both masks (``texels``) unless the key says otherwise.
 
     Returns:
-        ``{"texels": N, "c_m": {"median_abs", "mean_abs", "p95_abs"}, ... (the four maps),``
+        ``{"texels": N, "c_m": {"median_abs_error", "mean_abs_error", "p95_abs_error"}, ... (the four maps),``
 
         * ``"rho_sss_bar_relative_rmse"`` - the stage's own re-render (``maps/rho_sss_bar_rendered.exr``,
           the model it fitted) against the albedo it was given (``maps/rho_sss_bar.exr``): its ability
@@ -75,7 +75,7 @@ def evaluate_biophysical(result_dir: str | Path, gt_dir: str | Path) -> dict[str
           against the ground-truth local ``rho_sss_bar`` (both stages' errors together), and
           ``"input_vs_gt_relative_rmse"`` - the input itself against it (the polarimetric stage's
           error; with ground-truth input it is 0);
-        * ``"fit_relative_rmse"`` - alias of ``rho_sss_bar_relative_rmse`` (older name).}
+        }
 
     Raises:
         FileNotFoundError: ``gt_dir`` lacks a ground-truth map (:func:`check_ground_truth`) or the
@@ -105,7 +105,6 @@ def evaluate_biophysical(result_dir: str | Path, gt_dir: str | Path) -> dict[str
         raise FileNotFoundError(f"'{own}' does not exist (run the biophysical stage first)")
     fitted = result.read_channel_map(names_.RHO_SSS_BAR_RENDERED, names)[mask]
     metrics["rho_sss_bar_relative_rmse"] = relative_rmse(fitted, observed)
-    metrics["fit_relative_rmse"] = metrics["rho_sss_bar_relative_rmse"]
     if result.has_map(names_.IN_GAMUT, ".png"):
         in_gamut = result.read_mask(shape, names_.IN_GAMUT)[mask]
         metrics["out_of_gamut_texels"] = int((~in_gamut).sum())
