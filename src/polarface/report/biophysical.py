@@ -22,8 +22,8 @@ def _summary_rows(summary: dict[str, Any]) -> dict[str, Any]:
 
 
 def _error(entry: dict[str, Any], statistic: str) -> Any:
-    """``<statistic>_abs_error`` (``polarface evaluate``'s key) or ``<statistic>_abs`` (the library's)."""
-    return entry.get(f"{statistic}_abs_error", entry.get(f"{statistic}_abs"))
+    """The ``<statistic>_abs_error`` entry of a chromophore's metrics (``polarface evaluate``'s naming)."""
+    return entry.get(f"{statistic}_abs_error")
 
 
 def biophysical_section(
