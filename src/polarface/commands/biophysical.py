@@ -19,7 +19,9 @@ from pathlib import Path
 import torch
 
 from polarface.inverse.biophysical import BiophysicalConfig
+from polarface.io.output_folder import OutputFolderError, json_manifest, lock_output
 from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
+from polarface.results.layout import RESULT_FORMAT, RESULT_JSON
 
 NAME = "biophysical"
 HELP = "recover melanin/haemoglobin maps and diffusion profiles from a RESULT's rho_sss_bar"
@@ -44,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="texels whose best skin fit stays further than this from the input are marked out of the skin "
         "model's gamut and fitted to their closest skin albedo (default %(default)s; inf disables)",
     )
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--gt", type=Path, default=None, help="simulator folder to evaluate against")
     parser.add_argument("--device", default=None, help="torch device (default cpu)")
     parser.add_argument("--no-progress", action="store_true")
@@ -61,9 +63,14 @@ def run(args: argparse.Namespace) -> int:
         **({"prior_weight": (0.0, 0.0, 0.0, 0.0)} if args.no_prior else {}),
     )
     device = torch.device(args.device) if args.device else None
-    summary = run_biophysical_stage(
-        args.result, config, device=device, progress=not args.no_progress, threads=args.threads
-    )
+    if not json_manifest(RESULT_JSON, format=RESULT_FORMAT)(args.result):
+        raise OutputFolderError(
+            f"'{args.result}' is not a RESULT folder of 'polarface reconstruct' (no {RESULT_JSON})"
+        )
+    with lock_output(args.result, NAME):
+        summary = run_biophysical_stage(
+            args.result, config, device=device, progress=not args.no_progress, threads=args.threads
+        )
     output = {"biophysical": summary}
     if args.gt is not None:
         output["metrics"] = evaluate_biophysical(args.result, args.gt)
