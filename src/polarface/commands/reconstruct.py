@@ -85,8 +85,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from polarface.io.output_folder import json_manifest, output_folder
-    from polarface.pipeline import reconstruct, reconstruct_summary_line, resolve_reconstruct_inputs
+    from polarface.pipeline import reconstruct_summary_line
     from polarface.results.layout import RESULT_FORMAT, RESULT_JSON
+
+    owned = json_manifest(RESULT_JSON, format=RESULT_FORMAT)
+    folder = output_folder(args.out, NAME, resume=args.resume, force=args.force, owned=owned, marker=False)
+    with folder as out:
+        result = _reconstruct(args, out)
+    print(reconstruct_summary_line(Path(args.out), result))
+    return 0
+
+
+def _reconstruct(args: argparse.Namespace, out: Path) -> dict:
+    from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
 
     inputs = resolve_reconstruct_inputs(
         args.capture,
@@ -105,18 +116,13 @@ def run(args: argparse.Namespace) -> int:
         )
         if v is not None
     }
-    owned = json_manifest(RESULT_JSON, format=RESULT_FORMAT)
-    folder = output_folder(args.out, NAME, resume=args.resume, force=args.force, owned=owned, marker=False)
-    with folder as out:
-        result = reconstruct(
-            inputs,
-            out,
-            fit_options=options,
-            holdout_every=args.holdout_every,
-            device=args.device or "auto",
-            threads=args.threads,
-            resume=args.resume,
-            progress=not args.quiet,
-        )
-    print(reconstruct_summary_line(Path(args.out), result))
-    return 0
+    return reconstruct(
+        inputs,
+        out,
+        fit_options=options,
+        holdout_every=args.holdout_every,
+        device=args.device or "auto",
+        threads=args.threads,
+        resume=args.resume,
+        progress=not args.quiet,
+    )
