@@ -17,6 +17,7 @@ import logging
 import pkgutil
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 import polarface
 from polarface import commands
@@ -105,7 +106,7 @@ def _interrupted_line(args: argparse.Namespace) -> str:
     """What Ctrl-C kept: the command's ``INTERRUPTED`` text with its output folder, if it has one."""
     out = getattr(args, "out", None) or getattr(args, "result", None)
     hint = getattr(args, "_interrupted", None)
-    if hint and out is not None:
+    if hint and out is not None and Path(out).exists():
         return f"interrupted; {hint.format(out=out)}"
     return "interrupted"
 

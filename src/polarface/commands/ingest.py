@@ -33,11 +33,10 @@ def run(args: argparse.Namespace) -> int:
     from polarface.capture.rig import Rig
     from polarface.io.output_folder import output_folder
 
-    rig = Rig.load(args.rig)
     with output_folder(args.out, NAME, force=args.force, owned=_capture_store, marker=False) as out:
         store = ingest_directory(
             args.raw_dir,
-            rig,
+            Rig.load(args.rig),
             out,
             sequence=args.sequence,
             method=args.method,
