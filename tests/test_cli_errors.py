@@ -13,6 +13,7 @@ import pytest
 
 import polarface.pipeline
 from polarface.cli import main
+from polarface.io.output_folder import lock_output
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 RERUN = "rerun the same command to continue"
@@ -48,14 +49,19 @@ def test_out_below_a_file_is_one_line(tmp_path, capsys):
 
 
 def test_keyboard_interrupt_is_one_line_with_exit_130(tmp_path, capsys, monkeypatch):
-    def interrupted(*args, **kwargs):
+    def interrupted(out, *args, **kwargs):
+        if "partial" in str(out):
+            (out / "sim").mkdir()
         raise KeyboardInterrupt
 
     monkeypatch.setattr(polarface.pipeline, "run_demo_pipeline", interrupted)
-    out = tmp_path / "demo"
+    out = tmp_path / "partial"
     assert main(["demo", "--preset", "tiny", "--out", str(out)]) == 130
     lines = _error_lines(capsys)
     assert lines == [f"polarface demo: interrupted; partial results kept in {out}; {RERUN}"]
+    assert main(["demo", "--preset", "tiny", "--out", str(tmp_path / "early")]) == 130
+    assert _error_lines(capsys) == ["polarface demo: interrupted"]  # nothing written: the folder is gone
+    assert not (tmp_path / "early").exists()
 
 
 def test_help_shows_defaults(capsys):
@@ -106,8 +112,9 @@ def test_files_and_results_are_checked(tmp_path, capsys):
     assert main(["evaluate", "result", "--gt", "sim", "--out", str(metrics)]) == 2
     assert "exists and was not written" in capsys.readouterr().err
     assert metrics.read_text() == "my notes"
-    assert main(["biophysical", str(tmp_path)]) == 2
-    assert "not a RESULT folder" in capsys.readouterr().err
+    with lock_output(tmp_path, "reconstruct"):  # the RESULT is being written: biophysical waits for nothing
+        assert main(["biophysical", str(tmp_path)]) == 2
+    assert f"in use by 'polarface reconstruct' (pid {os.getpid()})" in capsys.readouterr().err
 
 
 def _start(argv: list[str]) -> subprocess.Popen:

@@ -154,3 +154,10 @@ def test_output_file_policy(tmp_path):
         with output_file(tmp_path, "evaluate"):
             pass
     assert target.read_text() == "user data"
+
+
+def test_failed_run_leaves_no_created_parents(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        with output_folder(tmp_path / "a" / "b" / "render", "render"):
+            raise FileNotFoundError("RESULT 'missing' does not exist")
+    assert list(tmp_path.iterdir()) == []

@@ -19,9 +19,8 @@ from pathlib import Path
 import torch
 
 from polarface.inverse.biophysical import BiophysicalConfig
-from polarface.io.output_folder import OutputFolderError, json_manifest, lock_output
+from polarface.io.output_folder import lock_output
 from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
-from polarface.results.layout import RESULT_FORMAT, RESULT_JSON
 
 NAME = "biophysical"
 HELP = "recover melanin/haemoglobin maps and diffusion profiles from a RESULT's rho_sss_bar"
@@ -63,10 +62,6 @@ def run(args: argparse.Namespace) -> int:
         **({"prior_weight": (0.0, 0.0, 0.0, 0.0)} if args.no_prior else {}),
     )
     device = torch.device(args.device) if args.device else None
-    if not json_manifest(RESULT_JSON, format=RESULT_FORMAT)(args.result):
-        raise OutputFolderError(
-            f"'{args.result}' is not a RESULT folder of 'polarface reconstruct' (no {RESULT_JSON})"
-        )
     with lock_output(args.result, NAME):
         summary = run_biophysical_stage(
             args.result, config, device=device, progress=not args.no_progress, threads=args.threads

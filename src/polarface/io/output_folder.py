@@ -137,11 +137,26 @@ def lock_output(path: str | os.PathLike[str], command: str) -> Iterator[Path]:
         OutputFolderError: another live process holds the lock (the message names its pid).
     """
     target = Path(path)
+    missing = _missing_ancestors(target.parent)
     lock = _acquire(target, command)
     try:
         yield target
     finally:
         _release(lock)
+        for folder in missing:  # the parents this call created, when nothing was written into them
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+
+def _missing_ancestors(folder: Path) -> list[Path]:
+    """``folder`` and its ancestors that do not exist yet, deepest first."""
+    missing = []
+    while not folder.exists() and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    return missing
 
 
 # ---- the folder policy ---------------------------------------------------------------------------
