@@ -164,3 +164,21 @@ def test_second_process_is_refused_and_ctrl_c_exits_130(tmp_path, capsys):
     messages = [line for line in err.splitlines() if line.startswith("polarface")]  # not the progress bars
     assert messages == [f"polarface simulate: interrupted; partial results kept in {out}; {RERUN}"]
     assert not lock.exists() and (out / "ground_truth").is_dir()
+
+
+def test_reconstruct_force_replaces_only_its_own_run(tmp_path, capsys):
+    from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
+
+    sim = tmp_path / "sim"
+    make_sphere_capture(sim, SphereCaptureConfig(texture_resolution=16, frames=4))
+    out = tmp_path / "result"
+    argv = ["reconstruct", str(sim / "static"), "--geometry", str(sim / "ground_truth"), "--out", str(out),
+            "--texture-resolution", "16", "--iterations", "5", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    (out / "notes.txt").write_text("old run")
+    assert main(argv) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert main([*argv, "--resume"]) == 0 and (out / "notes.txt").exists()
+    assert main([*argv, "--force"]) == 0
+    assert not (out / "notes.txt").exists() and (out / "result.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result", "sim"]
