@@ -62,6 +62,10 @@ def test_keyboard_interrupt_is_one_line_with_exit_130(tmp_path, capsys, monkeypa
     assert main(["demo", "--preset", "tiny", "--out", str(tmp_path / "early")]) == 130
     assert _error_lines(capsys) == ["polarface demo: interrupted"]  # nothing written: the folder is gone
     assert not (tmp_path / "early").exists()
+    assert main(["demo", "--preset", "tiny", "--force", "--out", str(out)]) == 130
+    assert _error_lines(capsys) == [f"polarface demo: interrupted; {out} left as it was (--force replaces it "
+                                    "only after a complete run)"]  # fmt: skip
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["partial"] and (out / "sim").is_dir()
 
 
 def test_help_shows_defaults(capsys):

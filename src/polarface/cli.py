@@ -106,6 +106,8 @@ def _interrupted_line(args: argparse.Namespace) -> str:
     """What Ctrl-C kept: the command's ``INTERRUPTED`` text with its output folder, if it has one."""
     out = getattr(args, "out", None) or getattr(args, "result", None)
     hint = getattr(args, "_interrupted", None)
+    if out is not None and getattr(args, "force", False) and Path(out).exists():
+        return f"interrupted; {out} left as it was (--force replaces it only after a complete run)"
     if hint and out is not None and Path(out).exists():
         return f"interrupted; {hint.format(out=out)}"
     return "interrupted"
