@@ -68,3 +68,46 @@ def test_demo_pipeline_tiny_end_to_end(tmp_path):
     assert {"polarimetric", "rerender", "biophysical"} <= set(metrics)
     assert metrics["polarimetric"]["eta"]["median_abs_error"] < 0.1
     assert metrics["biophysical"]["c_m"]["median_abs_error"] < 0.02
+
+
+def test_sphere_demo_never_deletes_user_data(tmp_path, capsys):
+    """``mkdir d; echo x > d/notes.txt; polarface demo --sphere --out d`` is refused; nothing renamed."""
+    folder = tmp_path / "d"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("x")
+    assert main(["demo", "--sphere", "--size", "16", "--out", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert "not written by 'polarface demo --sphere'" in err and "--force" in err
+    assert [p.name for p in folder.iterdir()] == ["notes.txt"]
+    a_file = tmp_path / "f.txt"
+    a_file.write_text("mine")
+    assert main(["demo", "--sphere", "--size", "16", "--out", str(a_file)]) == 2
+    assert "is a file" in capsys.readouterr().err
+    assert a_file.read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d", "f.txt"]  # no hidden .old-* / .tmp-*
+
+
+def test_sphere_demo_reruns_in_its_own_folder_and_force_replaces(tmp_path):
+    out = tmp_path / "sphere"
+    assert main(["demo", "--sphere", "--size", "16", "--out", str(out)]) == 0
+    (out / "my_notes.txt").write_text("kept")
+    assert main(["demo", "--sphere", "--size", "16", "--out", str(out)]) == 0  # its own folder
+    assert (out / "my_notes.txt").read_text() == "kept" and (out / "exr" / "I0.exr").is_file()
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("x")
+    assert main(["demo", "--sphere", "--size", "16", "--force", "--out", str(foreign)]) == 0
+    assert not (foreign / "notes.txt").exists() and (foreign / "index.html").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["foreign", "sphere"]
+
+
+def test_sphere_demo_default_folder_is_not_the_pipeline_demo(tmp_path, monkeypatch):
+    import polarface.pipeline
+
+    seen = []
+    monkeypatch.setattr(polarface.pipeline, "run_sphere_demo", lambda out, *a, **k: seen.append(out) or 0.0)
+    monkeypatch.setattr(polarface.pipeline, "run_demo_pipeline", lambda out, *a, **k: seen.append(out))
+    monkeypatch.chdir(tmp_path)
+    assert main(["demo", "--sphere"]) == 0
+    assert main(["demo", "--preset", "tiny"]) == 0
+    assert [str(path) for path in seen] == ["demo_sphere", "demo_out"]

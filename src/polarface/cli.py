@@ -1,7 +1,12 @@
 """The ``polarface`` command line: one subcommand per stage.
 
 Every module in :mod:`polarface.commands` that defines ``NAME``, ``HELP``, ``add_arguments(parser)``
-and ``run(args) -> int`` becomes a subcommand; stages add a module, never edit this file.
+and ``run(args) -> int`` becomes a subcommand; stages add a module, never edit this file. A module may
+define ``INTERRUPTED``: what Ctrl-C keeps and how to continue (``{out}`` is the output folder).
+
+Errors end in one line on stderr, never a traceback: ``polarface CMD: error: ...`` and exit code 2 for
+bad input and failed reads/writes (ValueError, OSError: the path and the reason), ``polarface CMD:
+interrupted ...`` and exit code 130 for Ctrl-C.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import logging
 import pkgutil
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 import polarface
 from polarface import commands
@@ -30,19 +36,38 @@ def _command_modules() -> list:
     return modules
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Adds "(default: X)" to an option's help unless the help names the default already or there is none."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if (
+            not action.option_strings
+            or action.default is None
+            or action.default is False
+            or action.default == []
+            or "default" in text
+        ):
+            return text
+        return super()._get_help_string(action)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every discovered subcommand."""
     parser = argparse.ArgumentParser(
         prog="polarface",
+        formatter_class=_HelpFormatter,
         description="Polarimetric BSSRDF acquisition of dynamic faces (Ha et al., ACM TOG 2024).",
     )
     parser.add_argument("--version", action="version", version=f"polarface {polarface.__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv: debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module in _command_modules():
-        command = sub.add_parser(module.NAME, help=module.HELP, description=module.__doc__)
+        command = sub.add_parser(
+            module.NAME, help=module.HELP, description=module.__doc__, formatter_class=_HelpFormatter
+        )
         module.add_arguments(command)
-        command.set_defaults(_run=module.run)
+        command.set_defaults(_run=module.run, _interrupted=getattr(module, "INTERRUPTED", None))
     return parser
 
 
@@ -59,9 +84,33 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return int(args._run(args) or 0)
-    except (ValueError, FileNotFoundError, FileExistsError) as exc:
-        print(f"polarface {args.command}: error: {exc}", file=sys.stderr)
+    except (ValueError, OSError) as exc:
+        print(f"polarface {args.command}: error: {_one_line(exc)}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"polarface {args.command}: {_interrupted_line(args)}", file=sys.stderr)
+        return 130
+
+
+def _one_line(exc: BaseException) -> str:
+    """The error as one line; an OSError with a path reads ``'PATH': reason``."""
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        paths = f"'{exc.filename}'" + (f" -> '{exc.filename2}'" if exc.filename2 is not None else "")
+        text = f"{paths}: {exc.strerror}"
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
+
+
+def _interrupted_line(args: argparse.Namespace) -> str:
+    """What Ctrl-C kept: the command's ``INTERRUPTED`` text with its output folder, if it has one."""
+    out = getattr(args, "out", None) or getattr(args, "result", None)
+    hint = getattr(args, "_interrupted", None)
+    if out is not None and getattr(args, "force", False) and Path(out).exists():
+        return f"interrupted; {out} left as it was (--force replaces it only after a complete run)"
+    if hint and out is not None and Path(out).exists():
+        return f"interrupted; {hint.format(out=out)}"
+    return "interrupted"
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 from polarface.inverse.biophysical import BiophysicalConfig
+from polarface.io.output_folder import lock_output
 from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
 
 NAME = "biophysical"
@@ -44,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="texels whose best skin fit stays further than this from the input are marked out of the skin "
         "model's gamut and fitted to their closest skin albedo (default %(default)s; inf disables)",
     )
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--gt", type=Path, default=None, help="simulator folder to evaluate against")
     parser.add_argument("--device", default=None, help="torch device (default cpu)")
     parser.add_argument("--no-progress", action="store_true")
@@ -61,9 +62,10 @@ def run(args: argparse.Namespace) -> int:
         **({"prior_weight": (0.0, 0.0, 0.0, 0.0)} if args.no_prior else {}),
     )
     device = torch.device(args.device) if args.device else None
-    summary = run_biophysical_stage(
-        args.result, config, device=device, progress=not args.no_progress, threads=args.threads
-    )
+    with lock_output(args.result, NAME):
+        summary = run_biophysical_stage(
+            args.result, config, device=device, progress=not args.no_progress, threads=args.threads
+        )
     output = {"biophysical": summary}
     if args.gt is not None:
         output["metrics"] = evaluate_biophysical(args.result, args.gt)

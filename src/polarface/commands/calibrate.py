@@ -33,13 +33,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--square-mm", type=float, required=True, help="board square side, mm")
     parser.add_argument("--marker-mm", type=float, default=None, help="ChArUco marker side, mm")
     parser.add_argument("--out", type=Path, default=None, help="output rig.json (default: --rig)")
+    parser.add_argument("--force", action="store_true", help="replace --out even if it is not a rig.json")
 
 
 def run(args: argparse.Namespace) -> int:
     """Calibrate (:func:`polarface.capture.rig_calibration.calibrate_rig`) and print the RMS report."""
     from polarface.capture.rig_calibration import calibrate_rig
+    from polarface.io.output_folder import output_file
 
-    report = calibrate_rig(
+    with output_file(args.out or args.rig, NAME, force=args.force, owned=_rig_file):
+        report = _calibrate(args, calibrate_rig)
+    print(json.dumps({k: v for k, v in report.items() if k != "views"}, indent=2))
+    return 0
+
+
+def _calibrate(args: argparse.Namespace, calibrate_rig) -> dict:
+    return calibrate_rig(
         args.rig,
         args.camera,
         square_mm=args.square_mm,
@@ -52,5 +61,14 @@ def run(args: argparse.Namespace) -> int:
         out=args.out,
         on_skip=lambda path: print(f"polarface calibrate: board not found in '{path}', skipped"),
     )
-    print(json.dumps({k: v for k, v in report.items() if k != "views"}, indent=2))
-    return 0
+
+
+def _rig_file(path: Path) -> bool:
+    """A valid rig.json (calibrating updates one)."""
+    from polarface.capture.rig import Rig
+
+    try:
+        Rig.load(path)
+    except (OSError, ValueError):
+        return False
+    return True

@@ -11,7 +11,11 @@
 The demo preset (24 + 10 frames at 612x512) takes tens of minutes on a 2-core laptop; ``--preset tiny``
 takes a few minutes. ``polarface demo --sphere --out DIR`` instead renders the optics-only demo in
 seconds: a skin-like sphere under the 8 polarized LED modules, as analyzer images, the observations,
-DoP, AoLP and a mask (EXR), PNG previews, parameters.json and an index.html.
+DoP, AoLP and a mask (EXR), PNG previews, parameters.json and an index.html. Its default folder is
+``demo_sphere``, not the pipeline's ``demo_out``.
+
+Either refuses a non-empty DIR that it did not write (``--force`` replaces it once the new run has
+succeeded) and locks DIR while running.
 
 The jobs are :func:`polarface.pipeline.run_demo_pipeline` and :func:`polarface.pipeline.run_sphere_demo`
 (whose docstring lists the sphere demo's files).
@@ -24,32 +28,44 @@ from pathlib import Path
 
 NAME = "demo"
 HELP = "run the pipeline on the embedded demo: simulate -> reconstruct -> evaluate -> report"
+INTERRUPTED = "partial results kept in {out}; rerun the same command to continue"
+PIPELINE_OUT = Path("demo_out")
+SPHERE_OUT = Path("demo_sphere")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder (default demo_out)")
     parser.add_argument(
-        "--preset",
-        choices=("tiny", "demo"),
-        default="demo",
-        help="simulator preset of the pipeline demo (default demo)",
+        "--out",
+        type=Path,
+        default=None,
+        help=f"output folder (default {PIPELINE_OUT}; --sphere: {SPHERE_OUT})",
+    )
+    parser.add_argument(
+        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
+    )
+    parser.add_argument(
+        "--preset", choices=("tiny", "demo"), default="demo", help="simulator preset of the pipeline demo"
     )
     parser.add_argument("--skin-type", default="II", help="skin type I..VI of the simulated subject")
     parser.add_argument(
         "--sphere", action="store_true", help="render the optics-only sphere demo instead (seconds)"
     )
+    parser.add_argument("--size", type=int, default=256, help="sphere demo: image width and height in pixels")
     parser.add_argument(
-        "--size", type=int, default=256, help="sphere demo: image width and height in pixels (default 256)"
+        "--eta", type=float, default=None, help="sphere demo: refractive index (default 1.44)"
     )
-    parser.add_argument("--eta", type=float, default=None, help="sphere demo: refractive index (1.44)")
 
 
 def run(args: argparse.Namespace) -> int:
+    from polarface.io.output_folder import json_manifest, output_folder
     from polarface.pipeline import run_demo_pipeline, run_sphere_demo
 
     if args.sphere:
-        render_seconds = run_sphere_demo(args.out, args.size, args.eta)
-        print(f"polarface demo: wrote {Path(args.out)}/index.html ({render_seconds:.2f} s render)")
+        args.out = args.out or SPHERE_OUT
+        render_seconds = run_sphere_demo(args.out, args.size, args.eta, force=args.force)
+        print(f"polarface demo: wrote {args.out}/index.html ({render_seconds:.2f} s render)")
         return 0
-    run_demo_pipeline(args.out, args.preset, args.skin_type)
+    args.out = args.out or PIPELINE_OUT
+    with output_folder(args.out, NAME, force=args.force, owned=json_manifest("demo.json")) as out:
+        run_demo_pipeline(out, args.preset, args.skin_type)
     return 0

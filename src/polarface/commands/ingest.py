@@ -12,6 +12,7 @@ from pathlib import Path
 
 NAME = "ingest"
 HELP = "validate raw frames against a rig and build a capture store with observations"
+INTERRUPTED = "completed frames kept in {out}; rerun the same command to continue"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,24 +23,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", default="residual", choices=["residual", "bilinear"])
     parser.add_argument("--fps", type=float, default=20.0, help="frame rate when there is no timestamps.csv")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument(
+        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     from polarface.capture.ingest import ingest_directory
     from polarface.capture.rig import Rig
+    from polarface.io.output_folder import output_folder
 
-    rig = Rig.load(args.rig)
-    store = ingest_directory(
-        args.raw_dir,
-        rig,
-        args.out,
-        sequence=args.sequence,
-        method=args.method,
-        fps=args.fps,
-        progress=not args.no_progress,
-    )
+    with output_folder(args.out, NAME, force=args.force, owned=_capture_store, marker=False) as out:
+        store = ingest_directory(
+            args.raw_dir,
+            Rig.load(args.rig),
+            out,
+            sequence=args.sequence,
+            method=args.method,
+            fps=args.fps,
+            progress=not args.no_progress,
+        )
     print(
-        f"capture store '{store.root}': {len(store.frames)} frame(s), cameras "
+        f"capture store '{args.out}': {len(store.frames)} frame(s), cameras "
         f"{sorted({c for f in store.frames for c in f.raw})}"
     )
     return 0
+
+
+def _capture_store(folder: Path) -> bool:
+    """A capture store, complete (``manifest.json``) or interrupted (``rig.json`` and ``frames/``)."""
+    if (folder / "manifest.json").is_file():
+        return True
+    return (folder / "rig.json").is_file() and (folder / "frames").is_dir()

@@ -25,6 +25,7 @@ from pathlib import Path
 
 NAME = "reconstruct"
 HELP = "static polarimetric inverse rendering of a capture into texture maps (RESULT folder)"
+INTERRUPTED = "partial results kept in {out}; rerun with --resume to continue"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -76,11 +77,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="torch threads of the fit (default 1: fastest on a busy 2-core CPU; try 2+ on an idle one)",
     )
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run in RESULT")
+    parser.add_argument(
+        "--force", action="store_true", help="replace RESULT (swapped in only once the run succeeds)"
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
-    from polarface.pipeline import reconstruct, reconstruct_summary_line, resolve_reconstruct_inputs
+    from polarface.io.output_folder import json_manifest, output_folder
+    from polarface.pipeline import reconstruct_summary_line
+    from polarface.results.layout import RESULT_FORMAT, RESULT_JSON
+
+    owned = json_manifest(RESULT_JSON, format=RESULT_FORMAT)
+    folder = output_folder(args.out, NAME, resume=args.resume, force=args.force, owned=owned, marker=False)
+    with folder as out:
+        result = _reconstruct(args, out)
+    print(reconstruct_summary_line(Path(args.out), result))
+    return 0
+
+
+def _reconstruct(args: argparse.Namespace, out: Path) -> dict:
+    from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
 
     inputs = resolve_reconstruct_inputs(
         args.capture,
@@ -99,9 +116,9 @@ def run(args: argparse.Namespace) -> int:
         )
         if v is not None
     }
-    result = reconstruct(
+    return reconstruct(
         inputs,
-        args.out,
+        out,
         fit_options=options,
         holdout_every=args.holdout_every,
         device=args.device or "auto",
@@ -109,5 +126,3 @@ def run(args: argparse.Namespace) -> int:
         resume=args.resume,
         progress=not args.quiet,
     )
-    print(reconstruct_summary_line(Path(args.out), result))
-    return 0

@@ -35,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Register the command's arguments."""
     parser.add_argument("result", type=Path, help="RESULT folder")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default RESULT/render)")
+    parser.add_argument(
+        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
+    )
     parser.add_argument("--camera", default=None, help="camera id of the rig (default: first polarimetric)")
     parser.add_argument(
         "--poses",
@@ -61,8 +64,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Render and write the images (module docstring); prints a JSON summary."""
+    from polarface.io.output_folder import output_folder
     from polarface.render.result_views import RenderOptions, render_result_outputs
 
-    summary = render_result_outputs(args.result, args.out, options_from_args(RenderOptions, args))
+    options = options_from_args(RenderOptions, args)
+    with output_folder(args.out or args.result / "render", NAME, force=args.force) as out:
+        summary = render_result_outputs(args.result, out, options)
     print(json.dumps(summary, indent=1))
     return 0

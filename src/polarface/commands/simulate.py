@@ -3,6 +3,7 @@
 Writes OUT/static and OUT/dynamic (capture stores that ``polarface ingest`` validation accepts),
 OUT/ground_truth (parameter maps, meshes, poses, noise-free observations, texel visibility) and
 OUT/simulation.json. Layout: docs/simulate.md. Resumable: rerun the same command to continue.
+OUT must be absent, empty or a previous simulation (``--force`` replaces it); it is locked while running.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import json
 
 NAME = "simulate"
 HELP = "render a synthetic rig capture of the bundled head with ground truth"
+INTERRUPTED = "partial results kept in {out}; rerun the same command to continue"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -19,14 +21,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--seed", type=int, default=0, help="seed of the sensor noise (ground truth is fixed)"
     )
-    parser.add_argument("--skin-type", default="II", help="Fitzpatrick skin type I..VI (default II)")
+    parser.add_argument("--skin-type", default="II", help="Fitzpatrick skin type I..VI")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--sequences", default="static,dynamic", help="comma list of static,dynamic")
     parser.add_argument("--no-noise", action="store_true", help="noise-free raw (quantisation only)")
     parser.add_argument("--no-blur", action="store_true", help="local subsurface model (no diffusion blur)")
+    parser.add_argument(
+        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
+    from polarface.io.output_folder import json_manifest, output_folder
     from polarface.simulate.pipeline import SimulationConfig, simulate
 
     config = SimulationConfig(
@@ -37,7 +43,9 @@ def run(args: argparse.Namespace) -> int:
         subsurface_blur=not args.no_blur,
         sequences=tuple(s.strip() for s in args.sequences.split(",") if s.strip()),
     )
-    summary = simulate(args.out, config)
+    owned = json_manifest("simulation.json")
+    with output_folder(args.out, NAME, force=args.force, owned=owned) as out:
+        summary = simulate(str(out), config)
     print(
         json.dumps(
             {"out": args.out, "timings": summary["timings"], "peak_rss_mb": summary["peak_rss_mb"]}, indent=2

@@ -32,8 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "spectra", type=Path, help="CSV: wavelength_nm column + one reflectance column per sample"
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
-    parser.add_argument("--min-nm", type=float, default=420.0, help="fit band start, nm (default 420)")
-    parser.add_argument("--max-nm", type=float, default=700.0, help="fit band end, nm (default 700)")
+    parser.add_argument(
+        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
+    )
+    parser.add_argument("--min-nm", type=float, default=420.0, help="fit band start, nm")
+    parser.add_argument("--max-nm", type=float, default=700.0, help="fit band end, nm")
     parser.add_argument(
         "--max-offset",
         type=float,
@@ -46,13 +49,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Fit and write the outputs (:func:`polarface.pipeline.skin_fit.fit_spectra_file`); returns 0."""
+    from polarface.io.output_folder import output_folder
     from polarface.pipeline.skin_fit import SpectraFitOptions, fit_spectra_file
 
-    fit = fit_spectra_file(args.spectra, args.out, options_from_args(SpectraFitOptions, args))
+    options = options_from_args(SpectraFitOptions, args)
+    with output_folder(args.out, NAME, force=args.force) as out:
+        fit = fit_spectra_file(args.spectra, out, options)
     rmse = fit.rmse
     log.info("skin-fit: %d spectra in %.1f s, median RMSE %.4f", len(fit.names), fit.seconds, np.median(rmse))
     print(
         f"skin-fit: {len(fit.names)} spectra, RMSE median {np.median(rmse):.4f} / "
-        f"p90 {np.percentile(rmse, 90):.4f} / max {rmse.max():.4f}, {fit.seconds:.1f} s -> {fit.out}"
+        f"p90 {np.percentile(rmse, 90):.4f} / max {rmse.max():.4f}, {fit.seconds:.1f} s -> {args.out}"
     )
     return 0

@@ -39,14 +39,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="mosaic phase of the readout (default 0 0: row 0 = 90/45 deg)",
     )
     parser.add_argument("--exposure", type=float, default=1.0, help="relative exposure to divide by")
+    parser.add_argument(
+        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """Write the images (:func:`polarface.capture.stokes_images.write_stokes_images`), print the summary."""
     from polarface.capture.stokes_images import StokesOptions, write_stokes_images
+    from polarface.io.output_folder import output_folder
 
     options = options_from_args(StokesOptions, args, phase=tuple(args.phase))
-    summary = write_stokes_images(args.raw, args.out, args.sensor, options)
+    with output_folder(args.out, NAME, force=args.force) as out:
+        summary = write_stokes_images(args.raw, out, args.sensor, options)
     print(json.dumps(summary, indent=2))
     if summary["median_dop"] is None:
         print(f"polarface stokes: warning: every pixel of '{args.raw}' is saturated")

@@ -218,39 +218,57 @@ def _sphere_page(params, render_seconds: float, parameters: dict[str, Any]):
     return page
 
 
-def run_sphere_demo(out: str | Path, size: int = 256, eta: float | None = None) -> float:
-    """Render the optics-only sphere demo into ``out`` (module docstring), atomically.
+#: The command name the sphere demo's folder marker and lock record.
+SPHERE_COMMAND = "demo --sphere"
+
+
+def run_sphere_demo(
+    out: str | Path, size: int = 256, eta: float | None = None, *, force: bool = False
+) -> float:
+    """Render the optics-only sphere demo into ``out`` (module docstring); every file is written atomically.
+
+    ``out`` must be absent, empty or an earlier sphere demo (:func:`polarface.io.output_folder.output_folder`:
+    marker file, lock); nothing else in it is renamed or deleted.
 
     Args:
-        out: output folder (replaced as a whole).
+        out: output folder.
         size: image width and height in pixels, in [8, 4096].
         eta: refractive index (> 1; default the demo's).
+        force: replace a non-empty ``out`` not written by the sphere demo (swapped in after success).
 
     Returns:
         The render time in seconds.
 
     Raises:
-        ValueError: ``size`` or ``eta`` out of range (nothing is written).
+        ValueError: ``size`` or ``eta`` out of range (nothing is written); ``out`` is a file, busy, or holds
+            other data (:class:`polarface.io.output_folder.OutputFolderError`).
     """
-    from tqdm import tqdm
-
-    from polarface.io import atomic_directory, write_exr, write_json_atomic
+    from polarface.io.output_folder import output_folder
 
     params = _sphere_parameters(size, eta)
-    maps, mask, render_seconds = _render_sphere(params)
+    with output_folder(out, SPHERE_COMMAND, force=force) as folder:
+        maps, mask, render_seconds = _render_sphere(params)
+        _write_sphere(folder, params, maps, mask, render_seconds)
+    return render_seconds
+
+
+def _write_sphere(folder: Path, params, maps: dict[str, np.ndarray], mask, seconds: float) -> None:
+    """Write the images, previews, parameters.json and index.html of the sphere demo into ``folder``."""
+    from tqdm import tqdm
+
+    from polarface.io import write_exr, write_json_atomic
+
     names = list(params.channel_names)
     exposure = float(np.percentile(maps["I0"][mask], 99.5)) if mask.any() else 1.0
     exposure = exposure if exposure > 0 else 1.0
     green = names.index("G") if "G" in names else 0
-    with atomic_directory(Path(out)) as tmp:
-        for name, value in tqdm(maps.items(), desc="writing images", unit="image", leave=False):
-            write_exr(tmp / "exr" / f"{name}.exr", value, names)
-            _write_sphere_preview(tmp / "png" / f"{name}.png", name, value, mask, exposure, green)
-        write_exr(tmp / "exr" / "mask.exr", mask.astype(np.float32))
-        parameters = {
-            k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(params).items()
-        }
-        parameters["off_axis_deg"] = params.off_axis_deg
-        write_json_atomic(tmp / "parameters.json", parameters)
-        _sphere_page(params, render_seconds, parameters).write(tmp / "index.html")
-    return render_seconds
+    for name, value in tqdm(maps.items(), desc="writing images", unit="image", leave=False):
+        write_exr(folder / "exr" / f"{name}.exr", value, names)
+        _write_sphere_preview(folder / "png" / f"{name}.png", name, value, mask, exposure, green)
+    write_exr(folder / "exr" / "mask.exr", mask.astype(np.float32))
+    parameters = {
+        k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(params).items()
+    }
+    parameters["off_axis_deg"] = params.off_axis_deg
+    write_json_atomic(folder / "parameters.json", parameters)
+    _sphere_page(params, seconds, parameters).write(folder / "index.html")
