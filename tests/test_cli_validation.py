@@ -182,3 +182,14 @@ def test_biophysical_checks_the_ground_truth_before_the_fit(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"argument 'gt'.*c_m\.exr"):
         run_biophysical_stage(result, ground_truth=tmp_path / "sim", progress=False)
     assert sorted(p.relative_to(result) for p in result.rglob("*")) == before
+
+
+def test_biophysical_gt_is_checked_before_the_stage(tmp_path, capsys):
+    """``biophysical --gt nosuch`` fails before the stage starts: nothing is fitted or written."""
+    result = tmp_path / "result"
+    (result / "maps").mkdir(parents=True)
+    before = sorted(p.name for p in result.rglob("*"))
+    assert main(["biophysical", str(result), "--gt", str(tmp_path / "nosuch")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "nosuch" in err
+    assert sorted(p.name for p in result.rglob("*")) == before

@@ -64,7 +64,12 @@ def run(args: argparse.Namespace) -> int:
     device = torch.device(args.device) if args.device else None
     with lock_output(args.result, NAME):
         summary = run_biophysical_stage(
-            args.result, config, device=device, progress=not args.no_progress, threads=args.threads
+            args.result,
+            config,
+            device=device,
+            progress=not args.no_progress,
+            threads=args.threads,
+            ground_truth=args.gt,
         )
     output = {"biophysical": summary}
     if args.gt is not None:
