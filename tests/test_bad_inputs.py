@@ -212,9 +212,9 @@ NAN = float("nan")
 
 @dataclasses.dataclass(frozen=True)
 class Row:
-    """One bad input: ``argv`` (with ``{placeholders}``), the substring the error line must contain, and
-    the corruption applied to the workspace copies first; ``copies``: placeholders copied into the
-    workspace (so the row may corrupt them); ``readonly``: needs permissions (skipped as root)."""
+    """One bad input: ``argv`` (with ``{placeholders}``); ``names``: substrings (``|``-separated
+    alternatives) one of which the error line must contain; ``setup``: the corruption applied to the
+    row's workspace copies first; ``readonly``: relies on directory permissions (skipped as root)."""
 
     id: str
     argv: tuple[str, ...]
@@ -704,20 +704,10 @@ def _poses_rows() -> list[Row]:
     ]
 
 
-def _reconstruct_rows() -> list[Row]:
+def _capture_store_rows() -> list[Row]:
+    """The capture store's manifest, rig and derived.zarr, corrupted."""
     static = "sim/static"
-    rows = [
-        row("reconstruct-capture-missing", SIMR.replace("{sim}/static", "{ws}/nope"), "nope"),
-        row("reconstruct-capture-is-file", SIMR.replace("{sim}/static", "{rig}"), "rig.json"),
-        row(
-            "reconstruct-capture-empty-dir",
-            SIMR.replace("{sim}/static", "{ws}/empty"),
-            "empty",
-            folder("empty"),
-        ),
-        row("reconstruct-geometry-missing", SIMR.replace("{sim}/ground_truth", "{ws}/nope"), "nope"),
-        row("reconstruct-geometry-no-poses", SIMR, "poses", remove("sim/ground_truth/static/poses.json")),
-        row("reconstruct-geometry-no-mesh", SIMR, "mesh_rest.obj", remove("sim/ground_truth/mesh_rest.obj")),
+    return [
         row("reconstruct-manifest-missing", SIMR, "manifest.json", remove(f"{static}/manifest.json")),
         row("reconstruct-manifest-empty", SIMR, "manifest.json", text(f"{static}/manifest.json", "")),
         row("reconstruct-manifest-corrupt", SIMR, "manifest.json", truncate(f"{static}/manifest.json")),
@@ -770,6 +760,22 @@ def _reconstruct_rows() -> list[Row]:
             "derived.zarr",
             _corrupt_chunks(f"{static}/derived.zarr/stacks"),
         ),
+    ]
+
+
+def _reconstruct_rows() -> list[Row]:
+    rows = [
+        row("reconstruct-capture-missing", SIMR.replace("{sim}/static", "{ws}/nope"), "nope"),
+        row("reconstruct-capture-is-file", SIMR.replace("{sim}/static", "{rig}"), "rig.json"),
+        row(
+            "reconstruct-capture-empty-dir",
+            SIMR.replace("{sim}/static", "{ws}/empty"),
+            "empty",
+            folder("empty"),
+        ),
+        row("reconstruct-geometry-missing", SIMR.replace("{sim}/ground_truth", "{ws}/nope"), "nope"),
+        row("reconstruct-geometry-no-poses", SIMR, "poses", remove("sim/ground_truth/static/poses.json")),
+        row("reconstruct-geometry-no-mesh", SIMR, "mesh_rest.obj", remove("sim/ground_truth/mesh_rest.obj")),
         row("reconstruct-iterations-text", SIMR + " --iterations some", "--iterations"),
         row("reconstruct-optimizer-unknown", SIMR + " --optimizer sgd", "--optimizer"),
         row("reconstruct-no-out", "reconstruct {sim}/static --quiet", "--out"),
@@ -790,7 +796,7 @@ def _reconstruct_rows() -> list[Row]:
     }.items():
         name = arg.lstrip("-").split("-")[0]
         rows += [row(f"reconstruct{arg}={v}", f"{SIMR} {arg} {v}", name) for v in values]
-    return rows + _mesh_rows() + _poses_rows()
+    return rows + _capture_store_rows() + _mesh_rows() + _poses_rows()
 
 
 def _corrupt_chunks(rel: str) -> Setup:
