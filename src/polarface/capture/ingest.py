@@ -19,6 +19,8 @@ marker is redone by the next run, and stale ``.tmp-*`` files are removed by it).
 from __future__ import annotations
 
 import csv
+import itertools
+import math
 import os
 import shutil
 from pathlib import Path
@@ -105,12 +107,21 @@ def _timestamps(root: Path, numbers: list[int], fps: float) -> dict[int, float]:
             raise ValueError(f"'{path}' must have the header 'frame,timestamp_s'")
         for line, row in enumerate(reader, start=2):
             try:
-                out[int(row["frame"])] = float(row["timestamp_s"])
+                frame, seconds = int(row["frame"]), float(row["timestamp_s"])
             except (TypeError, ValueError) as exc:
                 raise ValueError(f"'{path}' line {line}: bad frame or timestamp_s") from exc
+            if not math.isfinite(seconds):
+                raise ValueError(f"'{path}' line {line}: timestamp_s must be finite; got {seconds}")
+            out[frame] = seconds
     missing = [n for n in numbers if n not in out]
     if missing:
         raise ValueError(f"'{path}' has no timestamp for frame(s) {missing[:10]}")
+    for before, after in itertools.pairwise(numbers):
+        if out[after] < out[before]:
+            raise ValueError(
+                f"'{path}': timestamps must not decrease with the frame number; frame {after} "
+                f"({out[after]} s) comes before frame {before} ({out[before]} s)"
+            )
     return out
 
 
@@ -138,8 +149,8 @@ def ingest_directory(
     Returns:
         The finalised, validated :class:`CaptureStore`.
     """
-    if not fps > 0:
-        raise ValueError(f"argument 'fps' must be > 0; got {fps}")
+    if not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"argument 'fps' must be finite and > 0; got {fps}")
     root = Path(raw_dir)
     frames = scan_raw_directory(root, rig)
     times = _timestamps(root, sorted(frames), fps)
