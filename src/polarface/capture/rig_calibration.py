@@ -52,6 +52,7 @@ def _board_detector(board: str, square_mm: float, marker_mm: float | None) -> Ca
         cols, rows = (int(v) for v in size_text.lower().split("x"))
     except ValueError as exc:
         raise ValueError(f"argument '--board': cannot parse {board!r}") from exc
+    _check_board_size(kind, cols, rows, board)
     if kind == "chessboard":
         object_points = chessboard_object_points((cols, rows), square_mm)
 
@@ -61,9 +62,13 @@ def _board_detector(board: str, square_mm: float, marker_mm: float | None) -> Ca
 
         return detect
     if kind == "charuco":
-        spec = CharucoBoardSpec(
-            cols, rows, square_mm, marker_mm or square_mm / 2, dictionary or "DICT_6X6_250"
-        )
+        marker = square_mm / 2 if marker_mm is None else marker_mm
+        if not (math.isfinite(marker) and 0 < marker < square_mm):
+            raise ValueError(
+                f"argument '--marker-mm' must be finite, > 0 and below --square-mm ({square_mm}); "
+                f"got {marker}"
+            )
+        spec = CharucoBoardSpec(cols, rows, square_mm, marker, dictionary or "DICT_6X6_250")
 
         def detect(image):
             obj, img, _ = detect_charuco(image, spec)
@@ -71,6 +76,15 @@ def _board_detector(board: str, square_mm: float, marker_mm: float | None) -> Ca
 
         return detect
     raise ValueError(f"argument '--board' must start with 'chessboard:' or 'charuco:'; got {board!r}")
+
+
+def _check_board_size(kind: str, cols: int, rows: int, board: str) -> None:
+    """ValueError naming '--board' unless a chessboard has >= 3 inner corners per side (OpenCV's
+    findChessboardCorners needs them) and a ChArUco board >= 2 squares per side."""
+    least = {"chessboard": 3, "charuco": 2}.get(kind)
+    if least is not None and not (cols >= least and rows >= least):
+        unit = "inner corners" if kind == "chessboard" else "squares"
+        raise ValueError(f"argument '--board' needs at least {least} {unit} per side; got {board!r}")
 
 
 def _detect_views(
@@ -155,6 +169,8 @@ def calibrate_rig(
         images_a, images_b = (listed[0::2], listed[1::2]) if stereo_camera else (listed, [])
     else:
         images_a, images_b = _expand_patterns(images), _expand_patterns(stereo_images)
+    if not images_a:
+        raise ValueError("no board images: give them with argument '--images' (files or globs) or '--list'")
     if stereo_camera and len(images_a) != len(images_b):
         raise ValueError(
             f"stereo calibration needs as many images per camera; got {len(images_a)} and {len(images_b)}"
