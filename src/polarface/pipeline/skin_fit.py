@@ -81,8 +81,11 @@ def read_reflectance_csv(
         raise ValueError(
             f"fit band {min_nm:g}-{max_nm:g} nm lies outside the model range {low_model:g}-{high_model:g} nm"
         )
-    with path.open("r", encoding="utf-8-sig", newline="") as handle:
-        rows = list(csv.reader(handle))
+    try:
+        with path.open("r", encoding="utf-8-sig", newline="") as handle:
+            rows = list(csv.reader(handle))
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise ValueError(f"'{path}' is not a UTF-8 CSV text file ({exc})") from None
     if not rows:
         raise ValueError(f"'{path}' is empty")
     header = [h.strip() for h in rows[0]]
@@ -95,7 +98,8 @@ def read_reflectance_csv(
         raise ValueError(f"'{path}' has no sample columns besides 'wavelength_nm'")
     if any(not n for n in names):
         raise ValueError(f"'{path}' has an unnamed column")
-    body = [r for r in rows[1:] if any(v.strip() for v in r)]
+    lines = [k for k, r in enumerate(rows[1:], start=2) if any(v.strip() for v in r)]
+    body = [rows[k - 1] for k in lines]
     if not body:
         raise ValueError(f"'{path}' holds no spectra (a header and no data rows)")
     if any(len(r) != len(header) for r in body):
@@ -124,23 +128,36 @@ def read_reflectance_csv(
     band = (wavelengths >= min_nm) & (wavelengths <= max_nm)
     if band.sum() < _MIN_WAVELENGTHS:
         raise ValueError(f"'{path}' has only {int(band.sum())} wavelengths in {min_nm:g}-{max_nm:g} nm")
-    values = values[band]
-    bad_rows = ~np.isfinite(values).all(axis=1)
-    if bad_rows.any():
-        bad_nm = wavelengths[band][bad_rows]
-        bad_cols = [names[j] for j in np.flatnonzero(~np.isfinite(values).all(axis=0))]
+    _check_reflectance(path, values, wavelengths, names, lines)
+    return wavelengths[band], names, values[band].T.copy()
+
+
+def _check_reflectance(
+    path: Path, values: np.ndarray, wavelengths: np.ndarray, names: list[str], lines: list[int]
+) -> None:
+    """ValueError naming the file, line and column of the first reflectance value (anywhere in the
+    file, in the fit band or not) that is missing, non-finite or outside [0, 1]."""
+
+    def where(mask: np.ndarray) -> str:
+        i, j = np.argwhere(mask)[0]
+        return f"line {lines[i]} ({wavelengths[i]:g} nm), column '{names[j]}'"
+
+    finite = np.isfinite(values)
+    if not finite.all():
         raise ValueError(
-            f"'{path}' has NaN/missing values at {bad_rows.sum()} wavelength(s) in the fit band "
-            f"(first {bad_nm[0]:g} nm) in column(s) {', '.join(bad_cols[:5])}"
+            f"'{path}' has {int((~finite).sum())} NaN/missing/non-numeric/infinite reflectance value(s); "
+            f"first at {where(~finite)}: every value must be a finite number in [0, 1]"
         )
     peak = float(values.max())
     if peak > 1.5:
         raise ValueError(
-            f"'{path}' values reach {peak:.4g}: they look like percent; give reflectance factors in [0, 1]"
+            f"'{path}' values reach {peak:.4g} (at {where(values == peak)}): they look like percent; "
+            "give reflectance factors in [0, 1]"
         )
-    if peak > 1.0 or float(values.min()) < 0.0:
-        raise ValueError(f"'{path}' values must lie in [0, 1]; got {float(values.min()):.4g}..{peak:.4g}")
-    return wavelengths[band], names, values.T.copy()
+    outside = (values < 0.0) | (values > 1.0)
+    if outside.any():
+        i, j = np.argwhere(outside)[0]
+        raise ValueError(f"'{path}' values must lie in [0, 1]; got {values[i, j]:.4g} at {where(outside)}")
 
 
 def _plot(
