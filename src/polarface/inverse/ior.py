@@ -57,23 +57,14 @@ class SphereScene:
     @classmethod
     def from_dict(cls, payload: dict[str, Any]) -> SphereScene:
         """Parse the ``scene.json`` layout of ``polarface ior`` (ValueError naming the field)."""
-        try:
-            if payload.get("units", "mm") != "mm":
-                raise ValueError(f"units must be 'mm'; got {payload.get('units')!r}")
-            camera = payload["camera"]
-            K = np.asarray(camera["K"], dtype=np.float64)
-            pose = np.asarray(camera["world_to_camera"], dtype=np.float64)
-            width, height = int(camera["width"]), int(camera["height"])
-            sphere = payload["sphere"]
-            centre = np.asarray(sphere["center"], dtype=np.float64)
-            radius = float(sphere["radius"])
-            lights = np.asarray([light["position"] for light in payload.get("lights", [])], dtype=np.float64)
-        except (KeyError, TypeError) as exc:
-            raise ValueError(f"scene: missing or malformed field {exc}") from exc
+        if payload.get("units", "mm") != "mm":
+            raise ValueError(f"scene: units must be 'mm'; got {payload.get('units')!r}")
+        K, pose = _field(payload, "camera.K"), _field(payload, "camera.world_to_camera")
+        width, height = _field(payload, "camera.width", int), _field(payload, "camera.height", int)
+        centre, radius = _field(payload, "sphere.center"), _field(payload, "sphere.radius", float)
+        lights = _field(payload, "lights", _positions) if "lights" in payload else np.zeros((0, 3))
         if K.shape != (3, 3) or pose.shape != (4, 4) or centre.shape != (3,):
-            raise ValueError(
-                "scene: camera.K must be 3x3, camera.world_to_camera 4x4 and sphere.center 3 values"
-            )
+            raise ValueError("scene: camera.K must be 3x3, camera.world_to_camera 4x4, sphere.center 3-D")
         if not (np.isfinite(K).all() and np.isfinite(pose).all() and np.isfinite(centre).all()):
             raise ValueError("scene: NaN/inf in the camera or sphere")
         if not (radius > 0 and math.isfinite(radius)) or width < 1 or height < 1:
@@ -82,7 +73,7 @@ class SphereScene:
             )
         if lights.size and not np.isfinite(lights).all():
             raise ValueError("scene: lights[].position contains NaN/inf")
-        scene = cls(K, pose, width, height, centre, radius, lights.reshape(-1, 3))
+        scene = cls(K, pose, width, height, centre, radius, lights)
         scene.check_geometry()
         return scene
 
@@ -118,6 +109,22 @@ class SphereScene:
                 f"scene: the sphere (sphere.center depth {depth:.6g} mm, radius {self.radius:.6g} mm) "
                 "must lie in front of the camera"
             )
+
+
+def _positions(lights: Any) -> np.ndarray:
+    """``(L, 3)`` positions of a ``lights`` list of ``{"position": [x, y, z]}`` objects."""
+    if not isinstance(lights, list):
+        raise TypeError("must be a list of objects with a 'position'")
+    return np.asarray([light["position"] for light in lights], dtype=np.float64).reshape(len(lights), 3)
+
+
+def _field(payload: dict, name: str, convert: Callable | None = None):
+    """The scene field at the dotted ``name``, converted; ValueError naming the field otherwise."""
+    try:
+        value = functools.reduce(lambda node, key: node[key], name.split("."), payload)
+        return np.asarray(value, dtype=np.float64) if convert is None else convert(value)
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise ValueError(f"scene: missing or malformed field '{name}' ({exc})") from None
 
 
 def sphere_pixels(scene: SphereScene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
