@@ -1074,28 +1074,8 @@ ROWS: list[Row] = [
 DEFECTS: dict[str, tuple[str, ...]] = {
     "argument value accepted (should be rejected up front with exit 2)": (
         "stokes--phase=2,0",
-        "ingest-fps=inf",
         "render-edit=C_m=2x,C_m=3x",
         "reconstruct--iterations=0",
-    ),
-    "timestamps.csv: NaN error does not name the file": ("ingest-timestamps-nan",),
-    "timestamps.csv: decreasing timestamps accepted": ("ingest-timestamps-backwards",),
-    "calibrate: no --images/--list gives 'need at least 3 views', not naming --images": (
-        "calibrate-no-images",
-    ),
-    "calibrate: board with < 3 corners per side: cv2.error traceback": (
-        "calibrate-board=chessboard:1x1",
-        "calibrate-board=chessboard:0x6",
-    ),
-    "calibrate: --square-mm inf / --marker-mm 0 not validated": (
-        "calibrate-marker-mm=0",
-    ),
-    "skin-fit: non-UTF-8 CSV: decode error does not name the file": ("skin-csv-binary",),
-    "skin-fit: NaN/inf/out-of-[0,1] reflectance accepted and fitted": (
-        "skin-csv-nan",
-        "skin-csv-inf",
-        "skin-csv-above-one",
-        "skin-csv-negative",
     ),
     ("reconstruct: capture manifest not checked (incomplete capture / wrong frame_count accepted)"): (
         "reconstruct-manifest-incomplete",
@@ -1146,9 +1126,6 @@ DEFECTS: dict[str, tuple[str, ...]] = {
     "render: corrupt sog.json: JSON error without the file name": (
         "render-sog-corrupt",
         "render-sog-empty",
-    ),
-    "ior: malformed scene field: conversion error without the field name": (
-        "ior-scene-lights-string",
     ),
 }
 XFAIL: dict[str, str] = {case: reason for reason, cases in DEFECTS.items() for case in cases}
