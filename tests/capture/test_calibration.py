@@ -127,3 +127,28 @@ def test_calibration_errors(tmp_path):
     with pytest.raises(ValueError, match=r"bad\.jpg"):
         read_gray(tmp_path / "bad.jpg")
     assert detect_chessboard(np.zeros((64, 64), np.uint8), (9, 6)) is None
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"images": []}, "--images"),
+        ({"board": "chessboard:2x6"}, "--board"),
+        ({"board": "chessboard:9x0"}, "--board"),
+        ({"board": "charuco:1x7"}, "--board"),
+        ({"board": "charuco:5x7", "marker_mm": 0.0}, "--marker-mm"),
+        ({"board": "charuco:5x7", "marker_mm": float("inf")}, "--marker-mm"),
+    ],
+)
+def test_calibrate_rig_rejects_bad_arguments_before_reading_images(tmp_path, kwargs, message):
+    from polarface.capture.rig import Rig
+    from polarface.capture.rig_calibration import calibrate_rig
+
+    K = [[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]
+    camera = {"id": "left", "role": "stereo", "sensor": "rgb", "width": 640, "height": 480, "K": K}
+    Rig.model_validate({"cameras": [camera]}).save(tmp_path / "rig.json")
+    (tmp_path / "bad.jpg").write_bytes(b"not an image: never read")
+    arguments = {"square_mm": 25.0, "images": [str(tmp_path / "bad.jpg")], **kwargs}
+    with pytest.raises(ValueError, match=message):
+        calibrate_rig(tmp_path / "rig.json", "left", out=tmp_path / "out.json", **arguments)
+    assert not (tmp_path / "out.json").exists()

@@ -161,3 +161,24 @@ def test_sigkill_then_resume_gives_the_same_store(tmp_path):
     _run(raw_dir, killed, kill_after=random.Random(os.getpid()).uniform(0.0, 0.3))
     _run(raw_dir, killed)
     assert _tree(killed) == _tree(tmp_path / "straight")
+
+
+@pytest.mark.parametrize(
+    ("timestamps", "message"),
+    [
+        ("frame,timestamp_s\n0,0\n1,nan\n", r"timestamps\.csv' line 3"),
+        ("frame,timestamp_s\n0,0\n1,inf\n", r"timestamps\.csv' line 3"),
+        ("frame,timestamp_s\n0,1\n1,0.5\n", r"timestamps\.csv'.*decrease"),
+    ],
+)
+def test_bad_timestamps_name_the_file_and_write_nothing(tmp_path, timestamps, message):
+    raw_dir = _raw_dir(tmp_path, frames=range(2))
+    (raw_dir / "timestamps.csv").write_text(timestamps)
+    with pytest.raises(ValueError, match=message):
+        ingest_directory(raw_dir, _rig(), tmp_path / "store", progress=False)
+    assert not (tmp_path / "store").exists()
+
+
+def test_infinite_fps_is_rejected(tmp_path):
+    with pytest.raises(ValueError, match="fps"):
+        ingest_directory(tmp_path, _rig(), tmp_path / "store", fps=float("inf"), progress=False)

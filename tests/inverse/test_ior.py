@@ -149,3 +149,36 @@ def test_ior_estimate_on_the_eta_range_bound_is_an_error(tmp_path, capsys):
     assert captured.out == "" and "eta_range" in captured.err and "bound" in captured.err
     assert main(["ior", str(tmp_path), "--eta-range", "3.0", "1.6"]) == 2
     assert "eta_range" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "field"),
+    [
+        (["lights"], "on", "'lights'"),
+        (["lights"], [{"pos": [0, 0, 0]}], "'lights'"),
+        (["lights"], [{"position": [0, 0]}], "'lights'"),
+        (["camera", "K"], "eye", "'camera.K'"),
+        (["camera", "width"], "wide", "'camera.width'"),
+        (["sphere"], [1, 2, 3], "'sphere.center'"),
+        (["sphere", "radius"], None, "'sphere.radius'"),
+    ],
+)
+def test_scene_field_errors_name_the_field(path, value, field):
+    scene = default_sphere_scene(16)
+    payload = {
+        "camera": {
+            "K": scene.K.tolist(),
+            "world_to_camera": scene.world_to_camera.tolist(),
+            "width": 16,
+            "height": 16,
+        },
+        "lights": [{"position": p.tolist()} for p in scene.lights],
+        "sphere": {"center": scene.centre.tolist(), "radius": scene.radius},
+    }
+    assert SphereScene.from_dict(payload).lights.shape == scene.lights.shape
+    node = payload
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    with pytest.raises(ValueError, match=field):
+        SphereScene.from_dict(payload)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -107,3 +108,24 @@ def test_small_file_runs(tmp_path, test_data):
     assert set(payload["samples"]) == set(names[1:])
     assert payload["summary"]["rmse_max"] < 0.03
     shutil.rmtree(out)
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [("nan", "NaN"), ("inf", "infinite"), ("1.2", r"\[0, 1\]"), ("-0.01", r"\[0, 1\]")],
+)
+def test_reflectance_outside_the_fit_band_is_checked_too(tmp_path, capsys, value, message):
+    rows = [[300.0, 0.3, 0.4], *_good_rows()]
+    rows[0][2] = value
+    path = _write(tmp_path / "bad.csv", ["wavelength_nm", "a", "b"], rows)
+    assert _run(tmp_path, path) == 2
+    err = capsys.readouterr().err
+    assert re.search(message, err) and "bad.csv" in err and "line 2 (300 nm), column 'b'" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_non_utf8_csv_names_the_file(tmp_path, capsys):
+    path = tmp_path / "bad.csv"
+    path.write_bytes(b"wavelength_nm,a\n\xff\xfe\x00garbage\n")
+    assert _run(tmp_path, path) == 2
+    assert "bad.csv" in capsys.readouterr().err
