@@ -1070,63 +1070,9 @@ ROWS: list[Row] = [
     *_ior_rows(),
 ]
 
-#: Rows that fail on today's code, grouped by the defect they show.
-DEFECTS: dict[str, tuple[str, ...]] = {
-    "argument value accepted (should be rejected up front with exit 2)": (
-        "render-edit=C_m=2x,C_m=3x",
-        "reconstruct--iterations=0",
-    ),
-    ("reconstruct: capture manifest not checked (incomplete capture / wrong frame_count accepted)"): (
-        "reconstruct-manifest-incomplete",
-        "reconstruct-manifest-frame-count",
-    ),
-    "reconstruct: corrupt derived.zarr metadata: JSON error without the file name": (
-        "reconstruct-zarr-meta-corrupt",
-    ),
-    "reconstruct: corrupt derived.zarr chunks: blosc RuntimeError traceback": (
-        "reconstruct-zarr-chunks-corrupt",
-    ),
-    "result.json format/version/channel_names/texture_resolution not validated": (
-        "evaluate-result-json-format",
-        "evaluate-result-json-version",
-        "evaluate-result-json-channels",
-        "evaluate-result-json-resolution",
-        "biophysical-result-json-format",
-        "biophysical-result-json-version",
-        "biophysical-result-json-channels",
-        "biophysical-result-json-resolution",
-    ),
-    "evaluate: a missing map says \"argument 'maps' lacks ...\" without the file": (
-        "evaluate-eta-missing",
-        "evaluate-rho_sss_bar-missing",
-        "evaluate-alpha_s-missing",
-    ),
-    "evaluate: eta map size mismatch: numpy broadcast error without the file": ("evaluate-eta-wrong-size",),
-    "evaluate: mask size mismatch: 'texture resolutions differ' without the file": (
-        "evaluate-mask-wrong-size",
-    ),
-    "evaluate: NaN map accepted (NaN metrics)": ("evaluate-eta-nan",),
-    "evaluate: missing ground-truth map/mask silently skipped": (
-        "evaluate-gt-map-missing",
-        "evaluate-gt-mask-missing",
-    ),
-    (
-        "biophysical: corrupt result.json / missing --gt found only after the chromophore maps were"
-        " overwritten"
-    ): (
-        "biophysical-result-json-corrupt",
-        "biophysical-result-json-list",
-    ),
-    "biophysical: unknown --device: torch RuntimeError traceback": ("biophysical-device-unknown",),
-    "render: map/mask size mismatch error does not name the file": (
-        "render-mask-wrong-size",
-        "render-eta-wrong-size",
-    ),
-    "render: corrupt sog.json: JSON error without the file name": (
-        "render-sog-corrupt",
-        "render-sog-empty",
-    ),
-}
+#: Rows that fail on today's code, grouped by the defect they show (run as strict xfail; empty when every
+#: row passes).
+DEFECTS: dict[str, tuple[str, ...]] = {}
 XFAIL: dict[str, str] = {case: reason for reason, cases in DEFECTS.items() for case in cases}
 
 

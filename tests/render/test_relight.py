@@ -18,6 +18,8 @@ def test_parse_edits():
         parse_edits("C_m:2")
     with pytest.raises(ValueError, match="> 0"):
         parse_edits("C_m=0x")
+    with pytest.raises(ValueError, match="argument 'edit': c_m is given more than once"):
+        parse_edits("C_m=2x,c_m=3x")
 
 
 def test_apply_edits_scales_and_clips():

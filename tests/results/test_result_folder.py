@@ -170,3 +170,40 @@ def test_diagnostic_maps_must_be_registered_and_match_the_mask(tmp_path):
     with pytest.raises(ValueError, match=r"'view_count' has shape \(2, 2\)"):
         folder.write_polarimetric_maps(maps, _mask(), {"view_count": np.zeros((2, 2))})
     assert not folder.has_map("eta")
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("format", "other"),
+        ("version", 99),
+        ("version", True),
+        ("channel_names", ["r"]),
+        ("channel_names", ["a", "a", "b", "c", "d", "e"]),
+        ("texture_resolution", [-1, 0]),
+        ("texture_resolution", [16]),
+        ("stages", []),
+    ],
+)
+def test_result_json_format_keys_are_validated(tmp_path, key, value):
+    folder = ResultFolder(tmp_path)
+    folder.write_result_header(NAMES, SHAPE, 0.5)
+    data = json.loads(folder.result_json_path.read_text())
+    data[key] = value
+    folder.result_json_path.write_text(json.dumps(data))
+    before = folder.result_json_path.read_bytes()
+    with pytest.raises(ValueError, match=rf"result\.json': '{key}'"):
+        folder.read_result()
+    with pytest.raises(ValueError, match=rf"result\.json': '{key}'"):
+        folder.update_result({"x": 1})
+    assert folder.result_json_path.read_bytes() == before
+
+
+def test_read_sog_names_the_file(tmp_path):
+    folder = ResultFolder(tmp_path)
+    assert folder.read_sog() is None
+    folder.map_path("sog", ".json").parent.mkdir(parents=True)
+    for text, match in (("", "not valid JSON"), ('{"layers": ', "not valid JSON"), ("[]", "JSON object")):
+        folder.map_path("sog", ".json").write_text(text)
+        with pytest.raises(ValueError, match=rf"sog\.json' .*{match}"):
+            folder.read_sog()

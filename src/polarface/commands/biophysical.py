@@ -16,8 +16,7 @@ import argparse
 import json
 from pathlib import Path
 
-import torch
-
+from polarface.device import resolve_device
 from polarface.inverse.biophysical import BiophysicalConfig
 from polarface.io.output_folder import lock_output
 from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
@@ -61,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         gamut_tolerance=args.gamut_tolerance,
         **({"prior_weight": (0.0, 0.0, 0.0, 0.0)} if args.no_prior else {}),
     )
-    device = torch.device(args.device) if args.device else None
+    device = resolve_device(args.device) if args.device else None
     with lock_output(args.result, NAME):
         summary = run_biophysical_stage(
             args.result,

@@ -73,14 +73,16 @@ def load_stage_inputs(result_dir: str | Path | ResultFolder) -> dict[str, Any]:
         ``stretch`` ``(H, W, 2)`` float32.
 
     Raises:
-        FileNotFoundError: a required file is missing. ValueError: no spectral calibration, channel
-        names that do not match it, NaN/inf or values outside [0, 1] in ``rho_sss_bar``.
+        FileNotFoundError: a required file is missing. ValueError: a malformed ``result.json`` (or one
+        whose channel names / texture resolution disagree with the rig / maps), no spectral
+        calibration, channel names that do not match it, NaN/inf or values outside [0, 1] in ``rho_sss_bar``.
     """
     from polarface.geometry.uv_raster import rasterize_uv
 
     folder = result_dir if isinstance(result_dir, ResultFolder) else ResultFolder(result_dir)
     if not folder.root.is_dir():
         raise FileNotFoundError(f"result folder '{folder.root}' does not exist")
+    recorded = folder.read_result()  # a malformed result.json fails here, before any map is written
     rig = folder.read_rig()
     if rig.spectral is None:
         raise ValueError(
@@ -89,7 +91,18 @@ def load_stage_inputs(result_dir: str | Path | ResultFolder) -> dict[str, Any]:
         )
     calibration = rig.spectral.to_calibration()
     names = list(calibration.channel_names)
+    if recorded.get("channel_names", names) != names:
+        raise ValueError(
+            f"'{folder.result_json_path}': 'channel_names' {recorded['channel_names']} do not match the "
+            f"spectral calibration of '{folder.rig_path}' {names}"
+        )
     rho = folder.read_channel_map(RHO_SSS_BAR, names).astype(np.float32)
+    resolution = recorded.get("texture_resolution", list(rho.shape[:2]))
+    if list(resolution) != list(rho.shape[:2]):
+        raise ValueError(
+            f"'{folder.result_json_path}': 'texture_resolution' {resolution} does not match "
+            f"'{folder.map_path(RHO_SSS_BAR)}' {list(rho.shape[:2])}"
+        )
     mask = folder.read_mask(rho.shape[:2])
     _check_albedo(rho, mask, folder.map_path(RHO_SSS_BAR))
     raster = rasterize_uv(folder.read_mesh(), rho.shape[:2])

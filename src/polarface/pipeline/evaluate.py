@@ -54,11 +54,44 @@ def ground_truth_root(gt: str | Path) -> Path:
     raise FileNotFoundError(f"'{gt}' holds no ground-truth maps (expected ground_truth/maps or maps/)")
 
 
+def _checked_maps(
+    folder: ResultFolder, names: list[str], shape: tuple[int, int] | None
+) -> dict[str, np.ndarray]:
+    """``folder``'s polarimetric maps, ``rho_sss_bar`` and mask (:meth:`ResultFolder.read_maps`), each
+    checked: present, of the mask's shape (or ``shape``, when given, for the mask), finite inside the mask.
+
+    Raises:
+        FileNotFoundError: a map or the mask is missing. ValueError: a wrong shape or a non-finite value
+            inside the mask (each naming the file).
+    """
+    for name, suffix in [(n, ".exr") for n in (*POLARIMETRIC_MAPS, RHO_SSS_BAR)] + [("mask", ".png")]:
+        if not folder.has_map(name, suffix):
+            raise FileNotFoundError(f"'{folder.map_path(name, suffix)}' does not exist")
+    maps = folder.read_maps(names)
+    mask = maps["mask"]
+    if shape is not None and mask.shape != tuple(shape):
+        raise ValueError(f"mask '{folder.map_path('mask', '.png')}' is {mask.shape}, expected {tuple(shape)}")
+    for name in (*POLARIMETRIC_MAPS, RHO_SSS_BAR):
+        path = folder.map_path(name)
+        if maps[name].shape[:2] != mask.shape:
+            raise ValueError(
+                f"'{path}' is {maps[name].shape[:2]}, which does not match the mask "
+                f"'{folder.map_path('mask', '.png')}' {mask.shape}"
+            )
+        if not np.isfinite(maps[name][mask]).all():
+            raise ValueError(f"'{path}' contains NaN or infinite values inside the mask")
+    return maps
+
+
 def _load(result_dir: Path, gt_dir: Path) -> tuple[dict, dict[str, np.ndarray], dict[str, np.ndarray]]:
     folder = ResultFolder(result_dir)
     result_json = folder.read_result()
     names = list(result_json.get("channel_names", []))
-    return result_json, folder.read_maps(names), ResultFolder(ground_truth_root(gt_dir)).read_maps(names)
+    resolution = result_json.get("texture_resolution")
+    estimate = _checked_maps(folder, names, tuple(resolution) if resolution else None)
+    truth_folder = ResultFolder(ground_truth_root(gt_dir))
+    truth = _checked_maps(truth_folder, names, estimate["mask"].shape)
+    return result_json, estimate, truth
 
 
 def _map_errors(name: str, estimate: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict[str, float]:
@@ -80,15 +113,7 @@ def polarimetric_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
     from polarface.texture import UnwrapStore
 
     _, estimate, truth = _load(result_dir, gt_dir)
-    if "mask" not in estimate:
-        raise FileNotFoundError(f"'{result_dir}/maps/mask.png' is missing: run reconstruct first")
-    mask = estimate["mask"]
-    if "mask" in truth:
-        if truth["mask"].shape != mask.shape:
-            raise ValueError(
-                f"texture resolutions differ: result {mask.shape}, ground truth {truth['mask'].shape}"
-            )
-        mask = mask & truth["mask"]
+    mask = estimate["mask"] & truth["mask"]
     if not mask.any():
         raise ValueError("no valid texel in common between the result and the ground truth")
     metrics: dict[str, Any] = {"texels": int(mask.sum())}
@@ -178,8 +203,10 @@ def evaluate(result_dir: str | Path, gt_dir: str | Path, groups: list[str] | Non
     """All requested metric groups (default all) as one dict ``{group: metrics}``.
 
     Raises:
-        FileNotFoundError: ``result_dir`` has no ``result.json`` or ``gt_dir`` no ground-truth maps.
-        ValueError: an unknown group name.
+        FileNotFoundError: ``result_dir`` has no ``result.json`` or ``gt_dir`` no ground-truth maps;
+            a map or mask the ``polarimetric``/``rerender`` groups read is missing (in either folder).
+        ValueError: an unknown group name, a malformed ``result.json``, a map whose shape is not the
+            mask's or that holds NaN/inf inside the mask (each naming the file).
     """
     result_dir, gt_dir = Path(result_dir), Path(gt_dir)
     if not ResultFolder(result_dir).result_json_path.is_file():

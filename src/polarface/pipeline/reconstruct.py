@@ -136,12 +136,49 @@ def resolve_reconstruct_inputs(
     return ReconstructInputs(capture, mesh_path, poses_path, int(resolution))
 
 
+def _check_manifest(store) -> None:
+    """The capture's ``manifest.json`` describes a finished capture whose frame count is its frame list's."""
+    path = store.root / "manifest.json"
+    manifest = store.manifest
+    if manifest.get("complete") is not True:
+        raise ValueError(
+            f"'{path}': 'complete' is {manifest.get('complete')!r}: the capture was not finalized "
+            "(rerun the capture or ingest to completion)"
+        )
+    count = manifest.get("frame_count")
+    listed = len(manifest.get("frames") or [])
+    if count is not None and (isinstance(count, bool) or count != listed):
+        raise ValueError(f"'{path}': 'frame_count' is {count!r} but the manifest lists {listed} frames")
+
+
+def _check_derived_store(store) -> None:
+    """Read ``derived.zarr``'s metadata and the first chunk of each of its arrays (corrupt metadata or
+    chunks fail here, naming the store, before any output is written)."""
+    import zarr
+
+    path = store.root / "derived.zarr"
+    if not path.is_dir():
+        return  # CaptureStore reports a missing store where it reads it
+    try:
+        root = zarr.open_group(path, mode="r")
+        groups = [root[name] for name in ("stacks", "masks") if name in root]
+        for group in groups:
+            for _, array in group.arrays():
+                if array.shape and array.shape[0] > 0:
+                    _ = array[(0, *(slice(0, 1) for _ in array.shape[1:]))]
+    except Exception as exc:  # zarr/codec errors (JSON, blosc RuntimeError ...) share no base class
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise ValueError(f"capture store '{path}' cannot be read: {reason}") from exc
+
+
 def _load_geometry(ctx: ReconstructContext):
     from polarface.capture.store import CaptureStore
     from polarface.geometry.mesh import load_mesh
     from polarface.geometry.poses import load_poses
 
     store = CaptureStore.open(ctx.capture)
+    _check_manifest(store)
+    _check_derived_store(store)
     mesh = load_mesh(ctx.mesh_path)
     poses = load_poses(ctx.poses_path)
     frames = [r.index for r in store.frames]

@@ -54,7 +54,7 @@ def parse_edits(text: str | None) -> dict[str, float]:
     """Parse ``"C_h_out=2x,C_m=4x"`` into ``{"c_h_out": 2.0, "c_m": 4.0}`` (factors > 0; ``x`` optional).
 
     Raises:
-        ValueError: unknown parameter or malformed factor (naming it).
+        ValueError: unknown parameter, malformed factor or a parameter given twice (naming it).
     """
     edits: dict[str, float] = {}
     if not text:
@@ -78,6 +78,8 @@ def parse_edits(text: str | None) -> dict[str, float]:
             raise ValueError(f"argument 'edit': bad factor in {item!r}") from None
         if not (np.isfinite(factor) and factor > 0):
             raise ValueError(f"argument 'edit': factor of {key} must be finite and > 0; got {factor}")
+        if _EDIT_NAMES[key] in edits:
+            raise ValueError(f"argument 'edit': {match.group(1)} is given more than once in {text!r}")
         edits[_EDIT_NAMES[key]] = factor
     return edits
 

@@ -57,7 +57,7 @@ class ResultAppearance:
 
         Raises:
             FileNotFoundError: the folder or a map is missing. ValueError: the rig has no spectral
-            calibration.
+            calibration, a map's shape is not the mask's, or ``maps/sog.json`` is malformed (naming it).
         """
         folder = result_dir if isinstance(result_dir, ResultFolder) else ResultFolder(result_dir)
         if not folder.root.is_dir():
@@ -70,6 +70,29 @@ class ResultAppearance:
             for name in (*layout.POLARIMETRIC_MAPS, *layout.CHROMOPHORE_MAPS)
         }
         mask = folder.read_mask()
+        for name, values in maps.items():
+            if values.shape != mask.shape:
+                raise ValueError(
+                    f"'{folder.map_path(name)}' is {values.shape}, which does not match the mask "
+                    f"'{folder.map_path(layout.MASK, '.png')}' {mask.shape}"
+                )
         sog = folder.read_sog()
-        shapes = sog_shapes(sog) if sog is not None else None
+        shapes = _checked_sog_shapes(sog, folder.map_path("sog", ".json")) if sog is not None else None
         return cls(maps, mask, folder.read_mesh(), rig, shapes)
+
+
+def _checked_sog_shapes(payload: Any, path: Path):
+    """:func:`sog_shapes` of a ``sog.json`` payload; ValueError naming ``path`` when it is malformed."""
+    layers = payload.get("layers") if isinstance(payload, dict) else None
+    missing = [k for k in layout.SOG_LAYERS if not isinstance(layers, dict) or k not in layers]
+    if missing:
+        raise ValueError(f"'{path}': 'layers' lacks {missing} (expected {list(layout.SOG_LAYERS)})")
+    try:
+        shapes = sog_shapes(payload)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"'{path}': 'layers' must hold (L, 9) numeric arrays ({exc})") from None
+    for name in layout.SOG_LAYERS:
+        values = getattr(shapes, name)
+        if values.ndim != 2 or values.shape != shapes.r_out_f.shape or not values.isfinite().all():
+            raise ValueError(f"'{path}': layer {name!r} must be a finite (L, 9) array like 'r_out_f'")
+    return shapes

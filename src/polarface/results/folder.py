@@ -27,6 +27,7 @@ from polarface.io import (
     write_png,
 )
 from polarface.results import layout
+from polarface.results.header import check_result_header
 
 __all__ = ["ResultFolder"]
 
@@ -98,7 +99,9 @@ class ResultFolder:
         """``result.json`` as a dict (empty when the file does not exist yet).
 
         Raises:
-            ValueError: the file is not valid JSON or not an object (naming the file).
+            ValueError: the file is not valid JSON or not an object, or a format key (``format``,
+                ``version``, ``channel_names``, ``texture_resolution``, ``stages``) is malformed
+                (naming the file and the key).
         """
         path = self.result_json_path
         if not path.exists():
@@ -109,6 +112,7 @@ class ResultFolder:
             raise ValueError(f"'{path}' is not valid JSON: {exc}") from exc
         if not isinstance(data, dict):
             raise ValueError(f"'{path}' must hold a JSON object; got {type(data).__name__}")
+        check_result_header(path, data)
         return data
 
     def update_result(
@@ -335,9 +339,21 @@ class ResultFolder:
         return np.load(self.loss_curve_path) if self.loss_curve_path.exists() else None
 
     def read_sog(self) -> dict[str, Any] | None:
-        """``maps/sog.json`` as a dict, or None when absent."""
+        """``maps/sog.json`` as a dict, or None when absent.
+
+        Raises:
+            ValueError: the file is not valid JSON or not an object (naming the file).
+        """
         path = self.map_path("sog", ".json")
-        return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
+        if not path.is_file():
+            return None
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"'{path}' is not valid JSON: {exc}") from exc
+        if not isinstance(data, dict):
+            raise ValueError(f"'{path}' must hold a JSON object; got {type(data).__name__}")
+        return data
 
     def write_sog(self, payload: Mapping[str, Any]) -> Path:
         """Write ``maps/sog.json`` (keys in ``docs/result_folder.md``)."""

@@ -86,8 +86,8 @@ class PolarimetricConfig:
             raise ValueError(f"argument 'optimizer' must be 'rmsprop' or 'adam'; got {self.optimizer!r}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"argument 'lr' must be > 0; got {self.lr}")
-        if int(self.iterations) < 0:
-            raise ValueError(f"argument 'iterations' must be >= 0; got {self.iterations}")
+        if int(self.iterations) < 1:
+            raise ValueError(f"argument 'iterations' must be >= 1; got {self.iterations}")
         if not 0 < self.lr_final_fraction <= 1:
             raise ValueError(f"argument 'lr_final_fraction' must be in (0, 1]; got {self.lr_final_fraction}")
         if int(self.patch) < 4 or int(self.halo) < 2:
