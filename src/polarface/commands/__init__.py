@@ -12,7 +12,7 @@ import argparse
 import dataclasses
 from typing import Any, TypeVar
 
-__all__ = ["options_from_args"]
+__all__ = ["add_force_argument", "options_from_args"]
 
 _Options = TypeVar("_Options")
 
@@ -27,3 +27,11 @@ def options_from_args(options_type: type[_Options], args: argparse.Namespace, **
     """
     fields = (f.name for f in dataclasses.fields(options_type) if f.name not in values)  # type: ignore[arg-type]
     return options_type(**{name: getattr(args, name) for name in fields}, **values)
+
+
+def add_force_argument(parser: argparse.ArgumentParser, target: str = "the output folder") -> None:
+    """``--force``: replace ``target`` even when this command did not write it; the new output is swapped
+    in only once the run succeeds (``polarface.io.output_folder``)."""
+    parser.add_argument(
+        "--force", action="store_true", help=f"replace {target} (swapped in once the run succeeds)"
+    )

@@ -26,6 +26,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from polarface.commands import add_force_argument
+
 NAME = "demo"
 HELP = "run the pipeline on the embedded demo: simulate -> reconstruct -> evaluate -> report"
 INTERRUPTED = "partial results kept in {out}; rerun the same command to continue"
@@ -40,9 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"output folder (default {PIPELINE_OUT}; --sphere: {SPHERE_OUT})",
     )
-    parser.add_argument(
-        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
-    )
+    add_force_argument(parser)
     parser.add_argument(
         "--preset", choices=("tiny", "demo"), default="demo", help="simulator preset of the pipeline demo"
     )

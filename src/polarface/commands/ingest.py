@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from polarface.commands import add_force_argument
+
 NAME = "ingest"
 HELP = "validate raw frames against a rig and build a capture store with observations"
 INTERRUPTED = "completed frames kept in {out}; rerun the same command to continue"
@@ -23,9 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", default="residual", choices=["residual", "bilinear"])
     parser.add_argument("--fps", type=float, default=20.0, help="frame rate when there is no timestamps.csv")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    parser.add_argument(
-        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
-    )
+    add_force_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -23,6 +23,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from polarface.commands import add_force_argument
+
 NAME = "reconstruct"
 HELP = "static polarimetric inverse rendering of a capture into texture maps (RESULT folder)"
 INTERRUPTED = "partial results kept in {out}; rerun with --resume to continue"
@@ -77,9 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="torch threads of the fit (default 1: fastest on a busy 2-core CPU; try 2+ on an idle one)",
     )
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run in RESULT")
-    parser.add_argument(
-        "--force", action="store_true", help="replace RESULT (swapped in only once the run succeeds)"
-    )
+    add_force_argument(parser, "RESULT")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 

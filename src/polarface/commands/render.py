@@ -25,7 +25,7 @@ import argparse
 import json
 from pathlib import Path
 
-from polarface.commands import options_from_args
+from polarface.commands import add_force_argument, options_from_args
 
 NAME = "render"
 HELP = "render a RESULT: polarizer/Stokes/Mueller/DoP/AoLP/sRGB images, strip light, chromophore edits"
@@ -35,9 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Register the command's arguments."""
     parser.add_argument("result", type=Path, help="RESULT folder")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default RESULT/render)")
-    parser.add_argument(
-        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
-    )
+    add_force_argument(parser)
     parser.add_argument("--camera", default=None, help="camera id of the rig (default: first polarimetric)")
     parser.add_argument(
         "--poses",

@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from polarface.commands import add_force_argument
+
 NAME = "simulate"
 HELP = "render a synthetic rig capture of the bundled head with ground truth"
 INTERRUPTED = "partial results kept in {out}; rerun the same command to continue"
@@ -26,9 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sequences", default="static,dynamic", help="comma list of static,dynamic")
     parser.add_argument("--no-noise", action="store_true", help="noise-free raw (quantisation only)")
     parser.add_argument("--no-blur", action="store_true", help="local subsurface model (no diffusion blur)")
-    parser.add_argument(
-        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
-    )
+    add_force_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from polarface.commands import options_from_args
+from polarface.commands import add_force_argument, options_from_args
 from polarface.skin.fitting import FitSettings
 
 NAME = "skin-fit"
@@ -32,9 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "spectra", type=Path, help="CSV: wavelength_nm column + one reflectance column per sample"
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
-    parser.add_argument(
-        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
-    )
+    add_force_argument(parser)
     parser.add_argument("--min-nm", type=float, default=420.0, help="fit band start, nm")
     parser.add_argument("--max-nm", type=float, default=700.0, help="fit band end, nm")
     parser.add_argument(

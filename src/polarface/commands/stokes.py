@@ -11,7 +11,7 @@ import argparse
 import json
 from pathlib import Path
 
-from polarface.commands import options_from_args
+from polarface.commands import add_force_argument, options_from_args
 
 NAME = "stokes"
 HELP = "demosaic one raw polarization frame into I0/I45/I90/I135, DoP and AoLP images (EXR + PNG)"
@@ -39,9 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="mosaic phase of the readout (default 0 0: row 0 = 90/45 deg)",
     )
     parser.add_argument("--exposure", type=float, default=1.0, help="relative exposure to divide by")
-    parser.add_argument(
-        "--force", action="store_true", help="replace the output folder (swapped in once the run succeeds)"
-    )
+    add_force_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:

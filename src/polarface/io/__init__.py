@@ -13,6 +13,7 @@ from polarface.io.images import (
     write_exr,
     write_png,
 )
+from polarface.io.json_files import read_json_object
 
 __all__ = [
     "atomic_directory",
@@ -21,6 +22,7 @@ __all__ = [
     "image_header",
     "read_exr",
     "read_gray",
+    "read_json_object",
     "read_png",
     "write_exr",
     "write_json_atomic",

@@ -13,22 +13,13 @@ import json
 from pathlib import Path
 from typing import Any
 
+from polarface.io import read_json_object
 from polarface.results import ResultFolder
 
 __all__ = ["folder_info", "format_info"]
 
 #: Sequences a simulation folder may hold, each a capture store.
 _SEQUENCES = ("static", "dynamic")
-
-
-def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"'{path}' is not valid JSON: {exc}") from exc
-    if not isinstance(data, dict):
-        raise ValueError(f"'{path}' must hold a JSON object; got {type(data).__name__}")
-    return data
 
 
 def _fingerprint(*records: dict[str, Any]) -> Any:
@@ -44,7 +35,7 @@ def _cameras(rig_path: Path) -> list[dict[str, Any]]:
     """``id``, ``role``, ``sensor`` and ``resolution`` ``[width, height]`` (px) of each rig camera."""
     if not rig_path.is_file():
         return []
-    rig = _read_json(rig_path)
+    rig = read_json_object(rig_path)
     return [
         {"id": c.get("id"), "role": c.get("role"), "sensor": c.get("sensor"),
          "resolution": [c.get("width"), c.get("height")]}
@@ -82,7 +73,7 @@ def _map_files(maps_dir: Path) -> list[str]:
 
 def simulation_info(root: Path) -> dict[str, Any]:
     """Configuration, timings, sequences (as :func:`capture_info`) and ground-truth maps of a simulation."""
-    summary = _read_json(root / "simulation.json") if (root / "simulation.json").is_file() else {}
+    summary = read_json_object(root / "simulation.json") if (root / "simulation.json").is_file() else {}
     timings = summary.get("timings", {})
     return {
         "kind": "simulation",

@@ -8,14 +8,13 @@ and ``scene.json`` (camera, lights and sphere in mm; schema in the ``polarface i
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 
 from polarface.inverse.ior import IorResult, SphereScene, estimate_ior, validate_paper_objects
-from polarface.io import read_exr
+from polarface.io import read_exr, read_json_object
 
 __all__ = ["ANALYZER_IMAGE_NAMES", "estimate_ior_from_folder", "read_analyzer_image", "validate_ior"]
 
@@ -58,12 +57,7 @@ def estimate_ior_from_folder(
     scene_path = folder / "scene.json"
     if not scene_path.is_file():
         raise FileNotFoundError(f"'{scene_path}' does not exist")
-    try:
-        payload = json.loads(scene_path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"'{scene_path}' is not valid JSON: {exc}") from exc
-    if not isinstance(payload, dict):
-        raise ValueError(f"'{scene_path}' must hold a JSON object")
+    payload = read_json_object(scene_path)
     try:
         scene = SphereScene.from_dict(payload)
     except ValueError as exc:

@@ -20,7 +20,7 @@ shaded by the same physics in :func:`render_view_texture` (the inverse stage's r
 
 from polarface.render.colour import encode_srgb, linear_rgb_from_channels, linear_srgb_to_lab
 from polarface.render.demo import DemoParameters, DemoRender, render_demo
-from polarface.render.fragments import SurfaceFragments, cast_fragments
+from polarface.render.fragments import FragmentRecord, SurfaceFragments, cast_fragments
 from polarface.render.relight import apply_edits, mueller_images, parse_edits, render_result_view
 from polarface.render.renderer import ViewRender, analyzer_images, render_view, rig_lighting, shading_normals
 from polarface.render.result_views import RenderOptions, render_result_outputs
@@ -48,6 +48,7 @@ __all__ = [
     "DemoParameters",
     "DemoRender",
     "FragmentMaterial",
+    "FragmentRecord",
     "FrameTextures",
     "RenderOptions",
     "SphereGeometry",

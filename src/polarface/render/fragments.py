@@ -19,11 +19,20 @@ import numpy as np
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.raycast import RayCaster
 
-__all__ = ["SurfaceFragments", "cast_fragments"]
+__all__ = ["FragmentRecord", "SurfaceFragments", "cast_fragments"]
+
+
+class FragmentRecord:
+    """Base of the fragment records (one row per fragment in every field): :attr:`count`."""
+
+    @property
+    def count(self) -> int:
+        """Number of fragments ``N`` (the length of the first field)."""
+        return int(getattr(self, dataclasses.fields(self)[0].name).shape[0])
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class SurfaceFragments:
+class SurfaceFragments(FragmentRecord):
     """The ray hits of a set of camera rays (``N`` hits).
 
     Attributes:
@@ -43,11 +52,6 @@ class SurfaceFragments:
     position: np.ndarray
     geometric_normal: np.ndarray
     distance: np.ndarray
-
-    @property
-    def count(self) -> int:
-        """Number of fragments ``N``."""
-        return int(self.pixel.shape[0])
 
 
 def cast_fragments(

@@ -32,6 +32,7 @@ import torch
 
 from polarface._validation import trusted_inputs
 from polarface.optics.image_formation import subsurface_exit_stokes
+from polarface.render.fragments import FragmentRecord
 from polarface.render.renderer import shading_normals as _raster_shading_normals
 from polarface.render.shading import FragmentMaterial, lobe_stokes
 from polarface.render.subsurface import visible_entry_flux
@@ -53,7 +54,7 @@ MAP_NAMES = (*POLARIMETRIC_MAPS, RHO_SSS_BAR)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class TexelFragments:
+class TexelFragments(FragmentRecord):
     """The atlas texels one view sees (``N`` fragments), read from an unwrap store.
 
     Attributes:
@@ -72,11 +73,6 @@ class TexelFragments:
     geometric_normal: np.ndarray
     lit: np.ndarray
     observed: np.ndarray
-
-    @property
-    def count(self) -> int:
-        """Number of fragments ``N``."""
-        return int(self.row.shape[0])
 
 
 def texel_fragments(

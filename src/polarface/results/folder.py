@@ -9,7 +9,6 @@ same API; shared inputs (``rig.json``, ``mesh.obj``) are read from the sequence 
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -21,6 +20,7 @@ from polarface.io import (
     atomic_path,
     colormap_png,
     read_exr,
+    read_json_object,
     read_png,
     write_exr,
     write_json_atomic,
@@ -106,12 +106,7 @@ class ResultFolder:
         path = self.result_json_path
         if not path.exists():
             return {}
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"'{path}' is not valid JSON: {exc}") from exc
-        if not isinstance(data, dict):
-            raise ValueError(f"'{path}' must hold a JSON object; got {type(data).__name__}")
+        data = read_json_object(path)
         check_result_header(path, data)
         return data
 
@@ -347,13 +342,7 @@ class ResultFolder:
         path = self.map_path("sog", ".json")
         if not path.is_file():
             return None
-        try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueError(f"'{path}' is not valid JSON: {exc}") from exc
-        if not isinstance(data, dict):
-            raise ValueError(f"'{path}' must hold a JSON object; got {type(data).__name__}")
-        return data
+        return read_json_object(path)
 
     def write_sog(self, payload: Mapping[str, Any]) -> Path:
         """Write ``maps/sog.json`` (keys in ``docs/result_folder.md``)."""

@@ -24,7 +24,6 @@ deterministic; raw noise is drawn from ``numpy.random.default_rng((seed, sequenc
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import resource
 import time
@@ -41,7 +40,7 @@ from polarface.geometry.head_asset import HeadAsset, head_placement, load_head_a
 from polarface.geometry.mesh import TriangleMesh, save_ply
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster, rasterize_uv, reposition
-from polarface.io import write_exr, write_json_atomic
+from polarface.io import read_json_object, write_exr, write_json_atomic
 from polarface.render.renderer import render_view, rig_lighting, shading_normals
 from polarface.render.shading import FrameTextures
 from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
@@ -271,14 +270,10 @@ def _check_resumable(summary_path: Path, config_dict: dict) -> None:
     """ValueError unless ``summary_path`` is absent or records the configuration ``config_dict``."""
     if not summary_path.exists():
         return
-    try:
-        previous = json.loads(summary_path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"'{summary_path}' is not valid JSON: {exc}") from exc
-    if not isinstance(previous, dict) or previous.get("config") != config_dict:
+    previous = read_json_object(summary_path)
+    if previous.get("config") != config_dict:
         raise ValueError(
-            f"'{summary_path.parent}' holds a simulation with another configuration "
-            f"{previous.get('config') if isinstance(previous, dict) else previous!r}"
+            f"'{summary_path.parent}' holds a simulation with another configuration {previous.get('config')}"
         )
 
 

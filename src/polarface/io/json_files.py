@@ -1,0 +1,28 @@
+"""Reading the JSON artifacts (``result.json``, ``simulation.json``, ``scene.json``, ``sog.json`` ...)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+__all__ = ["read_json_object"]
+
+
+def read_json_object(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The JSON object in the UTF-8 file ``path``.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: the file is not UTF-8 JSON, or holds something other than an object (one line naming
+            the file).
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"'{path}' is not valid JSON: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ValueError(f"'{path}' must hold a JSON object; got {type(data).__name__}")
+    return data
