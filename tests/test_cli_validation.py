@@ -12,41 +12,14 @@ import pytest
 
 from polarface.capture.rig import paper_rig
 from polarface.cli import main
-from polarface.geometry.mesh import TriangleMesh, save_obj
 from polarface.inverse.ior import default_sphere_scene, render_sphere
 from polarface.io import write_exr, write_png
+from result_fixtures import write_plane_result
 
 
 def _result(root: Path) -> Path:
     """A small RESULT (a skin plane facing the polarimetric module) that ``render`` accepts."""
-    cells, resolution = 4, 16
-    u = np.linspace(0.0, 1.0, cells + 1)
-    uu, vv = np.meshgrid(u, u, indexing="xy")
-    vertices = np.stack([(uu - 0.5) * 60.0, (vv - 0.5) * 60.0, np.full_like(uu, 90.0)], -1).reshape(-1, 3)
-    faces = []
-    for row in range(cells):
-        for col in range(cells):
-            a = row * (cells + 1) + col
-            faces += [(a, a + 1, a + cells + 2), (a, a + cells + 2, a + cells + 1)]
-    mesh = TriangleMesh.from_arrays(vertices, np.array(faces), np.stack([uu, vv], -1).reshape(-1, 2))
-    values = {
-        "eta": 1.42,
-        "alpha_s": 0.5,
-        "alpha_ss": 0.95,
-        "rho_s": 0.5,
-        "rho_ss": 0.25,
-        "displacement_mm": 0.0,
-        "c_m": 0.05,
-        "beta_m": 0.1,
-        "c_h_in": 0.03,
-        "c_h_out": 0.05,
-    }
-    for name, value in values.items():
-        write_exr(root / "maps" / f"{name}.exr", {"Y": np.full((resolution, resolution), value, np.float32)})
-    write_png(root / "maps" / "mask.png", np.full((resolution, resolution), 255, np.uint8))
-    save_obj(root / "mesh.obj", mesh)
-    paper_rig(width=48, height=40).save(root / "rig.json")
-    return root
+    return write_plane_result(root, cells=4, resolution=16, width=48, height=40)
 
 
 def _render(tmp: Path, *extra: str) -> list[str]:

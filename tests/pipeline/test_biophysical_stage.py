@@ -11,7 +11,7 @@ import torch
 
 from polarface.capture.rig import paper_rig
 from polarface.cli import main
-from polarface.geometry.mesh import TriangleMesh, save_obj
+from polarface.geometry.mesh import save_obj
 from polarface.inverse.biophysical import (
     BiophysicalConfig,
     TotalsTable,
@@ -22,24 +22,9 @@ from polarface.io import read_exr, read_png, write_exr, write_png
 from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
 from polarface.report import HtmlPage, biophysical_section
 from polarface.results import load_sog
+from result_fixtures import plane_mesh
 
 RESOLUTION = 32
-
-
-def plane_mesh(size_mm: float = 60.0, cells: int = 8) -> TriangleMesh:
-    """A 60 mm square in the model frame (face towards +z at z = 90 mm) with UVs over [0, 1]^2."""
-    u = np.linspace(0.0, 1.0, cells + 1)
-    uu, vv = np.meshgrid(u, u, indexing="xy")
-    vertices = np.stack([(uu - 0.5) * size_mm, (vv - 0.5) * size_mm, np.full_like(uu, 90.0)], -1).reshape(
-        -1, 3
-    )
-    uv = np.stack([uu, vv], -1).reshape(-1, 2)
-    faces = []
-    for row in range(cells):
-        for col in range(cells):
-            a = row * (cells + 1) + col
-            faces += [(a, a + 1, a + cells + 2), (a, a + cells + 2, a + cells + 1)]
-    return TriangleMesh.from_arrays(vertices, np.array(faces), uv)
 
 
 def truth_maps(resolution: int = RESOLUTION) -> dict[str, np.ndarray]:
