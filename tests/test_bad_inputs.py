@@ -26,11 +26,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from disk_fixtures import write_ior_capture
 from polarface.capture.rig import Rig, paper_rig
 from polarface.capture.sensor import mosaic, simulate_raw
 from polarface.capture.synthetic import stokes_pattern
 from polarface.cli import main
-from polarface.inverse.ior import default_sphere_scene, render_sphere
 from polarface.io import write_exr, write_png
 from polarface.optics.stokes import intensities_from_stokes
 from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
@@ -65,7 +65,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
             write_png(root / "rawdir" / cam / f"{frame}.png", raw, bit_depth=16)
     lines = (TEST_DATA / "skin" / "nist_skin_reflectance_odd_subjects.csv").read_text().splitlines()
     (root / "spectra.csv").write_text("\n".join(",".join(line.split(",")[:3]) for line in lines) + "\n")
-    _ior_folder(root / "ior")
+    write_ior_capture(root / "ior", size=32)
     Rig.model_validate({"cameras": [_stereo_camera(c) for c in ("left", "right")]}).save(root / "calrig.json")
     return {
         "sim": sim,
@@ -82,25 +82,6 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
 def _stereo_camera(cam: str) -> dict:
     K = [[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]
     return {"id": cam, "role": "stereo", "sensor": "rgb", "width": 640, "height": 480, "K": K}
-
-
-def _ior_folder(folder: Path) -> None:
-    scene = default_sphere_scene(32)
-    for name, image in render_sphere(scene, 1.5).items():
-        write_exr(folder / f"{name}.exr", {"Y": image})
-    camera = {
-        "K": scene.K.tolist(),
-        "world_to_camera": scene.world_to_camera.tolist(),
-        "width": 32,
-        "height": 32,
-    }
-    payload = {
-        "units": "mm",
-        "camera": camera,
-        "lights": [{"position": p.tolist()} for p in scene.lights],
-        "sphere": {"center": scene.centre.tolist(), "radius": scene.radius},
-    }
-    (folder / "scene.json").write_text(json.dumps(payload))
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
+from disk_fixtures import write_plane_result
 from polarface.cli import main
 from polarface.io import read_exr
-from result_fixtures import write_plane_result
 
 RESOLUTION = 32
 

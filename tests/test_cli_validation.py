@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from disk_fixtures import write_ior_capture, write_plane_result
 from polarface.capture.rig import paper_rig
 from polarface.cli import main
-from polarface.inverse.ior import default_sphere_scene, render_sphere
-from polarface.io import write_exr, write_png
-from result_fixtures import write_plane_result
+from polarface.inverse.ior import default_sphere_scene
+from polarface.io import write_png
 
 
 def _result(root: Path) -> Path:
@@ -80,22 +80,7 @@ def _calibrate_bad_list(tmp: Path) -> list[str]:
 def _ior(tmp: Path, *extra: str, **camera: object) -> list[str]:
     folder = tmp / "capture"
     folder.mkdir()
-    scene = default_sphere_scene(48)
-    for name, image in render_sphere(scene, 1.5).items():
-        write_exr(folder / f"{name}.exr", {"Y": image})
-    payload = {
-        "units": "mm",
-        "camera": {
-            "K": scene.K.tolist(),
-            "world_to_camera": scene.world_to_camera.tolist(),
-            "width": 48,
-            "height": 48,
-            **camera,
-        },
-        "lights": [{"position": p.tolist()} for p in scene.lights],
-        "sphere": {"center": scene.centre.tolist(), "radius": scene.radius},
-    }
-    (folder / "scene.json").write_text(json.dumps(payload))
+    write_ior_capture(folder, size=48, **camera)
     return ["ior", str(folder), *extra]
 
 

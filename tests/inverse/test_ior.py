@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from disk_fixtures import sphere_scene_payload, write_ior_capture
 from polarface.cli import main
 from polarface.inverse.ior import (
     PAPER_OBJECTS,
@@ -16,7 +17,6 @@ from polarface.inverse.ior import (
     render_sphere,
     validate_paper_objects,
 )
-from polarface.io import write_exr
 
 
 def test_ten_objects_noise_free_exact():
@@ -61,47 +61,11 @@ def test_rgb_input_and_bad_input():
 
 
 def test_cli_json(tmp_path, capsys):
-    scene = default_sphere_scene(64)
-    for name, image in render_sphere(scene, 2.1).items():
-        write_exr(tmp_path / f"{name}.exr", {"Y": image})
-    payload = {
-        "units": "mm",
-        "camera": {
-            "K": scene.K.tolist(),
-            "world_to_camera": scene.world_to_camera.tolist(),
-            "width": 64,
-            "height": 64,
-        },
-        "lights": [{"position": p.tolist()} for p in scene.lights],
-        "sphere": {"center": scene.centre.tolist(), "radius": scene.radius},
-    }
-    (tmp_path / "scene.json").write_text(json.dumps(payload))
+    write_ior_capture(tmp_path, eta=2.1, size=64)
     assert main(["ior", str(tmp_path), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["eta"] == pytest.approx(2.1, abs=5e-3)
     (tmp_path / "scene.json").unlink()
     assert main(["ior", str(tmp_path)]) == 2
-
-
-def _write_capture(folder, eta=1.5, size=64, **camera_overrides):
-    """An IOR capture folder of a rendered sphere; ``camera_overrides`` replace scene.json fields."""
-    scene = default_sphere_scene(size)
-    for name, image in render_sphere(scene, eta).items():
-        write_exr(folder / f"{name}.exr", {"Y": image})
-    camera = {
-        "K": scene.K.tolist(),
-        "world_to_camera": scene.world_to_camera.tolist(),
-        "width": size,
-        "height": size,
-    }
-    camera.update(camera_overrides)
-    payload = {
-        "units": "mm",
-        "camera": camera,
-        "lights": [{"position": p.tolist()} for p in scene.lights],
-        "sphere": {"center": scene.centre.tolist(), "radius": scene.radius},
-    }
-    (folder / "scene.json").write_text(json.dumps(payload))
-    return scene
 
 
 def _scaled_pose(scene, scale):
@@ -129,7 +93,7 @@ def _scaled_pose(scene, scale):
 def test_ior_rejects_an_invalid_camera_naming_the_field(tmp_path, capsys, edit, field):
     """A negative focal length or a non-rigid pose used to give eta 1.05 / 1.15 (true 1.5), exit 0."""
     scene = default_sphere_scene(64)
-    _write_capture(tmp_path, **edit(scene))
+    write_ior_capture(tmp_path, **edit(scene))
     assert main(["ior", str(tmp_path), "--json"]) == 2
     captured = capsys.readouterr()
     assert captured.out == ""
@@ -139,7 +103,7 @@ def test_ior_rejects_an_invalid_camera_naming_the_field(tmp_path, capsys, edit, 
 
 def test_ior_estimate_on_the_eta_range_bound_is_an_error(tmp_path, capsys):
     """True eta 1.5 searched in [1.6, 3]: the fit sits on 1.6, which is not a measurement."""
-    _write_capture(tmp_path, eta=1.5)
+    write_ior_capture(tmp_path, eta=1.5)
     scene = SphereScene.from_dict(json.loads((tmp_path / "scene.json").read_text()))
     images = render_sphere(scene, 1.5)
     assert estimate_ior(images, scene, eta_range=(1.6, 3.0)).at_bound
@@ -165,16 +129,7 @@ def test_ior_estimate_on_the_eta_range_bound_is_an_error(tmp_path, capsys):
 )
 def test_scene_field_errors_name_the_field(path, value, field):
     scene = default_sphere_scene(16)
-    payload = {
-        "camera": {
-            "K": scene.K.tolist(),
-            "world_to_camera": scene.world_to_camera.tolist(),
-            "width": 16,
-            "height": 16,
-        },
-        "lights": [{"position": p.tolist()} for p in scene.lights],
-        "sphere": {"center": scene.centre.tolist(), "radius": scene.radius},
-    }
+    payload = sphere_scene_payload(scene)
     assert SphereScene.from_dict(payload).lights.shape == scene.lights.shape
     node = payload
     for key in path[:-1]:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from disk_fixtures import plane_mesh
 from polarface.capture.rig import paper_rig
 from polarface.cli import main
 from polarface.geometry.mesh import save_obj
@@ -22,7 +23,6 @@ from polarface.io import read_exr, read_png, write_exr, write_png
 from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
 from polarface.report import HtmlPage, biophysical_section
 from polarface.results import load_sog
-from result_fixtures import plane_mesh
 
 RESOLUTION = 32
 

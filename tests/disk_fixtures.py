@@ -1,17 +1,20 @@
-"""Small RESULT folders built on disk for the command tests (importable: ``tests`` is on pytest's
-``pythonpath``)."""
+"""Small inputs built on disk for the command tests: a skin-plane RESULT folder and an IOR sphere capture
+(importable: ``tests`` is on pytest's ``pythonpath``)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from polarface.capture.rig import paper_rig
 from polarface.geometry.mesh import TriangleMesh, save_obj
+from polarface.inverse.ior import SphereScene, default_sphere_scene, render_sphere
 from polarface.io import write_exr, write_png
 
-__all__ = ["plane_mesh", "write_plane_result"]
+__all__ = ["plane_mesh", "sphere_scene_payload", "write_ior_capture", "write_plane_result"]
 
 
 def plane_mesh(size_mm: float = 60.0, cells: int = 8) -> TriangleMesh:
@@ -54,3 +57,29 @@ def write_plane_result(
     save_obj(root / "mesh.obj", mesh)
     paper_rig(width=width, height=height).save(root / "rig.json")
     return root
+
+
+def sphere_scene_payload(scene: SphereScene, **camera: Any) -> dict[str, Any]:
+    """The ``scene.json`` object of ``polarface ior`` for ``scene`` (``camera`` items replace fields)."""
+    return {
+        "units": "mm",
+        "camera": {
+            "K": scene.K.tolist(),
+            "world_to_camera": scene.world_to_camera.tolist(),
+            "width": scene.width,
+            "height": scene.height,
+            **camera,
+        },
+        "lights": [{"position": p.tolist()} for p in scene.lights],
+        "sphere": {"center": scene.centre.tolist(), "radius": scene.radius},
+    }
+
+
+def write_ior_capture(folder: Path, eta: float = 1.5, size: int = 64, **camera: Any) -> SphereScene:
+    """An IOR capture folder: the four analyzer EXRs of a rendered ``size``^2 sphere of index ``eta`` and
+    its ``scene.json`` (``camera`` items replace camera fields); returns the scene."""
+    scene = default_sphere_scene(size)
+    for name, image in render_sphere(scene, eta).items():
+        write_exr(folder / f"{name}.exr", {"Y": image})
+    (folder / "scene.json").write_text(json.dumps(sphere_scene_payload(scene, **camera)))
+    return scene
