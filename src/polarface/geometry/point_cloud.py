@@ -1,0 +1,156 @@
+"""Oriented point clouds with per-point confidence: what stereo produces and fusion, registration and
+meshing consume.
+
+Units mm, world (rig) frame unless a function says otherwise. Normals are unit vectors oriented towards
+the camera that saw the point (outwards from the surface). Confidence lies in [0, 1]. Colours are
+linear RGB in the cameras' radiance units (not clipped); all zeros when unknown.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from polarface.geometry.poses import check_rigid
+from polarface.io.atomic import atomic_path
+
+__all__ = ["PointCloud", "load_point_cloud", "save_point_cloud"]
+
+
+@dataclasses.dataclass(frozen=True)
+class PointCloud:
+    """An oriented point cloud.
+
+    Attributes:
+        points: ``(N, 3)`` float64 positions, mm.
+        normals: ``(N, 3)`` float64 unit normals, oriented outwards (towards the observing camera).
+        confidence: ``(N,)`` float32 in [0, 1].
+        colours: ``(N, 3)`` float32 linear RGB (zeros when unknown).
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    confidence: np.ndarray
+    colours: np.ndarray
+
+    def __post_init__(self) -> None:
+        count = self.points.shape[0] if self.points.ndim == 2 else -1
+        shapes = {
+            "points": (self.points, (count, 3)),
+            "normals": (self.normals, (count, 3)),
+            "confidence": (self.confidence, (count,)),
+            "colours": (self.colours, (count, 3)),
+        }
+        for name, (array, shape) in shapes.items():
+            if array.shape != shape or count < 0:
+                raise ValueError(f"PointCloud.{name} must have shape {shape}; got {array.shape}")
+            if not np.isfinite(array).all():
+                raise ValueError(f"PointCloud.{name} contains NaN or infinite values")
+
+    @classmethod
+    def from_arrays(
+        cls,
+        points: np.ndarray,
+        normals: np.ndarray,
+        confidence: np.ndarray | None = None,
+        colours: np.ndarray | None = None,
+    ) -> PointCloud:
+        """Cast and check arrays (``confidence`` defaults to ones, ``colours`` to zeros); normals are
+        normalised."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+        count = points.shape[0]
+        confidence = np.ones(count, np.float32) if confidence is None else np.asarray(confidence, np.float32)
+        colours = np.zeros((count, 3), np.float32) if colours is None else np.asarray(colours, np.float32)
+        return cls(points, normals, np.clip(confidence.reshape(-1), 0.0, 1.0), colours.reshape(-1, 3))
+
+    @classmethod
+    def empty(cls) -> PointCloud:
+        """A cloud with no points."""
+        return cls.from_arrays(np.zeros((0, 3)), np.zeros((0, 3)))
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def select(self, keep: np.ndarray) -> PointCloud:
+        """The points where the boolean ``(N,)`` mask (or index array) ``keep`` selects."""
+        return PointCloud(self.points[keep], self.normals[keep], self.confidence[keep], self.colours[keep])
+
+    def transformed(self, transform: np.ndarray) -> PointCloud:
+        """Apply a 4x4 rigid transform (``p' = R p + t``, ``n' = R n``); ValueError if not rigid."""
+        matrix = check_rigid(transform, "transform")
+        rotation, translation = matrix[:3, :3], matrix[:3, 3]
+        return PointCloud(
+            self.points @ rotation.T + translation, self.normals @ rotation.T, self.confidence, self.colours
+        )
+
+    @staticmethod
+    def concatenate(clouds: Sequence[PointCloud]) -> PointCloud:
+        """All points of ``clouds`` in one cloud (empty when ``clouds`` is)."""
+        clouds = [c for c in clouds if len(c)]
+        if not clouds:
+            return PointCloud.empty()
+        return PointCloud(*(np.concatenate([getattr(c, f.name) for c in clouds]) for f in dataclasses.fields(
+            PointCloud)))
+
+    def voxel_downsample(self, voxel_mm: float) -> PointCloud:
+        """Confidence-weighted mean of the points, normals and colours in each ``voxel_mm`` cube; the
+        voxel's confidence is its maximum. Memory and the result's size are bounded by the occupied
+        voxels, not by the input."""
+        if not voxel_mm > 0:
+            raise ValueError(f"argument 'voxel_mm' must be > 0; got {voxel_mm}")
+        if not len(self):
+            return self
+        keys = np.floor(self.points / voxel_mm).astype(np.int64)
+        _, inverse = np.unique(keys, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        count = int(inverse.max()) + 1
+        weight = np.maximum(self.confidence.astype(np.float64), 1e-6)
+        total = np.bincount(inverse, weights=weight, minlength=count)
+
+        def mean(values: np.ndarray) -> np.ndarray:
+            columns = [np.bincount(inverse, weights=weight * values[:, k], minlength=count) for k in range(3)]
+            return np.stack(columns, axis=1) / total[:, None]
+
+        confidence = np.zeros(count, np.float32)
+        np.maximum.at(confidence, inverse, self.confidence)
+        return PointCloud.from_arrays(
+            mean(self.points), mean(self.normals), confidence, mean(self.colours.astype(np.float64))
+        )
+
+    def to_open3d(self):  # -> open3d.geometry.PointCloud
+        """An ``open3d.geometry.PointCloud`` with points, normals and colours (lazy import)."""
+        import open3d as o3d
+
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
+        cloud.normals = o3d.utility.Vector3dVector(self.normals)
+        cloud.colors = o3d.utility.Vector3dVector(self.colours.astype(np.float64))
+        return cloud
+
+
+def save_point_cloud(path: str | os.PathLike[str], cloud: PointCloud) -> Path:
+    """Write ``cloud`` as an uncompressed ``.npz`` (atomically: a temporary name, then rename)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as handle:
+            np.savez(handle, **{f.name: getattr(cloud, f.name) for f in dataclasses.fields(PointCloud)})
+    return path
+
+
+def load_point_cloud(path: str | os.PathLike[str]) -> PointCloud:
+    """Read a cloud written by :func:`save_point_cloud`; ValueError naming the file when it is not one."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"point cloud '{path}' does not exist")
+    try:
+        with np.load(path) as data:
+            arrays = {f.name: data[f.name] for f in dataclasses.fields(PointCloud)}
+        return PointCloud(**arrays)
+    except (KeyError, ValueError, OSError) as exc:
+        raise ValueError(f"'{path}' is not a polarface point cloud: {exc}") from exc
