@@ -278,6 +278,8 @@ class Rig(_Model):
         cameras: cameras with unique ids.
         lights: polarized light modules.
         spectral: six-channel spectral calibration, or None.
+        stereo_pairs: the stereo modules as ``[camera_id, camera_id]`` pairs; empty: cameras of role
+            ``stereo`` named ``<module>_a`` / ``<module>_b`` are paired by name.
     """
 
     name: str = "rig"
@@ -285,6 +287,7 @@ class Rig(_Model):
     cameras: list[Camera]
     lights: list[LightModule] = Field(default_factory=list)
     spectral: SpectralModel | None = None
+    stereo_pairs: list[tuple[str, str]] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _unique(self) -> Rig:
@@ -293,7 +296,43 @@ class Rig(_Model):
             duplicates = sorted({i for i in ids if ids.count(i) > 1})
             if duplicates:
                 raise ValueError(f"{kind} ids must be unique; duplicated: {duplicates}")
+        ids = {camera.id for camera in self.cameras}
+        for first, second in self.stereo_pairs:
+            unknown = sorted({first, second} - ids)
+            if unknown or first == second:
+                raise ValueError(
+                    f"stereo_pairs: pair [{first!r}, {second!r}] must name two different cameras of the rig"
+                    + (f" (unknown: {unknown})" if unknown else "")
+                )
         return self
+
+    def stereo_camera_pairs(self) -> list[tuple[Camera, Camera]]:
+        """The stereo modules' camera pairs (``stereo_pairs``, else ``<module>_a`` / ``_b`` by name).
+
+        Raises:
+            ValueError: the rig has no stereo pair (the message points to known-geometry mode), or a
+                stereo camera has no partner.
+        """
+        if self.stereo_pairs:
+            return [(self.camera(a), self.camera(b)) for a, b in self.stereo_pairs]
+        stereo = {c.id: c for c in self.cameras if c.role == "stereo"}
+        pairs = [
+            (camera, stereo[camera_id[:-2] + "_b"])
+            for camera_id, camera in stereo.items()
+            if camera_id.endswith("_a") and camera_id[:-2] + "_b" in stereo
+        ]
+        paired = {c.id for pair in pairs for c in pair}
+        if stereo.keys() - paired:
+            raise ValueError(
+                f"rig: stereo camera(s) {sorted(stereo.keys() - paired)} have no partner; name them "
+                "<module>_a / <module>_b or list the rig's 'stereo_pairs'"
+            )
+        if not pairs:
+            raise ValueError(
+                "rig: no stereo camera pair, so geometry cannot be reconstructed from the capture; give "
+                "a mesh and poses instead ('--mesh MESH --poses POSES')"
+            )
+        return pairs
 
     def camera(self, camera_id: str) -> Camera:
         """The camera named ``camera_id``; ``ValueError`` listing the rig's cameras otherwise."""
@@ -420,4 +459,7 @@ def paper_rig(scale: float = 1.0, width: int = 2448, height: int = 2048) -> Rig:
                 radiant_intensity=1.0e6 * scale**2,
             )
         )
-    return Rig(name="ha2024-paper-rig", cameras=cameras, lights=lights, spectral=_default_spectral())
+    pairs = [(f"stereo{k}_a", f"stereo{k}_b") for k in range(4)]
+    return Rig(
+        name="ha2024-paper-rig", cameras=cameras, lights=lights, spectral=_default_spectral(), stereo_pairs=pairs
+    )

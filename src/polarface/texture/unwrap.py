@@ -52,6 +52,8 @@ class UnwrapConfig:
             occlusion edges, whose values blend the face with background or another surface.
         holdout_every: every ``holdout_every``-th frame (index % n == n - 1) is held out of fitting
             (evaluation views); 0 holds out nothing.
+        excluded_frames: capture frames left out entirely (e.g. frames whose registration was rejected
+            by the geometry stage); their poses are ignored.
     """
 
     texture_resolution: int = 512
@@ -61,8 +63,10 @@ class UnwrapConfig:
     footprint_margin_px: int = 1
     footprint_tolerance_mm: float = 3.0
     holdout_every: int = 0
+    excluded_frames: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "excluded_frames", tuple(sorted(int(f) for f in self.excluded_frames)))
         if not 8 <= int(self.texture_resolution) <= 16384:
             raise ValueError(
                 f"argument 'texture_resolution' must be in [8, 16384]; got {self.texture_resolution}"
@@ -300,6 +304,10 @@ def unwrap_capture(
         if existing.complete:
             return existing
     frames, poses = _checked_poses(store, poses)
+    kept = [i for i, frame in enumerate(frames) if frame not in set(config.excluded_frames)]
+    if not kept:
+        raise ValueError("argument 'excluded_frames' leaves no frame of the capture to unwrap")
+    frames, poses = [frames[i] for i in kept], poses[kept]
     raster = rasterize_uv(mesh, int(config.texture_resolution))
     if not raster.mask.any():
         raise ValueError("the UV atlas covers no texel at this texture resolution (mismatched UV atlas?)")

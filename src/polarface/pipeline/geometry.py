@@ -1,0 +1,250 @@
+"""The geometry stage: a capture's stereo pairs -> per-frame depth and meshes, registration of the
+sequence, the reference mesh fused from all frames with a cylindrical texture atlas (paper Sec.
+"Geometry Reconstruction and Tracking"; supplement: all frames merged into the reference frame).
+
+``reconstruct_geometry(CAPTURE, GEOM)`` writes (``docs/geometry.md``, "Geometry from stereo")::
+
+    GEOM/
+      geometry.json          configuration, capture identity, reference frame, rejected frames (with
+                             reasons), registration residuals, atlas, timings, peak memory
+      mesh.obj               reference mesh with its cylindrical UVs; model frame = the rig world at the
+                             reference frame, mm
+      poses.json             model -> rig world 4x4 per capture frame (polarface.geometry.poses format)
+      frames/NNNNNN.ply      each frame's fused stereo mesh, rig world, mm
+      clouds/NNNNNN.npz      each frame's fused stereo point cloud (polarface.geometry.point_cloud)
+      previews/*.png         depth and confidence of the reference frame's pairs, mesh renders, residuals
+      report.html            the stage's report page
+
+Frames are processed one at a time (memory bounded per frame) and skipped when their cloud and mesh
+exist, so an interrupted run resumes; ``geometry.json`` records the capture and configuration, and a
+folder written with others is refused.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import resource
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from polarface.capture.store import CaptureStore
+from polarface.geometry.atlas import CylindricalAtlasConfig, cylindrical_atlas, head_axis_from_poses
+from polarface.geometry.fusion import PoissonConfig, poisson_mesh
+from polarface.geometry.mesh import save_obj, save_ply
+from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_point_cloud
+from polarface.geometry.poses import save_poses
+from polarface.geometry.registration import RegistrationConfig, fuse_registered, register_sequence
+from polarface.geometry.stereo import StereoConfig, StereoDepth, match_stereo_pair
+from polarface.io import read_json_object, write_json_atomic
+
+__all__ = ["GEOMETRY_JSON", "GeometryConfig", "frame_stereo", "reconstruct_geometry"]
+
+LOGGER = logging.getLogger(__name__)
+#: The stage's summary file in GEOM.
+GEOMETRY_JSON = "geometry.json"
+
+
+@dataclasses.dataclass(frozen=True)
+class GeometryConfig:
+    """Options of the geometry stage (defaults: the paper rig, module docstring).
+
+    Attributes:
+        stereo: dense stereo of each pair (:class:`polarface.geometry.stereo.StereoConfig`).
+        frame_voxel_mm: the pairs' clouds of a frame are merged on this voxel grid, mm.
+        frame_poisson: screened Poisson meshing of each frame's cloud.
+        registration: registration of the sequence (:class:`polarface.geometry.registration.RegistrationConfig`).
+        reference_voxel_mm: the registered frames' clouds are merged on this voxel grid, mm.
+        reference_poisson: meshing of the reference cloud.
+        texture_resolution: side of the reference mesh's UV atlas, texels.
+        reference_frame: the capture frame whose rig world is the model frame (None: the middle frame).
+    """
+
+    stereo: StereoConfig = StereoConfig()
+    frame_voxel_mm: float = 0.5
+    frame_poisson: PoissonConfig = PoissonConfig()
+    registration: RegistrationConfig = RegistrationConfig()
+    reference_voxel_mm: float = 0.5
+    reference_poisson: PoissonConfig = PoissonConfig()
+    texture_resolution: int = 512
+    reference_frame: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("frame_voxel_mm", "reference_voxel_mm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"argument '{name}' must be > 0; got {getattr(self, name)}")
+        CylindricalAtlasConfig(resolution=int(self.texture_resolution))
+
+    def to_json(self) -> dict[str, Any]:
+        """The configuration as plain JSON values."""
+        return _jsonable(dataclasses.asdict(self))
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def frame_stereo(store: CaptureStore, frame_index: int, config: StereoConfig) -> list[tuple[str, StereoDepth]]:
+    """Dense stereo of every stereo pair of one frame: ``[(pair name, StereoDepth), ...]``.
+
+    The raw frames are read from ``store`` and black-level corrected; saturation is tested on the raw
+    counts. Raises ValueError when the rig has no stereo pair (pointing to known-geometry mode).
+    """
+    results = []
+    for camera_a, camera_b in store.rig.stereo_camera_pairs():
+        images = [
+            store.read_raw(frame_index, camera.id).astype(np.float32) - camera.black_level
+            for camera in (camera_a, camera_b)
+        ]
+        depth = match_stereo_pair(
+            images[0], images[1], camera_a.pinhole(), camera_b.pinhole(), config,
+            saturation=camera_a.saturation_level - camera_a.black_level,
+        )
+        results.append((f"{camera_a.id}+{camera_b.id}", depth))
+    return results
+
+
+def _paths(out: Path, frame: int) -> tuple[Path, Path]:
+    return out / "clouds" / f"{frame:06d}.npz", out / "frames" / f"{frame:06d}.ply"
+
+
+def _process_frame(store: CaptureStore, frame: int, out: Path, config: GeometryConfig,
+                   previews: bool) -> dict[str, Any]:
+    """Stereo, fusion and meshing of one frame; returns its summary entry."""
+    started = time.perf_counter()
+    pairs = frame_stereo(store, frame, config.stereo)
+    cloud = PointCloud.concatenate([depth.cloud for _, depth in pairs]).voxel_downsample(config.frame_voxel_mm)
+    cloud_path, mesh_path = _paths(out, frame)
+    entry: dict[str, Any] = {"points": len(cloud), "pairs": {n: len(d.cloud) for n, d in pairs}}
+    if previews:
+        from polarface.report.geometry import write_depth_previews
+
+        write_depth_previews(out / "previews", pairs)
+    try:
+        mesh = poisson_mesh(cloud, config.frame_poisson)
+    except ValueError as exc:
+        entry["error"] = f"no mesh: {exc}"
+        save_point_cloud(cloud_path, cloud)
+        return entry
+    save_ply(mesh_path, mesh)
+    save_point_cloud(cloud_path, cloud)  # written last: marks the frame complete
+    entry.update({"mesh_vertices": mesh.vertex_count, "seconds": time.perf_counter() - started})
+    return entry
+
+
+def _check_resume(out: Path, header: dict[str, Any]) -> dict[str, Any]:
+    """The previous summary when ``out`` holds this configuration's partial run; ValueError when it holds
+    another one."""
+    path = out / GEOMETRY_JSON
+    if not path.exists():
+        return {}
+    previous = read_json_object(path)
+    for key in ("capture", "config"):
+        if previous.get(key) != header[key]:
+            raise ValueError(
+                f"'{out}' holds a geometry stage run with another {key}; choose another output folder"
+            )
+    return previous
+
+
+def _front_direction(store: CaptureStore, centre: np.ndarray) -> np.ndarray:
+    """Unit direction from ``centre`` towards the polarimetric cameras (the face's side)."""
+    cameras = store.rig.polarimetric_cameras() or store.rig.cameras
+    towards = np.mean([camera.centre_mm for camera in cameras], axis=0) - centre
+    return towards / max(float(np.linalg.norm(towards)), 1e-9)
+
+
+def reconstruct_geometry(
+    capture: str | Path,
+    out: str | Path,
+    config: GeometryConfig = GeometryConfig(),
+    *,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run the geometry stage of ``capture`` into ``out`` (module docstring); returns the summary.
+
+    Raises:
+        ValueError: the rig has no stereo pair or a pair's calibration is broken (nothing written), no
+            frame gives a usable cloud, or ``out`` holds a run with another capture or configuration.
+    """
+    from polarface.results.fingerprint import capture_identity
+
+    started = time.perf_counter()
+    store = CaptureStore.open(capture)
+    store.rig.stereo_camera_pairs()  # fails before anything is written
+    frames = [record.index for record in store.frames]
+    if not frames:
+        raise ValueError(f"capture '{capture}' has no complete frame")
+    reference = frames[len(frames) // 2] if config.reference_frame is None else int(config.reference_frame)
+    if reference not in frames:
+        raise ValueError(f"argument 'reference_frame': frame {reference} is not in the capture {frames}")
+    out = Path(out)
+    header = {
+        "format": "polarface-geometry", "version": 1, "capture": capture_identity(store.root),
+        "config": config.to_json(), "reference_frame": reference, "complete": False,
+    }
+    previous = _check_resume(out, header)
+    out.mkdir(parents=True, exist_ok=True)
+    entries: dict[str, Any] = dict(previous.get("frames", {}))
+    write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries})
+    for frame in tqdm(frames, desc="geometry: stereo", unit="frame", disable=not progress):
+        if _paths(out, frame)[0].exists() and str(frame) in entries:
+            continue
+        entries[str(frame)] = _process_frame(store, frame, out, config, previews=frame == reference)
+        write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries})
+    stereo_s = time.perf_counter() - started
+    failed = {f: entries[str(f)]["error"] for f in frames if "error" in entries[str(f)]}
+    if reference in failed:
+        raise ValueError(f"the reference frame {reference} has no usable stereo geometry: {failed[reference]}")
+    usable = [f for f in frames if f not in failed]
+    registration = register_sequence(
+        usable, lambda f: load_point_cloud(_paths(out, f)[0]), reference, config.registration, progress=progress
+    )
+    poses = _all_poses(frames, usable, registration.poses)
+    fused = fuse_registered(
+        usable, lambda f: load_point_cloud(_paths(out, f)[0]), registration, config.reference_voxel_mm
+    )
+    mesh = poisson_mesh(fused, config.reference_poisson)
+    axis = head_axis_from_poses(poses)
+    centre = fused.points.mean(axis=0)
+    atlas = cylindrical_atlas(
+        mesh, axis, centre, _front_direction(store, centre),
+        CylindricalAtlasConfig(resolution=int(config.texture_resolution)),
+    )
+    save_obj(out / "mesh.obj", atlas.mesh)
+    save_poses(out / "poses.json", poses)
+    rejected = {str(f): reason for f, reason in {**failed, **registration.rejected}.items()}
+    summary = {
+        **header,
+        "complete": True,
+        "frames": entries,
+        "rejected_frames": rejected,
+        "registration": registration.to_json(),
+        "atlas": atlas.to_json(),
+        "mesh": {"vertices": atlas.mesh.vertex_count, "faces": atlas.mesh.face_count},
+        "timings": {"stereo_and_frame_meshes_s": stereo_s, "total_s": time.perf_counter() - started},
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+    }
+    from polarface.report.geometry import write_geometry_report
+
+    write_geometry_report(out, summary, atlas.mesh, poses, store.rig)
+    write_json_atomic(out / GEOMETRY_JSON, summary)
+    return summary
+
+
+def _all_poses(frames: list[int], usable: list[int], poses: np.ndarray) -> np.ndarray:
+    """One pose per capture frame: a frame without a cloud takes its nearest usable neighbour's pose."""
+    by_frame = dict(zip(usable, np.asarray(poses), strict=True))
+    result = []
+    for frame in frames:
+        nearest = min(usable, key=lambda f: (abs(f - frame), f))
+        result.append(by_frame[nearest])
+    return np.stack(result)
