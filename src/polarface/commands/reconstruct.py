@@ -1,15 +1,17 @@
 """``polarface reconstruct CAPTURE --out RESULT``: static polarimetric inverse rendering (paper Sec. 5).
 
 CAPTURE is a static capture store (``polarface ingest`` / ``SIM/static``) or a simulation folder
-(then ``SIM/static`` is used and the geometry defaults to ``SIM/ground_truth``). Geometry is "known":
-``--geometry DIR`` (``DIR/mesh_rest.obj`` + ``DIR/static/poses.json``, the simulator's ground-truth
-layout) or ``--mesh MESH --poses POSES`` (OBJ/PLY with UVs in the model frame, mm; model -> rig-world
-4x4 per capture frame).
+(then ``SIM/static`` is used). By default the geometry (reference mesh with a cylindrical atlas, poses)
+is reconstructed from the capture's stereo pairs into ``RESULT/geometry`` (``polarface geometry``).
+Known geometry instead: ``--geometry DIR`` (a GEOM folder of ``polarface geometry``, or a simulation's
+``ground_truth`` folder: ``mesh_rest.obj`` + ``static/poses.json``) or ``--mesh MESH --poses POSES``
+(OBJ/PLY with UVs in the model frame, mm; model -> rig-world 4x4 per capture frame).
 
 The run is a sequence of stages over the RESULT folder (:data:`polarface.pipeline.STAGES`, layout in
 ``docs/result_folder.md``); each records itself in ``result.json`` and is skipped by ``--resume`` when
 done:
 
+* ``geometry``: ``geometry/`` from the stereo pairs (skipped with known geometry);
 * ``prepare``: ``rig.json``, ``mesh.obj``, ``result.json`` skeleton, ``unwrap.zarr`` (texture space);
 * ``polarimetric``: ``maps/*.exr`` + ``maps/mask.png``, ``previews/*.png``, ``checkpoints/``;
 * ``report``: ``report.html`` (maps, loss curve, residuals, DoP/AoLP of observation vs re-render).
@@ -37,7 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--geometry",
         type=Path,
         default=None,
-        help="folder with mesh_rest.obj and static/poses.json (default SIM/ground_truth)",
+        help="known geometry: a GEOM folder (polarface geometry) or SIM/ground_truth "
+        "(default: reconstruct it from the stereo pairs)",
     )
     parser.add_argument(
         "--mesh", type=Path, default=None, help="rest mesh with UVs (OBJ/PLY, model frame, mm)"

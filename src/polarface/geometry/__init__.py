@@ -1,9 +1,19 @@
 """Geometry: meshes with UV atlases, the bundled head, cameras, Embree ray casting, UV rasterisation,
-normals from heights (torch, differentiable), rigid poses and expression deformations.
+normals from heights (torch, differentiable), rigid poses and expression deformations, and geometry from
+stereo: dense two-view stereo, oriented point clouds, Poisson meshing, sequence registration and the
+cylindrical texture atlas.
 
 Units mm, angles radians; cameras in the OpenCV convention; UVs v up (``docs/geometry.md``).
 """
 
+from polarface.geometry.atlas import (
+    CylindricalAtlas,
+    CylindricalAtlasConfig,
+    cylindrical_atlas,
+    default_axis_point,
+    head_axis_from_poses,
+    head_axis_point_from_poses,
+)
 from polarface.geometry.camera import PinholeCamera, distort_normalized, look_at, undistort_normalized
 from polarface.geometry.deform import (
     EXPRESSIONS,
@@ -35,6 +45,7 @@ from polarface.geometry.mesh import (
     save_ply,
     vertex_normals,
 )
+from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_point_cloud
 from polarface.geometry.poses import (
     StaticSequenceConfig,
     check_rigid,
@@ -47,6 +58,7 @@ from polarface.geometry.poses import (
     static_sequence_poses,
 )
 from polarface.geometry.raycast import RayCaster, RayHits, embree_available
+from polarface.geometry.stereo import StereoConfig, StereoDepth, StereoRectification, match_stereo_pair, rectify_pair
 from polarface.geometry.uv_raster import (
     UVRaster,
     dilate_texture,

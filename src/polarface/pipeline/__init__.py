@@ -1,5 +1,5 @@
 """Orchestration over folders: the reconstruct stages and checkpoints, the biophysical stage's files,
-the evaluation against ground truth, the description of a folder (``info``), the demo jobs, the skin
+the geometry stage (stereo -> meshes, poses, atlas), the evaluation against ground truth, the description of a folder (``info``), the demo jobs, the skin
 fit of a spectra file and the IOR of a sphere capture. Commands call one function of here."""
 
 from polarface.pipeline.biophysical import load_stage_inputs, run_biophysical_stage
@@ -13,6 +13,7 @@ from polarface.pipeline.evaluate import (
     rerender_metrics,
 )
 from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
+from polarface.pipeline.geometry import GEOMETRY_JSON, GeometryConfig, frame_stereo, reconstruct_geometry
 from polarface.pipeline.info import folder_info, format_info
 from polarface.pipeline.ior import (
     ANALYZER_IMAGE_NAMES,
@@ -37,8 +38,10 @@ from polarface.pipeline.skin_fit import (
 
 __all__ = [
     "ANALYZER_IMAGE_NAMES",
+    "GEOMETRY_JSON",
     "METRIC_GROUPS",
     "STAGES",
+    "GeometryConfig",
     "ReconstructContext",
     "ReconstructInputs",
     "SkinFitSummary",
@@ -50,12 +53,14 @@ __all__ = [
     "fit_spectra_file",
     "folder_info",
     "format_info",
+    "frame_stereo",
     "ground_truth_root",
     "load_stage_inputs",
     "polarimetric_metrics",
     "read_analyzer_image",
     "read_reflectance_csv",
     "reconstruct",
+    "reconstruct_geometry",
     "reconstruct_summary_line",
     "rerender_metrics",
     "resolve_reconstruct_inputs",

@@ -33,7 +33,13 @@ import numpy as np
 from tqdm import tqdm
 
 from polarface.capture.store import CaptureStore
-from polarface.geometry.atlas import CylindricalAtlasConfig, cylindrical_atlas, head_axis_from_poses
+from polarface.geometry.atlas import (
+    CylindricalAtlasConfig,
+    cylindrical_atlas,
+    default_axis_point,
+    head_axis_from_poses,
+    head_axis_point_from_poses,
+)
 from polarface.geometry.fusion import PoissonConfig, poisson_mesh
 from polarface.geometry.mesh import save_obj, save_ply
 from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_point_cloud
@@ -213,8 +219,11 @@ def reconstruct_geometry(
         usable, lambda f: load_point_cloud(_paths(out, f)[0]), registration, config.reference_voxel_mm
     )
     mesh = poisson_mesh(fused, config.reference_poisson)
-    axis = head_axis_from_poses(poses)
-    centre = fused.points.mean(axis=0)
+    axis = head_axis_from_poses(poses, reference=frames.index(reference))
+    try:  # the chair's rotation axis; a sequence that hardly turns falls back to a circle fit
+        centre = head_axis_point_from_poses(poses, axis, reference=frames.index(reference))
+    except ValueError:
+        centre = default_axis_point(mesh.vertices, axis)
     atlas = cylindrical_atlas(
         mesh, axis, centre, _front_direction(store, centre),
         CylindricalAtlasConfig(resolution=int(config.texture_resolution)),

@@ -6,6 +6,8 @@ records itself in ``result.json`` and is skipped when resuming once done. ``resu
 ``fingerprint`` (capture, mesh, poses, texture resolution, hold-out, fit options) is recorded when a
 run starts; a resumed run whose inputs or options differ is refused (:func:`check_fingerprint`):
 
+* ``geometry``: ``geometry/`` (mesh, poses, per-frame stereo meshes) from the capture's stereo pairs
+  (:mod:`polarface.pipeline.geometry`), unless the geometry is given;
 * ``prepare``: ``rig.json``, ``mesh.obj``, ``result.json`` header, ``unwrap.zarr`` (texture space);
 * ``polarimetric``: ``maps/*.exr`` + ``maps/mask.png``, ``previews/*.png``, ``checkpoints/``;
 * ``biophysical``: chromophore maps and diffusion profiles (:mod:`polarface.pipeline.biophysical`);
@@ -40,6 +42,7 @@ __all__ = [
     "resolve_reconstruct_inputs",
     "run_stages",
     "stage_biophysical",
+    "stage_geometry",
     "stage_polarimetric",
     "stage_prepare",
     "stage_report",
@@ -64,6 +67,8 @@ class ReconstructContext:
     fit_options: dict = dataclasses.field(default_factory=dict)
     stop_after_patches: int | None = None
     threads: int | None = 1
+    geometry_dir: Path | None = None
+    stereo: bool = False
 
     @property
     def folder(self) -> ResultFolder:
@@ -73,26 +78,40 @@ class ReconstructContext:
 
 @dataclasses.dataclass(frozen=True)
 class ReconstructInputs:
-    """Resolved inputs: the capture store, the rest mesh, the poses and the texture resolution."""
+    """Resolved inputs: the capture store, the geometry and the texture resolution.
+
+    ``mesh_path`` and ``poses_path`` are None when the geometry stage reconstructs them from the
+    capture's stereo pairs (into ``RESULT/geometry``); ``geometry_dir`` is the GEOM folder of a
+    ``polarface geometry`` run when one was given.
+    """
 
     capture: Path
-    mesh_path: Path
-    poses_path: Path
+    mesh_path: Path | None
+    poses_path: Path | None
     texture_resolution: int
+    geometry_dir: Path | None = None
 
 
-def _resolve_geometry(sim_root: Path | None, geometry: Path | None, mesh: Path | None,
-                      poses: Path | None) -> tuple[Path, Path]:
+def _resolve_geometry(geometry: Path | None, mesh: Path | None,
+                      poses: Path | None) -> tuple[Path | None, Path | None, Path | None]:
+    """``(mesh, poses, GEOM folder)``; ``(None, None, None)`` selects the stereo geometry stage."""
     if mesh is not None or poses is not None:
         if mesh is None or poses is None:
             raise ValueError("arguments '--mesh' and '--poses' must be given together")
-        return Path(mesh), Path(poses)
-    geometry = geometry or (sim_root / "ground_truth" if sim_root is not None else None)
+        if geometry is not None:
+            raise ValueError("argument '--geometry' cannot be combined with '--mesh'/'--poses'")
+        return Path(mesh), Path(poses), None
     if geometry is None:
-        raise ValueError(
-            "no geometry: pass '--geometry DIR' or '--mesh MESH --poses POSES' (known-geometry mode)"
-        )
-    return Path(geometry) / "mesh_rest.obj", Path(geometry) / "static" / "poses.json"
+        return None, None, None
+    geometry = Path(geometry)
+    if (geometry / "geometry.json").is_file():  # a GEOM folder of `polarface geometry`
+        return geometry / "mesh.obj", geometry / "poses.json", geometry
+    if (geometry / "mesh_rest.obj").is_file():  # the simulator's ground-truth layout
+        return geometry / "mesh_rest.obj", geometry / "static" / "poses.json", None
+    raise FileNotFoundError(
+        f"'--geometry {geometry}' holds neither geometry.json (a GEOM folder) nor mesh_rest.obj "
+        "(a simulation's ground_truth folder)"
+    )
 
 
 def resolve_reconstruct_inputs(
@@ -103,10 +122,12 @@ def resolve_reconstruct_inputs(
     poses: str | Path | None = None,
     texture_resolution: int | None = None,
 ) -> ReconstructInputs:
-    """Resolve a capture store or simulation folder and its known geometry.
+    """Resolve a capture store or simulation folder and its geometry.
 
-    ``capture`` is a capture store or a simulation folder (then ``SIM/static`` is used, the geometry
-    defaults to ``SIM/ground_truth`` and the texture resolution to the simulation's; else 512).
+    ``capture`` is a capture store or a simulation folder (then ``SIM/static`` is used and the texture
+    resolution defaults to the simulation's; else 512). Without ``geometry``, ``mesh`` and ``poses`` the
+    geometry stage reconstructs them from the capture's stereo pairs (also for a simulation: its
+    ground truth is used only by ``evaluate``, or when passed as ``geometry=SIM/ground_truth``).
 
     Raises:
         FileNotFoundError: the capture or mesh does not exist. ValueError: not a capture store, no
@@ -120,12 +141,12 @@ def resolve_reconstruct_inputs(
         sim_root, capture = capture, capture / "static"
     if not (capture / "manifest.json").exists():
         raise ValueError(f"'{capture}' is not a capture store (no manifest.json)")
-    mesh_path, poses_path = _resolve_geometry(
-        sim_root, Path(geometry) if geometry is not None else None, mesh, poses
+    mesh_path, poses_path, geometry_dir = _resolve_geometry(
+        Path(geometry) if geometry is not None else None, mesh, poses
     )
-    if not mesh_path.is_file():
+    if mesh_path is not None and not mesh_path.is_file():
         raise FileNotFoundError(f"mesh '{mesh_path}' does not exist")
-    if not poses_path.is_file():
+    if poses_path is not None and not poses_path.is_file():
         raise ValueError(f"the capture has no poses: '{poses_path}' does not exist (pass '--poses')")
     resolution = texture_resolution
     if resolution is None:
@@ -133,7 +154,7 @@ def resolve_reconstruct_inputs(
         summary = (sim_root / "simulation.json") if sim_root is not None else None
         if summary is not None and summary.exists():
             resolution = int(json.loads(summary.read_text())["preset"]["texture_resolution"])
-    return ReconstructInputs(capture, mesh_path, poses_path, int(resolution))
+    return ReconstructInputs(capture, mesh_path, poses_path, int(resolution), geometry_dir)
 
 
 def _check_manifest(store) -> None:
@@ -171,14 +192,24 @@ def _check_derived_store(store) -> None:
         raise ValueError(f"capture store '{path}' cannot be read: {reason}") from exc
 
 
-def _load_geometry(ctx: ReconstructContext):
+def _open_capture(ctx: ReconstructContext):
+    """The checked capture store; in stereo mode also its stereo pairs (ValueError pointing to
+    ``--mesh``/``--poses`` when the rig has none)."""
     from polarface.capture.store import CaptureStore
-    from polarface.geometry.mesh import load_mesh
-    from polarface.geometry.poses import load_poses
 
     store = CaptureStore.open(ctx.capture)
     _check_manifest(store)
     _check_derived_store(store)
+    if ctx.stereo:
+        store.rig.stereo_camera_pairs()
+    return store
+
+
+def _load_geometry(ctx: ReconstructContext):
+    from polarface.geometry.mesh import load_mesh
+    from polarface.geometry.poses import load_poses
+
+    store = _open_capture(ctx)
     mesh = load_mesh(ctx.mesh_path)
     poses = load_poses(ctx.poses_path)
     frames = [r.index for r in store.frames]
@@ -189,14 +220,48 @@ def _load_geometry(ctx: ReconstructContext):
     return store, mesh, poses
 
 
+def stage_geometry(ctx: ReconstructContext) -> dict[str, Any]:
+    """Reconstruct the mesh and poses from the capture's stereo pairs into ``RESULT/geometry``
+    (:func:`polarface.pipeline.geometry.reconstruct_geometry`); skipped when the geometry is given."""
+    from polarface.pipeline.geometry import GeometryConfig, reconstruct_geometry
+
+    if not ctx.stereo:
+        return {"skipped": "geometry given (--geometry or --mesh/--poses)"}
+    summary = reconstruct_geometry(
+        ctx.capture, ctx.geometry_dir, GeometryConfig(texture_resolution=ctx.texture_resolution),
+        progress=ctx.progress,
+    )
+    return {
+        "geometry": str(ctx.geometry_dir),
+        "reference_frame": summary["reference_frame"],
+        "rejected_frames": summary["rejected_frames"],
+        "texel_size_mm": summary["atlas"].get("texel_size_mm"),
+        "timings": summary["timings"],
+    }
+
+
+def _geometry_summary(ctx: ReconstructContext) -> dict[str, Any]:
+    """The GEOM folder's ``geometry.json`` (empty in known-geometry mode)."""
+    from polarface.io import read_json_object
+
+    if ctx.geometry_dir is None or not (ctx.geometry_dir / "geometry.json").is_file():
+        return {}
+    return read_json_object(ctx.geometry_dir / "geometry.json")
+
+
 def stage_prepare(ctx: ReconstructContext) -> dict[str, Any]:
-    """Copy rig and mesh, write the result.json header and unwrap the capture into ``unwrap.zarr``."""
+    """Copy rig and mesh, write the result.json header and unwrap the capture into ``unwrap.zarr``
+    (frames the geometry stage rejected are left out)."""
     from polarface.texture import UnwrapConfig, unwrap_capture
 
     started = time.perf_counter()
     folder = ctx.folder
     store, mesh, poses = _load_geometry(ctx)
-    config = UnwrapConfig(texture_resolution=ctx.texture_resolution, holdout_every=ctx.holdout_every)
+    geometry = _geometry_summary(ctx)
+    excluded = tuple(int(f) for f in geometry.get("rejected_frames", {}))
+    config = UnwrapConfig(
+        texture_resolution=ctx.texture_resolution, holdout_every=ctx.holdout_every, excluded_frames=excluded
+    )
     unwrap = unwrap_capture(store, mesh, poses, folder.unwrap_path, config, progress=ctx.progress)
     store.rig.save(folder.rig_path)
     folder.write_mesh(mesh)
@@ -213,6 +278,9 @@ def stage_prepare(ctx: ReconstructContext) -> dict[str, Any]:
         "capture": str(ctx.capture),
         "mesh": str(ctx.mesh_path),
         "poses": str(ctx.poses_path),
+        "geometry": str(ctx.geometry_dir) if ctx.geometry_dir is not None else None,
+        "reference_frame": int(geometry.get("reference_frame", 0)),
+        "excluded_frames": list(excluded),
         "timings": {"prepare_s": time.perf_counter() - started},
     }
 
@@ -284,6 +352,7 @@ def stage_report(ctx: ReconstructContext) -> dict[str, Any]:
 
 #: The stages in order: (name, function).
 STAGES: list[tuple[str, Callable[[ReconstructContext], dict]]] = [
+    ("geometry", stage_geometry),
     ("prepare", stage_prepare),
     ("polarimetric", stage_polarimetric),
     ("biophysical", stage_biophysical),
@@ -300,10 +369,15 @@ def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
     from polarface.inverse.polarimetric import PolarimetricConfig
     from polarface.results.fingerprint import capture_identity, file_identity
 
+    if ctx.stereo:
+        from polarface.pipeline.geometry import GeometryConfig
+
+        geometry = {"geometry": GeometryConfig(texture_resolution=ctx.texture_resolution).to_json()}
+    else:
+        geometry = {"mesh": file_identity(ctx.mesh_path), "poses": file_identity(ctx.poses_path)}
     return {
         "capture": capture_identity(ctx.capture),
-        "mesh": file_identity(ctx.mesh_path),
-        "poses": file_identity(ctx.poses_path),
+        **geometry,
         "texture_resolution": int(ctx.texture_resolution),
         "holdout_every": int(ctx.holdout_every),
         "options": _jsonable(dataclasses.asdict(PolarimetricConfig(**ctx.fit_options))),
@@ -388,9 +462,14 @@ def reconstruct(
     if holdout_every < 0 or holdout_every == 1:
         raise ValueError(f"argument '--holdout-every' must be 0 or >= 2; got {holdout_every}")
     options = dict(fit_options or {})
+    stereo = inputs.mesh_path is None
+    geometry_dir = ResultFolder(out).geometry_dir if stereo else inputs.geometry_dir
     ctx = ReconstructContext(
-        inputs.capture, out, inputs.mesh_path, inputs.poses_path, inputs.texture_resolution,
-        device, resume, progress, holdout_every, options, threads=threads,
+        inputs.capture, out,
+        geometry_dir / "mesh.obj" if stereo else inputs.mesh_path,
+        geometry_dir / "poses.json" if stereo else inputs.poses_path,
+        inputs.texture_resolution, device, resume, progress, holdout_every, options, threads=threads,
+        geometry_dir=geometry_dir, stereo=stereo,
     )
     created = not out.exists()
     try:
@@ -398,7 +477,7 @@ def reconstruct(
         from polarface.inverse.polarimetric import PolarimetricConfig
 
         PolarimetricConfig(**options)
-        _load_geometry(ctx)
+        _open_capture(ctx) if stereo else _load_geometry(ctx)
         out.mkdir(parents=True, exist_ok=True)
         return run_stages(ctx)
     except (ValueError, FileNotFoundError):

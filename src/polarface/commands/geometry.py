@@ -1,0 +1,50 @@
+"""``polarface geometry CAPTURE --out GEOM``: mesh, poses and per-frame stereo meshes from the capture's
+stereo pairs (paper Sec. "Geometry Reconstruction and Tracking"; layout in ``docs/geometry.md``,
+"Geometry from stereo"). ``reconstruct`` runs the same stage by default; ``reconstruct --geometry GEOM``
+reuses this command's output. Rerunning on the same output resumes at the first unfinished frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from polarface.commands import add_force_argument
+
+NAME = "geometry"
+HELP = "reference mesh with a cylindrical atlas, poses and per-frame meshes from the stereo pairs"
+INTERRUPTED = "finished frames kept in {out}; rerun the same command to continue"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("capture", type=Path, help="static capture store, or a simulation folder (SIM)")
+    parser.add_argument("--out", type=Path, required=True, help="GEOM folder")
+    parser.add_argument(
+        "--texture-resolution", type=int, default=None,
+        help="UV atlas side in texels (default: the simulation's, else 512)",
+    )
+    parser.add_argument(
+        "--reference-frame", type=int, default=None,
+        help="capture frame whose rig world is the model frame (default: the middle frame)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_force_argument(parser, "GEOM")
+
+
+def run(args: argparse.Namespace) -> int:
+    from polarface.io.output_folder import json_manifest, output_folder
+    from polarface.pipeline import resolve_reconstruct_inputs
+    from polarface.pipeline.geometry import GEOMETRY_JSON, GeometryConfig, reconstruct_geometry
+
+    inputs = resolve_reconstruct_inputs(args.capture, texture_resolution=args.texture_resolution)
+    config = GeometryConfig(texture_resolution=inputs.texture_resolution, reference_frame=args.reference_frame)
+    owned = json_manifest(GEOMETRY_JSON, format="polarface-geometry")
+    with output_folder(args.out, NAME, force=args.force, owned=owned, marker=False) as out:
+        summary = reconstruct_geometry(inputs.capture, out, config, progress=not args.quiet)
+    rejected = summary["rejected_frames"]
+    print(
+        f"polarface geometry: wrote {args.out} (reference frame {summary['reference_frame']}, "
+        f"{summary['mesh']['vertices']} vertices, {len(rejected)} rejected frame(s)"
+        f"{': ' + ', '.join(rejected) if rejected else ''}); report {Path(args.out) / 'report.html'}"
+    )
+    return 0
