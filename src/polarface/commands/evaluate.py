@@ -1,7 +1,8 @@
 """``polarface evaluate RESULT --gt SIM_DIR``: JSON metrics of a reconstruction against ground truth.
 
-The metric groups (``polarimetric``, ``rerender``, ``biophysical``) are
+The metric groups (``polarimetric``, ``rerender``, ``biophysical``, ``geometry``) are
 :data:`polarface.pipeline.METRIC_GROUPS` (definitions in :mod:`polarface.pipeline.evaluate`).
+``--figures DIR`` also writes the figures (the geometry error heat map ``DIR/geometry_error_mm.png``).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--groups", nargs="*", default=None, help="metric groups to compute (default all)")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     parser.add_argument("--force", action="store_true", help="replace --out even if it is not a metrics file")
+    parser.add_argument("--figures", type=Path, default=None,
+                        help="also write figures here (geometry error heat map geometry_error_mm.png)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -28,10 +31,10 @@ def run(args: argparse.Namespace) -> int:
     from polarface.pipeline import evaluate
 
     if args.out is None:
-        metrics = evaluate(args.result, args.gt, args.groups)
+        metrics = evaluate(args.result, args.gt, args.groups, figures_dir=args.figures)
     else:
         with output_file(args.out, NAME, force=args.force, owned=_metrics_file) as out:
-            metrics = evaluate(args.result, args.gt, args.groups)
+            metrics = evaluate(args.result, args.gt, args.groups, figures_dir=args.figures)
             write_json_atomic(out, metrics)
     print(json.dumps(metrics, indent=2))
     return 0

@@ -13,9 +13,17 @@ and no value appears under two keys (keys listed in ``docs/reconstruct.md``, "ev
   in texture space (visible texels), divided by the mean observed ``I_sss`` of those views (``*_rmse``)
   and, for ``I_s``, also by its own mean absolute value (``i_s_rmse_over_mean_abs``);
 * ``biophysical``: :func:`evaluate_biophysical` (same naming scheme: ``median_abs_error`` ...); skipped
-  when the RESULT or the ground truth has no chromophore maps.
+  when the RESULT or the ground truth has no chromophore maps;
+* ``geometry``: :func:`polarface.pipeline.evaluate_geometry.geometry_metrics` (surface accuracy,
+  completeness and pose errors of the stereo geometry stage); skipped in known-geometry mode.
 
-The ground truth (``SIM/ground_truth`` or that folder itself) has the RESULT's ``maps/`` layout.
+The ground truth (``SIM/ground_truth`` or that folder itself) has the RESULT's ``maps/`` layout, its
+rest mesh ``mesh_rest.obj`` and poses ``static/poses.json``. Map metrics (``polarimetric``,
+``biophysical``) go through one :class:`TexelCorrespondence`: texel by texel when the RESULT's mesh and
+model frame are the ground truth's (known geometry), else each RESULT texel's closest point on the
+ground-truth surface after aligning the model frames through the reference frame's poses (texels more
+than 2 mm away excluded and counted); the ``correspondence`` key says which
+(:mod:`polarface.pipeline.evaluate_geometry`).
 """
 
 from __future__ import annotations
@@ -27,6 +35,15 @@ from typing import Any
 import numpy as np
 
 from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
+from polarface.pipeline.evaluate_geometry import (
+    GEOMETRY_ERROR_PNG,
+    TexelCorrespondence,
+    geometry_metrics,
+    result_texel_geometry,
+    texel_correspondence,
+    truth_shading_normals,
+    write_geometry_error_map,
+)
 from polarface.results import POLARIMETRIC_MAPS, RHO_SSS_BAR, ResultFolder
 
 __all__ = [
@@ -34,9 +51,11 @@ __all__ = [
     "biophysical_metrics",
     "evaluate",
     "evaluate_biophysical",
+    "geometry_metrics",
     "ground_truth_root",
     "polarimetric_metrics",
     "rerender_metrics",
+    "write_figures",
 ]
 
 
@@ -83,15 +102,52 @@ def _checked_maps(
     return maps
 
 
-def _load(result_dir: Path, gt_dir: Path) -> tuple[dict, dict[str, np.ndarray], dict[str, np.ndarray]]:
+def _load(
+    result_dir: Path, gt_dir: Path
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], TexelCorrespondence]:
+    """The RESULT's and the ground truth's checked maps and their :class:`TexelCorrespondence` (the
+    ground truth's maps must have the RESULT's shape only in the texel path)."""
     folder = ResultFolder(result_dir)
     result_json = folder.read_result()
     names = list(result_json.get("channel_names", []))
     resolution = result_json.get("texture_resolution")
     estimate = _checked_maps(folder, names, tuple(resolution) if resolution else None)
+    correspondence = texel_correspondence(result_dir, gt_dir, estimate["mask"].shape)
     truth_folder = ResultFolder(ground_truth_root(gt_dir))
-    truth = _checked_maps(truth_folder, names, estimate["mask"].shape)
-    return result_json, estimate, truth
+    shape = estimate["mask"].shape if correspondence.kind == "texel" else None
+    truth = _checked_maps(truth_folder, names, shape)
+    return estimate, truth, correspondence
+
+
+def _shading_normals(result_dir: Path, displacement_mm: np.ndarray) -> np.ndarray:
+    """``(Ht, Wt, 3)`` float32 shading normals of the RESULT's mesh displaced by ``displacement_mm``
+    (model frame): the unwrap store's texel geometry as the fit used it, or ``mesh.obj`` rasterised."""
+    from polarface.render import shading_normals, texel_shading_normals
+    from polarface.texture import UnwrapStore
+
+    displacement = displacement_mm.astype(np.float32)
+    path = ResultFolder(result_dir).unwrap_path
+    if path.exists():
+        unwrap = UnwrapStore.open(path)
+        if tuple(unwrap.resolution) == displacement.shape:
+            return texel_shading_normals(unwrap, displacement)
+    geometry = result_texel_geometry(result_dir, displacement.shape)
+    return np.nan_to_num(shading_normals(geometry, displacement)).astype(np.float32)
+
+
+def _normal_errors(result_dir: Path, gt_dir: Path, estimate: dict, truth: dict, mask: np.ndarray,
+                   correspondence: TexelCorrespondence) -> dict[str, float]:
+    """Median and mean angle (deg) between the RESULT's and the ground truth's shading normals."""
+    n_est = _shading_normals(result_dir, estimate["displacement_mm"])
+    if correspondence.kind == "texel":
+        n_gt = _shading_normals(result_dir, truth["displacement_mm"])[mask]
+        n_est = n_est[mask]
+    else:
+        n_gt = truth_shading_normals(gt_dir, truth["displacement_mm"])
+        n_gt = correspondence.truth_normals(n_gt, truth["mask"])[mask]
+        n_est = correspondence.rotated(n_est[mask])
+    angle = np.degrees(np.arccos(np.clip((n_est * n_gt).sum(-1), -1.0, 1.0)))
+    return {"median_abs_error": float(np.median(angle)), "mean_abs_error": float(np.mean(angle))}
 
 
 def _map_errors(name: str, estimate: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict[str, float]:
@@ -109,26 +165,19 @@ def _map_errors(name: str, estimate: np.ndarray, truth: np.ndarray, mask: np.nda
 
 def polarimetric_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
     """Per-map absolute/relative errors and the normal angular error (module docstring)."""
-    from polarface.render import texel_shading_normals
-    from polarface.texture import UnwrapStore
-
-    _, estimate, truth = _load(result_dir, gt_dir)
-    mask = estimate["mask"] & truth["mask"]
+    estimate, truth, correspondence = _load(result_dir, gt_dir)
+    mask = estimate["mask"] & correspondence.truth_mask(truth["mask"])
     if not mask.any():
         raise ValueError("no valid texel in common between the result and the ground truth")
-    metrics: dict[str, Any] = {"texels": int(mask.sum())}
+    metrics: dict[str, Any] = {"texels": int(mask.sum()), **correspondence.summary(estimate["mask"])}
     for name in (*POLARIMETRIC_MAPS, RHO_SSS_BAR):
         if name in estimate and name in truth:
-            metrics[name] = _map_errors(name, estimate[name], truth[name], mask)
-    unwrap = UnwrapStore.open(ResultFolder(result_dir).unwrap_path)
+            on_result = correspondence.truth_map(truth[name], truth["mask"])
+            metrics[name] = _map_errors(name, estimate[name], on_result, mask)
     if "displacement_mm" in estimate and "displacement_mm" in truth:
-        n_est = texel_shading_normals(unwrap, estimate["displacement_mm"].astype(np.float32))[mask]
-        n_gt = texel_shading_normals(unwrap, truth["displacement_mm"].astype(np.float32))[mask]
-        angle = np.degrees(np.arccos(np.clip((n_est * n_gt).sum(-1), -1.0, 1.0)))
-        metrics["normal_angular_error_deg"] = {
-            "median_abs_error": float(np.median(angle)),
-            "mean_abs_error": float(np.mean(angle)),
-        }
+        metrics["normal_angular_error_deg"] = _normal_errors(
+            result_dir, gt_dir, estimate, truth, mask, correspondence
+        )
     return metrics
 
 
@@ -160,7 +209,7 @@ def rerender_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
     from polarface.render import texel_shading_normals
     from polarface.texture import UnwrapStore
 
-    _, estimate, _ = _load(result_dir, gt_dir)
+    estimate, _, _ = _load(result_dir, gt_dir)
     unwrap = UnwrapStore.open(ResultFolder(result_dir).unwrap_path)
     held = [i for i, v in enumerate(unwrap.views) if v.held_out]
     if not held:
@@ -196,15 +245,29 @@ METRIC_GROUPS: dict[str, Callable[[Path, Path], dict]] = {
     "polarimetric": polarimetric_metrics,
     "rerender": rerender_metrics,
     "biophysical": biophysical_metrics,
+    "geometry": geometry_metrics,
 }
 
 
-def evaluate(result_dir: str | Path, gt_dir: str | Path, groups: list[str] | None = None) -> dict[str, Any]:
+def evaluate(
+    result_dir: str | Path,
+    gt_dir: str | Path,
+    groups: list[str] | None = None,
+    figures_dir: str | Path | None = None,
+) -> dict[str, Any]:
     """All requested metric groups (default all) as one dict ``{group: metrics}``.
+
+    Args:
+        result_dir: the RESULT folder; gt_dir: ``SIM`` or ``SIM/ground_truth``; groups: names of
+            :data:`METRIC_GROUPS` (None or empty: all).
+        figures_dir: when given, the figures are written there: the geometry error heat map
+            ``GEOMETRY_ERROR_PNG`` (:func:`write_geometry_error_map`; only with the closest-point
+            correspondence, whose distances are not zero by construction).
 
     Raises:
         FileNotFoundError: ``result_dir`` has no ``result.json`` or ``gt_dir`` no ground-truth maps;
-            a map or mask the ``polarimetric``/``rerender`` groups read is missing (in either folder).
+            a map or mask the ``polarimetric``/``rerender`` groups read is missing (in either folder);
+            a file of the closest-point correspondence or the ``geometry`` group (naming it).
         ValueError: an unknown group name, a malformed ``result.json``, a map whose shape is not the
             mask's or that holds NaN/inf inside the mask (each naming the file).
     """
@@ -216,4 +279,20 @@ def evaluate(result_dir: str | Path, gt_dir: str | Path, groups: list[str] | Non
     unknown = [g for g in names if g not in METRIC_GROUPS]
     if unknown:
         raise ValueError(f"argument '--groups': unknown {unknown}; choose from {list(METRIC_GROUPS)}")
-    return {name: METRIC_GROUPS[name](result_dir, gt_dir) for name in names}
+    metrics = {name: METRIC_GROUPS[name](result_dir, gt_dir) for name in names}
+    if figures_dir is not None:
+        write_figures(result_dir, gt_dir, figures_dir)
+    return metrics
+
+
+def write_figures(result_dir: str | Path, gt_dir: str | Path, figures_dir: str | Path) -> list[Path]:
+    """Write ``evaluate``'s figures into ``figures_dir`` (created); returns the paths written.
+
+    Today one figure: the geometry error heat map ``figures_dir/geometry_error_mm.png`` over the
+    RESULT's mask (closest-point correspondence only).
+    """
+    folder = ResultFolder(result_dir)
+    mask = folder.read_mask()
+    correspondence = texel_correspondence(result_dir, ground_truth_root(gt_dir), mask.shape)
+    written = write_geometry_error_map(Path(figures_dir) / GEOMETRY_ERROR_PNG, correspondence, mask)
+    return [written] if written is not None else []

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from polarface.inverse.biophysical import PARAMETER_ORDER, TotalsTable, local_channel_albedo, relative_rmse
+from polarface.pipeline.evaluate_geometry import texel_correspondence
 from polarface.results import RHO_SSS_BAR, ResultFolder
 from polarface.results import layout as names_
 
@@ -59,7 +60,10 @@ def evaluate_biophysical(result_dir: str | Path, gt_dir: str | Path) -> dict[str
         gt_dir: the simulator's ``SIM/ground_truth`` folder (or ``SIM`` itself).
 
     All relative RMSEs are ``||a - b|| / ||b||`` over texels and channels, over **all** texels valid in
-    both masks (``texels``) unless the key says otherwise.
+    both masks (``texels``) unless the key says otherwise. The ground truth is read through the
+    texel correspondence of ``evaluate`` (:func:`polarface.pipeline.evaluate_geometry.texel_correspondence`,
+    named by ``"correspondence"``): texel by texel in known geometry, else at each RESULT texel's
+    closest point on the ground-truth surface.
 
     Returns:
         ``{"texels": N, "c_m": {"median_abs_error", "mean_abs_error", "p95_abs_error"}, ... (the four maps),``
@@ -89,16 +93,21 @@ def evaluate_biophysical(result_dir: str | Path, gt_dir: str | Path) -> dict[str
     calibration = rig.spectral.to_calibration()
     names = list(calibration.channel_names)
     estimate = {n: result.read_scalar_map(n) for n in PARAMETER_ORDER}
-    truth = {n: truth_folder.read_scalar_map(n) for n in PARAMETER_ORDER}
     shape = estimate["c_m"].shape
-    if truth["c_m"].shape != shape:
+    correspondence = texel_correspondence(result_dir, truth_folder.root, shape)
+    truth_mask = truth_folder.read_mask()
+    truth = {n: correspondence.truth_map(truth_folder.read_scalar_map(n), truth_mask)
+             for n in PARAMETER_ORDER}
+    if correspondence.kind == "texel" and truth["c_m"].shape != shape:
         raise ValueError(f"resolution mismatch: result {shape}, ground truth {truth['c_m'].shape}")
-    mask = result.read_mask(shape) & truth_folder.read_mask(shape)
-    metrics: dict[str, Any] = {"texels": int(mask.sum()), **_chromophore_errors(estimate, truth, mask)}
+    truth_mask = truth_folder.read_mask(shape if correspondence.kind == "texel" else None)
+    mask = result.read_mask(shape) & correspondence.truth_mask(truth_mask)
+    metrics: dict[str, Any] = {"texels": int(mask.sum()), "correspondence": correspondence.kind,
+                               **_chromophore_errors(estimate, truth, mask)}
     table = TotalsTable(calibration.wavelengths_nm)
     params = torch.from_numpy(np.stack([estimate[n][mask] for n in PARAMETER_ORDER], -1).astype(np.float64))
     rendered = local_channel_albedo(params, table, calibration.weights).numpy()
-    reference = truth_folder.read_channel_map(RHO_SSS_BAR, names)[mask]
+    reference = correspondence.truth_map(truth_folder.read_channel_map(RHO_SSS_BAR, names), truth_mask)[mask]
     observed = result.read_channel_map(RHO_SSS_BAR, names)[mask]
     if not result.has_map(names_.RHO_SSS_BAR_RENDERED):
         own = result.map_path(names_.RHO_SSS_BAR_RENDERED)

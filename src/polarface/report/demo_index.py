@@ -5,7 +5,10 @@ as a table of value, target and pass (:data:`METRIC_TARGETS`, the issue's target
 ``docs/reconstruct.md`` "Measured"); previews frame 0 of the simulated static sequence; and, per
 parameter, the ground truth, the reconstruction and their difference side by side
 (``DIR/comparison/<name>.png``): ground truth and reconstruction share one colour scale and one scale
-bar, the error (reconstruction - ground truth, same units) has a symmetric scale of its own.
+bar, the error (reconstruction - ground truth, same units) has a symmetric scale of its own. When the
+``geometry`` group was computed its targets (:data:`GEOMETRY_TARGETS`) get a table of their own, and
+the geometry error heat map ``DIR/figures/geometry_error_mm.png`` is shown when ``evaluate`` wrote it
+(:data:`GEOMETRY_ERROR_FIGURE`; ``evaluate(..., figures_dir=DIR / "figures")``).
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from polarface.report.html import HtmlPage, ImageItem
 from polarface.results import CHROMOPHORE_MAPS, POLARIMETRIC_MAPS, RHO_SSS_BAR, ResultFolder
 
 __all__ = [
+    "GEOMETRY_ERROR_FIGURE",
+    "GEOMETRY_TARGETS",
     "METRIC_TARGETS",
     "MetricTarget",
     "demo_index_page",
@@ -35,8 +40,9 @@ class MetricTarget:
     """One row of the metrics table: where the value lives in ``metrics.json`` and its target.
 
     ``key`` is the path of keys (``("polarimetric", "eta", "median_abs_error")``); the value passes when
-    it is ``<= limit`` (``< limit`` when ``strict``). ``scale`` and ``unit`` format it (100, ``"%"``
-    shows a fraction as a percentage); ``digits`` is the number of significant digits.
+    it is ``<= limit`` (``< limit`` when ``strict``; ``>= limit`` when ``at_least``). ``scale`` and
+    ``unit`` format it (100, ``"%"`` shows a fraction as a percentage); ``digits`` is the number of
+    significant digits.
     """
 
     label: str
@@ -46,6 +52,18 @@ class MetricTarget:
     scale: float = 1.0
     unit: str = ""
     digits: int = 3
+    at_least: bool = False
+
+    def passes(self, value: float) -> bool:
+        """Whether ``value`` meets the target."""
+        if self.at_least:
+            return value >= self.limit
+        return value < self.limit if self.strict else value <= self.limit
+
+    @property
+    def comparison(self) -> str:
+        """``<=``, ``<`` or ``>=``."""
+        return ">=" if self.at_least else ("<" if self.strict else "<=")
 
 
 #: The issue's targets, in the order of the table.
@@ -66,6 +84,24 @@ METRIC_TARGETS: tuple[MetricTarget, ...] = (
     MetricTarget("re-rendered rho_sss_bar relative RMSE (vs its input)",
                  ("biophysical", "rho_sss_bar_relative_rmse"), 0.02, scale=100.0, unit=" %"),
 )
+
+#: The issue's targets of the stereo geometry stage (``geometry`` group), a table of their own shown
+#: when the group was computed (not in known-geometry mode).
+GEOMETRY_TARGETS: tuple[MetricTarget, ...] = (
+    MetricTarget("surface accuracy median", ("geometry", "accuracy_mm", "median"), 0.3, unit=" mm"),
+    MetricTarget("surface accuracy p95", ("geometry", "accuracy_mm", "p95"), 1.5, unit=" mm"),
+    MetricTarget("completeness (within 2 mm)", ("geometry", "completeness"), 0.95, scale=100.0, unit=" %",
+                 at_least=True),
+    MetricTarget("pose rotation error median", ("geometry", "pose_rotation_deg", "median"), 0.05,
+                 unit=" deg"),
+    MetricTarget("pose rotation error max", ("geometry", "pose_rotation_deg", "max"), 0.2, unit=" deg"),
+    MetricTarget("pose translation error median (head centre)",
+                 ("geometry", "pose_translation_mm", "median"), 0.2, unit=" mm"),
+)
+
+#: The geometry error heat map under the demo folder (``evaluate(..., figures_dir=DIR / "figures")``,
+#: :data:`polarface.pipeline.evaluate_geometry.GEOMETRY_ERROR_PNG`), shown when present.
+GEOMETRY_ERROR_FIGURE = "figures/geometry_error_mm.png"
 
 #: Units of the compared parameters (scale bar labels).
 _UNITS = {
@@ -88,21 +124,24 @@ def _rounded(value: float, target: MetricTarget) -> str:
     return f"{value * target.scale:.{target.digits}g}{target.unit}"
 
 
-def metric_rows(metrics: Mapping[str, Any]) -> list[tuple[str, str, str, str]]:
-    """``(quantity, value, target, verdict)`` per :data:`METRIC_TARGETS`, rounded for people.
+def metric_rows(
+    metrics: Mapping[str, Any], targets: tuple[MetricTarget, ...] = METRIC_TARGETS
+) -> list[tuple[str, str, str, str]]:
+    """``(quantity, value, target, verdict)`` per target (:data:`METRIC_TARGETS` unless given, e.g.
+    :data:`GEOMETRY_TARGETS`), rounded for people.
 
     The verdict is ``pass``, ``FAIL``, or ``not computed`` when ``metrics`` lacks the value (a group
     skipped or failed, e.g. no held-out view).
     """
     rows = []
-    for target in METRIC_TARGETS:
+    for target in targets:
         value = _lookup(metrics, target.key)
-        limit = f"{'<' if target.strict else '<='} {_rounded(target.limit, target)}"
+        limit = f"{target.comparison} {_rounded(target.limit, target)}"
         if value is None or not np.isfinite(value):
             rows.append((target.label, "-", limit, "not computed"))
             continue
-        passed = value < target.limit if target.strict else value <= target.limit
-        rows.append((target.label, _rounded(value, target), limit, "pass" if passed else "FAIL"))
+        verdict = "pass" if target.passes(value) else "FAIL"
+        rows.append((target.label, _rounded(value, target), limit, verdict))
     return rows
 
 
@@ -231,6 +270,10 @@ def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any]) 
     )
     checks.table(metric_rows(metrics), header=("quantity", "value", "target", "pass"),
                  column_classes=("", "num", "num", ""))
+    geometry = metrics.get("geometry")
+    if isinstance(geometry, Mapping) and "skipped" not in geometry:
+        checks.table(metric_rows(metrics, GEOMETRY_TARGETS), header=("geometry", "value", "target", "pass"),
+                     column_classes=("", "num", "num", ""))
     comparisons = write_comparisons(out, out / "result", out / "sim" / "ground_truth")
     if comparisons:
         page.section(
@@ -238,6 +281,13 @@ def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any]) 
             "Ground truth and reconstruction share one colour scale; the error is reconstruction minus "
             "ground truth in the same units. Masked texels are blank.",
         ).image_grid(comparisons, columns=1)
+    if (out / GEOMETRY_ERROR_FIGURE).is_file():
+        page.section(
+            "Geometry error",
+            "Distance (mm) of each reconstructed texel to the ground-truth surface, in the reconstruction's "
+            "texture space (after aligning the model frames through the reference frame's poses); the "
+            "colour scale ends at the 2 mm beyond which texels are left out of the map metrics.",
+        ).image_grid([ImageItem(GEOMETRY_ERROR_FIGURE, "geometry error heat map (mm)")], columns=1)
     frames = page.section(
         "Simulated frames",
         "Frame 0 of the static sequence (sim/static/, a capture store: docs/capture_store.md).",
