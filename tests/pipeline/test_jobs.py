@@ -33,7 +33,7 @@ def test_evaluate_checks_its_arguments(tmp_path):
     (tmp_path / "maps").mkdir()
     with pytest.raises(ValueError, match="unknown \\['nope'\\]"):
         evaluate(tmp_path, tmp_path, ["nope"])
-    assert list(METRIC_GROUPS) == ["polarimetric", "rerender", "biophysical"]
+    assert list(METRIC_GROUPS) == ["polarimetric", "rerender", "biophysical", "geometry"]
     assert evaluate(tmp_path, tmp_path, ["biophysical"]) == {
         "biophysical": {"skipped": "the RESULT has no biophysical maps (stage not run)"}
     }
@@ -45,10 +45,15 @@ def test_resolve_reconstruct_inputs_errors(tmp_path):
     with pytest.raises(ValueError, match="not a capture store"):
         resolve_reconstruct_inputs(tmp_path)
     (tmp_path / "manifest.json").write_text(json.dumps({}))
-    with pytest.raises(ValueError, match="no geometry"):
-        resolve_reconstruct_inputs(tmp_path)
+    stereo = resolve_reconstruct_inputs(tmp_path)  # no geometry given: the stereo geometry stage
+    assert stereo.mesh_path is None and stereo.poses_path is None and stereo.geometry_dir is None
     with pytest.raises(ValueError, match="together"):
         resolve_reconstruct_inputs(tmp_path, mesh=tmp_path / "m.obj")
+    with pytest.raises(ValueError, match="cannot be combined"):
+        resolve_reconstruct_inputs(tmp_path, geometry=tmp_path, mesh=tmp_path / "m", poses=tmp_path / "p")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="neither geometry.json"):
+        resolve_reconstruct_inputs(tmp_path, geometry=tmp_path / "empty")
 
 
 def test_summary_line():

@@ -461,5 +461,6 @@ def paper_rig(scale: float = 1.0, width: int = 2448, height: int = 2048) -> Rig:
         )
     pairs = [(f"stereo{k}_a", f"stereo{k}_b") for k in range(4)]
     return Rig(
-        name="ha2024-paper-rig", cameras=cameras, lights=lights, spectral=_default_spectral(), stereo_pairs=pairs
+        name="ha2024-paper-rig", cameras=cameras, lights=lights, spectral=_default_spectral(),
+        stereo_pairs=pairs,
     )

@@ -37,7 +37,9 @@ def run(args: argparse.Namespace) -> int:
     from polarface.pipeline.geometry import GEOMETRY_JSON, GeometryConfig, reconstruct_geometry
 
     inputs = resolve_reconstruct_inputs(args.capture, texture_resolution=args.texture_resolution)
-    config = GeometryConfig(texture_resolution=inputs.texture_resolution, reference_frame=args.reference_frame)
+    config = GeometryConfig(
+        texture_resolution=inputs.texture_resolution, reference_frame=args.reference_frame
+    )
     owned = json_manifest(GEOMETRY_JSON, format="polarface-geometry")
     with output_folder(args.out, NAME, force=args.force, owned=owned, marker=False) as out:
         summary = reconstruct_geometry(inputs.capture, out, config, progress=not args.quiet)

@@ -73,7 +73,9 @@ class StereoConfig:
     def __post_init__(self) -> None:
         near, far = self.depth_range_mm
         if not 0 < near < far or not np.isfinite(far):
-            raise ValueError(f"argument 'depth_range_mm' must satisfy 0 < near < far; got {self.depth_range_mm}")
+            raise ValueError(
+                f"argument 'depth_range_mm' must satisfy 0 < near < far; got {self.depth_range_mm}"
+            )
         if self.block_size < 1 or self.block_size % 2 == 0 or self.block_size > 15:
             raise ValueError(f"argument 'block_size' must be odd in [1, 15]; got {self.block_size}")
         for name in ("lr_max_diff_px", "min_signal", "photometric_tolerance", "texture_gradient"):
@@ -82,7 +84,9 @@ class StereoConfig:
         if not 1 <= self.normal_step_px <= 16:
             raise ValueError(f"argument 'normal_step_px' must lie in [1, 16]; got {self.normal_step_px}")
         if not 0 < self.saturation_fraction <= 1:
-            raise ValueError(f"argument 'saturation_fraction' must lie in (0, 1]; got {self.saturation_fraction}")
+            raise ValueError(
+                f"argument 'saturation_fraction' must lie in (0, 1]; got {self.saturation_fraction}"
+            )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -325,7 +329,9 @@ def match_stereo_pair(
     points = rect.points_world(np.where(keep, forward, low))
     normal, has_normal = _normals(points, keep, rect.camera_a.center, config.normal_step_px)
     keep &= has_normal
-    gradient = np.hypot(cv2.Sobel(left8, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(left8, cv2.CV_32F, 0, 1, ksize=3))
+    gradient = np.hypot(
+        cv2.Sobel(left8, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(left8, cv2.CV_32F, 0, 1, ksize=3)
+    )
     texture = np.clip(cv2.blur(gradient / 8.0, (config.block_size,) * 2) / config.texture_gradient, 0.0, 1.0)
     lr_term = np.exp(-((np.where(np.isfinite(lr_diff), lr_diff, 1e3) / config.lr_max_diff_px) ** 2))
     confidence = np.where(keep, lr_term * texture, 0.0).astype(np.float32)

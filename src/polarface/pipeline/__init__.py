@@ -1,5 +1,6 @@
 """Orchestration over folders: the reconstruct stages and checkpoints, the biophysical stage's files,
-the geometry stage (stereo -> meshes, poses, atlas), the evaluation against ground truth, the description of a folder (``info``), the demo jobs, the skin
+the geometry stage (stereo -> meshes, poses, atlas), the evaluation against ground truth,
+ the description of a folder (``info``), the demo jobs, the skin
 fit of a spectra file and the IOR of a sphere capture. Commands call one function of here."""
 
 from polarface.pipeline.biophysical import load_stage_inputs, run_biophysical_stage

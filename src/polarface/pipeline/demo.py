@@ -3,9 +3,12 @@
 :func:`run_demo_pipeline` (``polarface demo --out DIR [--preset demo|tiny]``) runs, resumably:
 
   1. simulation: a synthetic capture of the bundled head with the paper's rig -> DIR/sim
-  2. reconstruction: texture-space polarimetric inverse rendering, then the biophysical stage
-     -> DIR/result (maps as EXR, previews, report.html)
-  3. evaluation: errors against the simulator's ground truth -> DIR/metrics.json
+  2. reconstruction from the raw frames only: geometry from the stereo pairs (mesh with a cylindrical
+     atlas, poses), texture-space polarimetric inverse rendering, then the biophysical stage
+     -> DIR/result (geometry/, maps as EXR, previews, report.html); the simulator's geometry is used
+     only by the evaluation
+  3. evaluation: errors against the simulator's ground truth -> DIR/metrics.json, figures (the
+     geometry error heat map) -> DIR/figures/
   4. DIR/index.html: a landing page linking the report, the metrics and the simulated frames, with the
      metrics as a table of value, target and pass, and per parameter the ground truth, the
      reconstruction and the error side by side (DIR/comparison/*.png; frame previews in DIR/frames/).
@@ -69,8 +72,10 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
     say(f"polarface demo: polarface reconstruct {sim} --out {result}{' --resume' if resume else ''}")
     record = reconstruct(resolve_reconstruct_inputs(sim), result, resume=resume)
     say(reconstruct_summary_line(result, record))
-    say(f"polarface demo: polarface evaluate {result} --gt {sim} --out {out / 'metrics.json'}")
-    metrics = evaluate(result, sim)
+    figures = out / "figures"
+    say(f"polarface demo: polarface evaluate {result} --gt {sim} --out {out / 'metrics.json'} "
+        f"--figures {figures}")
+    metrics = evaluate(result, sim, figures_dir=figures)
     write_json_atomic(out / "metrics.json", metrics)
     say(json.dumps(metrics, indent=2))
     return metrics

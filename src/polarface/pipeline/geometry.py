@@ -63,19 +63,20 @@ class GeometryConfig:
         stereo: dense stereo of each pair (:class:`polarface.geometry.stereo.StereoConfig`).
         frame_voxel_mm: the pairs' clouds of a frame are merged on this voxel grid, mm.
         frame_poisson: screened Poisson meshing of each frame's cloud.
-        registration: registration of the sequence (:class:`polarface.geometry.registration.RegistrationConfig`).
+        registration: registration of the sequence
+            (:class:`polarface.geometry.registration.RegistrationConfig`).
         reference_voxel_mm: the registered frames' clouds are merged on this voxel grid, mm.
         reference_poisson: meshing of the reference cloud.
         texture_resolution: side of the reference mesh's UV atlas, texels.
         reference_frame: the capture frame whose rig world is the model frame (None: the middle frame).
     """
 
-    stereo: StereoConfig = StereoConfig()
+    stereo: StereoConfig = dataclasses.field(default_factory=StereoConfig)
     frame_voxel_mm: float = 0.5
-    frame_poisson: PoissonConfig = PoissonConfig()
-    registration: RegistrationConfig = RegistrationConfig()
+    frame_poisson: PoissonConfig = dataclasses.field(default_factory=PoissonConfig)
+    registration: RegistrationConfig = dataclasses.field(default_factory=RegistrationConfig)
     reference_voxel_mm: float = 0.5
-    reference_poisson: PoissonConfig = PoissonConfig()
+    reference_poisson: PoissonConfig = dataclasses.field(default_factory=PoissonConfig)
     texture_resolution: int = 512
     reference_frame: int | None = None
 
@@ -98,7 +99,9 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def frame_stereo(store: CaptureStore, frame_index: int, config: StereoConfig) -> list[tuple[str, StereoDepth]]:
+def frame_stereo(
+    store: CaptureStore, frame_index: int, config: StereoConfig
+) -> list[tuple[str, StereoDepth]]:
     """Dense stereo of every stereo pair of one frame: ``[(pair name, StereoDepth), ...]``.
 
     The raw frames are read from ``store`` and black-level corrected; saturation is tested on the raw
@@ -127,7 +130,8 @@ def _process_frame(store: CaptureStore, frame: int, out: Path, config: GeometryC
     """Stereo, fusion and meshing of one frame; returns its summary entry."""
     started = time.perf_counter()
     pairs = frame_stereo(store, frame, config.stereo)
-    cloud = PointCloud.concatenate([depth.cloud for _, depth in pairs]).voxel_downsample(config.frame_voxel_mm)
+    merged = PointCloud.concatenate([depth.cloud for _, depth in pairs])
+    cloud = merged.voxel_downsample(config.frame_voxel_mm)
     cloud_path, mesh_path = _paths(out, frame)
     entry: dict[str, Any] = {"points": len(cloud), "pairs": {n: len(d.cloud) for n, d in pairs}}
     if previews:
@@ -209,15 +213,16 @@ def reconstruct_geometry(
     stereo_s = time.perf_counter() - started
     failed = {f: entries[str(f)]["error"] for f in frames if "error" in entries[str(f)]}
     if reference in failed:
-        raise ValueError(f"the reference frame {reference} has no usable stereo geometry: {failed[reference]}")
+        raise ValueError(
+            f"the reference frame {reference} has no usable stereo geometry: {failed[reference]}"
+        )
     usable = [f for f in frames if f not in failed]
-    registration = register_sequence(
-        usable, lambda f: load_point_cloud(_paths(out, f)[0]), reference, config.registration, progress=progress
-    )
+    def load(frame: int) -> PointCloud:
+        return load_point_cloud(_paths(out, frame)[0])
+
+    registration = register_sequence(usable, load, reference, config.registration, progress=progress)
     poses = _all_poses(frames, usable, registration.poses)
-    fused = fuse_registered(
-        usable, lambda f: load_point_cloud(_paths(out, f)[0]), registration, config.reference_voxel_mm
-    )
+    fused = fuse_registered(usable, load, registration, config.reference_voxel_mm)
     mesh = poisson_mesh(fused, config.reference_poisson)
     axis = head_axis_from_poses(poses, reference=frames.index(reference))
     try:  # the chair's rotation axis; a sequence that hardly turns falls back to a circle fit
@@ -244,7 +249,7 @@ def reconstruct_geometry(
     }
     from polarface.report.geometry import write_geometry_report
 
-    write_geometry_report(out, summary, atlas.mesh, poses, store.rig)
+    write_geometry_report(out, summary, atlas.mesh, poses, store.rig, frames)
     write_json_atomic(out / GEOMETRY_JSON, summary)
     return summary
 

@@ -257,8 +257,8 @@ def stage_prepare(ctx: ReconstructContext) -> dict[str, Any]:
     started = time.perf_counter()
     folder = ctx.folder
     store, mesh, poses = _load_geometry(ctx)
-    geometry = _geometry_summary(ctx)
-    excluded = tuple(int(f) for f in geometry.get("rejected_frames", {}))
+    geometry_summary = _geometry_summary(ctx)
+    excluded = tuple(int(f) for f in geometry_summary.get("rejected_frames", {}))
     config = UnwrapConfig(
         texture_resolution=ctx.texture_resolution, holdout_every=ctx.holdout_every, excluded_frames=excluded
     )
@@ -279,7 +279,7 @@ def stage_prepare(ctx: ReconstructContext) -> dict[str, Any]:
         "mesh": str(ctx.mesh_path),
         "poses": str(ctx.poses_path),
         "geometry": str(ctx.geometry_dir) if ctx.geometry_dir is not None else None,
-        "reference_frame": int(geometry.get("reference_frame", 0)),
+        "reference_frame": int(geometry_summary.get("reference_frame", 0)),
         "excluded_frames": list(excluded),
         "timings": {"prepare_s": time.perf_counter() - started},
     }

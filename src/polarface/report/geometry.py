@@ -50,11 +50,12 @@ def _residual_plot(path: Path, summary: dict[str, Any]) -> None:
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    registration = summary["registration"]
-    frames = np.asarray(registration["frame_indices"])
+    rows = summary["registration"]["frames"]
+    frames = [row["frame"] for row in rows]
+    rmse = [np.nan if row["rmse_mm"] is None else row["rmse_mm"] for row in rows]
     fig, ax = plt.subplots(figsize=(7, 3.2), dpi=100)
-    ax.plot(frames, registration["rmse_mm"], "o-", label="inlier RMSE (mm)")
-    ax.plot(frames, registration["fitness"], "s-", label="fitness (overlap fraction)")
+    ax.plot(frames, rmse, "o-", label="inlier RMSE (mm)")
+    ax.plot(frames, [row["fitness"] for row in rows], "s-", label="fitness (overlap fraction)")
     rejected = [int(f) for f in summary.get("rejected_frames", {})]
     for frame in rejected:
         ax.axvline(frame, color="#b3261e", alpha=0.4)
@@ -68,8 +69,10 @@ def _residual_plot(path: Path, summary: dict[str, Any]) -> None:
 
 
 def write_geometry_report(out: Path, summary: dict[str, Any], mesh: TriangleMesh, poses: np.ndarray,
-                          rig: Rig) -> Path:
-    """Write ``out/report.html`` (and its previews) for a finished geometry stage; returns its path."""
+                          rig: Rig, all_frames: list[int]) -> Path:
+    """Write ``out/report.html`` (and its previews) for a finished geometry stage; returns its path.
+
+    ``poses`` ``(F, 4, 4)`` are the model -> world poses of the capture frames ``all_frames``."""
     out = Path(out)
     previews = out / "previews"
     page = HtmlPage("polarface geometry", subtitle=f"reference frame {summary['reference_frame']}")
@@ -77,14 +80,16 @@ def write_geometry_report(out: Path, summary: dict[str, Any], mesh: TriangleMesh
         ImageItem(f"previews/{p.name}", p.stem.replace("_", " "))
         for p in sorted(previews.glob("depth_*.png")) + sorted(previews.glob("confidence_*.png"))
     ]
-    page.section("Stereo depth", "Depth (mm) and confidence of each stereo pair of the reference frame, in the "
-                 "pair's rectified left image; black: rejected (no signal, saturated, left-right or "
-                 "photometric test).").image_grid(depth_items, columns=4)
-    frames = summary["registration"]["frame_indices"]
+    page.section(
+        "Stereo depth",
+        "Depth (mm) and confidence of each stereo pair of the reference frame, in the pair's rectified "
+        "left image; black: rejected (no signal, saturated, left-right or photometric test).",
+    ).image_grid(depth_items, columns=4)
+    frames = [row["frame"] for row in summary["registration"]["frames"]]
     items = []
     for camera in rig.polarimetric_cameras():
         for frame in (frames[0], summary["reference_frame"], frames[-1]):
-            pose = np.asarray(poses[frames.index(frame)] if frame in frames else poses[0])
+            pose = np.asarray(poses[all_frames.index(frame)])
             name = f"mesh_{camera.id}_{frame:06d}.png"
             write_png(previews / name, _shaded_render(mesh.transformed(pose), camera.pinhole()))
             items.append(ImageItem(f"previews/{name}", f"reference mesh posed at frame {frame}, {camera.id}"))
