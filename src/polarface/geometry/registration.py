@@ -1,0 +1,579 @@
+"""Rigid registration of the revolving-chair sequence (issue 14, item 3) and fusion into the model frame.
+
+Each capture frame ``k`` has a fused stereo cloud in the rig world frame. The head moves rigidly between
+frames; :func:`register_sequence` finds the pose ``P_k`` (model -> world, 4x4, mm) of every frame, where
+the model frame is the world frame at the reference frame (``P_reference = I``), so that
+``world cloud of frame k ~= P_k applied to model points`` and the reference cloud *is* the model.
+
+Algorithm (Open3D, multi-scale point-to-plane ICP + pose graph):
+
+1. Walk outwards from the reference in both directions. Frame ``k`` is registered to its neighbour
+   ``j`` nearer the reference (the last accepted one), initialised by a constant-velocity prediction
+   of the chain. The ICP result ``T_kj`` (world-k -> world-j, ``= P_j P_k^-1``) is checked: fitness,
+   inlier RMSE and its rotation jump from the prediction; a failing frame is rejected with a reason and
+   left out of the graph (it keeps its best estimate relative to its anchor, flagged).
+2. Loop closures: the frame is also registered to the accepted frames ``loop_offsets`` steps back along
+   the walk and to the reference; each edge with enough fitness enters the graph as an uncertain edge.
+3. ``open3d.pipelines.registration.global_optimization`` (Levenberg-Marquardt, line process pruning of
+   wrong loop closures) over all accepted frames. Open3D's node pose is ``X_k = P_k^-1`` (frame -> model).
+4. A second pass walks outwards again with the optimised poses, growing a voxel model of the accepted
+   frames, and reports each frame's fitness and RMSE against the model built from the frames nearer the
+   reference; frames that no longer fit are rejected.
+
+Memory: ``load_cloud`` is called once per frame per pass; only a bounded window of downsampled clouds
+(the last ``max(loop_offsets)`` accepted frames of the current side and the reference) and a voxel
+model bounded by the head's surface area are held, whatever the number of frames.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from polarface.geometry.point_cloud import PointCloud
+from polarface.geometry.poses import check_rigid, invert_rigid
+
+__all__ = ["RegistrationConfig", "SequenceRegistration", "fuse_registered", "register_sequence"]
+
+
+@dataclasses.dataclass(frozen=True)
+class RegistrationConfig:
+    """Settings of :func:`register_sequence` (defaults: head at 1 m, 0.2-0.5 mm stereo noise).
+
+    Attributes:
+        voxel_mm: voxel of the registration clouds (confidence-weighted means,
+            :meth:`PointCloud.voxel_downsample`); averaging lowers the stereo noise before ICP.
+        scales: multi-scale point-to-plane ICP, coarse -> fine: ``(voxel_mm, max correspondence distance
+            mm, iterations)`` per level. The coarse level (12 mm) captures a first step of ~8 deg with no
+            velocity prediction (~15 mm at the face); the fine level (1.5 mm) sees only true neighbours.
+        robust_kernel_mm: scale of the Tukey robust kernel on point-to-plane residuals at the finest level
+            (0: plain least squares).
+        min_confidence: points below this confidence are ignored.
+        loop_offsets: besides the odometry edge to the neighbour, edges to the accepted frames this many
+            steps back along the walk (loop closures: the chain cannot drift between them).
+        reference_edges: also add an edge from every frame to the reference where they overlap.
+        loop_first_level: the ICP level loop closures start at (their initial guess is the chain, already
+            within a fraction of a degree, so the coarse level only costs time).
+        min_fitness: fraction of a frame's points with a neighbour within the finest distance; below it
+            the frame is rejected (odometry) or the loop closure is not added.
+        max_rmse_mm: largest accepted inlier RMSE at the finest level.
+        max_rotation_jump_deg: largest accepted rotation between the ICP result and the chain's
+            constant-velocity prediction (adjacent frames: ~0.6 deg full, <= 8 deg demo; a larger jump
+            means ICP slid into a wrong minimum).
+        edge_prune_threshold: Open3D's line-process threshold for pruning wrong loop closures.
+        preference_loop_closure: weight of loop closures against odometry in the pose graph.
+        final_distance_mm: correspondence distance of the final residuals against the model.
+    """
+
+    voxel_mm: float = 1.0
+    scales: tuple[tuple[float, float, int], ...] = ((4.0, 12.0, 30), (2.0, 4.0, 30), (1.0, 1.5, 50))
+    robust_kernel_mm: float = 1.0
+    min_confidence: float = 0.1
+    loop_offsets: tuple[int, ...] = (2, 4, 8)
+    reference_edges: bool = True
+    loop_first_level: int = 1
+    min_fitness: float = 0.3
+    max_rmse_mm: float = 1.0
+    max_rotation_jump_deg: float = 10.0
+    edge_prune_threshold: float = 0.25
+    preference_loop_closure: float = 1.0
+    final_distance_mm: float = 1.5
+
+    def __post_init__(self) -> None:
+        checks = {
+            "voxel_mm": self.voxel_mm > 0,
+            "scales": len(self.scales) > 0
+            and all(len(s) == 3 and s[0] > 0 and s[1] > 0 and int(s[2]) > 0 for s in self.scales),
+            "robust_kernel_mm": self.robust_kernel_mm >= 0,
+            "min_confidence": 0.0 <= self.min_confidence <= 1.0,
+            "loop_offsets": all(int(o) >= 2 for o in self.loop_offsets),
+            "loop_first_level": 0 <= self.loop_first_level < len(self.scales),
+            "min_fitness": 0.0 <= self.min_fitness <= 1.0,
+            "max_rmse_mm": self.max_rmse_mm > 0,
+            "max_rotation_jump_deg": self.max_rotation_jump_deg > 0,
+            "edge_prune_threshold": self.edge_prune_threshold > 0,
+            "preference_loop_closure": self.preference_loop_closure > 0,
+            "final_distance_mm": self.final_distance_mm > 0,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"RegistrationConfig.{name} is out of range: {getattr(self, name)}")
+
+    @property
+    def window(self) -> int:
+        """Accepted frames held per side (the farthest loop closure)."""
+        return max((int(o) for o in self.loop_offsets), default=1)
+
+
+@dataclasses.dataclass(frozen=True)
+class SequenceRegistration:
+    """Result of :func:`register_sequence`, one row per frame in the order of ``frame_indices``.
+
+    Attributes:
+        frame_indices: ``(F,)`` int64 capture frame indices.
+        reference: the reference frame index (its pose is the identity).
+        poses: ``(F, 4, 4)`` float64 model -> world (mm); rejected frames hold their best estimate.
+        rmse_mm: ``(F,)`` float64 point-to-plane inlier RMSE against the model at ``final_distance_mm``
+            (NaN if none).
+        fitness: ``(F,)`` float64 fraction of the frame's points within ``final_distance_mm`` of the model.
+        accepted: ``(F,)`` bool.
+        rejected: frame index -> reason, for every frame not accepted.
+    """
+
+    frame_indices: np.ndarray
+    reference: int
+    poses: np.ndarray
+    rmse_mm: np.ndarray
+    fitness: np.ndarray
+    accepted: np.ndarray
+    rejected: dict[int, str]
+
+    def pose_of(self, frame: int) -> np.ndarray:
+        """``(4, 4)`` model -> world pose of capture frame ``frame``."""
+        rows = np.flatnonzero(self.frame_indices == frame)
+        if not len(rows):
+            raise ValueError(f"argument 'frame': {frame} is not a registered frame")
+        return self.poses[rows[0]]
+
+    def to_json(self) -> dict:
+        """A JSON-ready summary (numbers rounded; poses are saved separately with ``save_poses``)."""
+        valid = self.accepted & np.isfinite(self.rmse_mm)
+        return {
+            "reference": int(self.reference),
+            "frame_count": len(self.frame_indices),
+            "accepted_count": int(self.accepted.sum()),
+            "rejected": {str(k): v for k, v in sorted(self.rejected.items())},
+            "rmse_mm_median": float(np.median(self.rmse_mm[valid])) if valid.any() else None,
+            "rmse_mm_max": float(np.max(self.rmse_mm[valid])) if valid.any() else None,
+            "frames": [
+                {
+                    "frame": int(f),
+                    "accepted": bool(a),
+                    "rmse_mm": None if not np.isfinite(r) else round(float(r), 4),
+                    "fitness": round(float(q), 4),
+                }
+                for f, a, r, q in zip(
+                    self.frame_indices, self.accepted, self.rmse_mm, self.fitness, strict=True
+                )
+            ],
+        }
+
+
+@dataclasses.dataclass
+class _Frame:
+    """One accepted frame in the sliding window: its clouds per ICP level and its chained pose."""
+
+    index: int
+    levels: list  # open3d PointClouds, coarse -> fine
+    pose: np.ndarray  # model -> world
+
+
+@dataclasses.dataclass
+class _Graph:
+    """Pose-graph bookkeeping: node per accepted frame, edges (source, target, T, information, uncertain)."""
+
+    nodes: dict[int, np.ndarray] = dataclasses.field(default_factory=dict)
+    edges: list[tuple[int, int, np.ndarray, np.ndarray, bool]] = dataclasses.field(default_factory=list)
+
+
+def register_sequence(
+    frame_indices: Sequence[int],
+    load_cloud: Callable[[int], PointCloud],
+    reference: int,
+    config: RegistrationConfig = RegistrationConfig(),
+    progress: bool = False,
+) -> SequenceRegistration:
+    """Rigid poses of every frame relative to ``reference`` (see the module docstring).
+
+    Args:
+        frame_indices: capture frame indices in sequence order (adjacent entries are adjacent in time).
+        load_cloud: ``frame index -> PointCloud`` in the rig world frame (mm); called on demand, at most
+            twice per frame, never holding all frames.
+        reference: the frame whose world frame is the model frame; must be in ``frame_indices``.
+        config: :class:`RegistrationConfig`.
+        progress: show a tqdm bar.
+
+    Returns:
+        :class:`SequenceRegistration` in the order of ``frame_indices``.
+
+    Raises:
+        ValueError: naming ``frame_indices`` (empty, duplicates), ``reference`` (not among them) or
+            ``load_cloud`` (the reference cloud has too few points to register).
+    """
+    frames = _check_frames(frame_indices, reference)
+    from tqdm import tqdm
+
+    bar = tqdm(total=2 * len(frames), desc="register", unit="frame", disable=not progress)
+    graph, relative, reasons, centre = _chain_and_close(frames, load_cloud, reference, config, bar)
+    optimised = _optimise(graph, reference, config)
+    local_to_world = np.eye(4)
+    local_to_world[:3, 3] = centre
+    poses = local_to_world @ _all_poses(frames, optimised, relative) @ invert_rigid(local_to_world)
+    fitness, rmse = _residuals_against_model(frames, load_cloud, reference, poses, reasons, config, bar)
+    bar.close()
+    for k, frame in enumerate(frames):
+        if frame not in reasons and fitness[k] < config.min_fitness:
+            reasons[frame] = (
+                f"final fitness {fitness[k]:.2f} < {config.min_fitness} against the model: the optimised "
+                "pose does not fit the frames nearer the reference"
+            )
+    accepted = np.array([f not in reasons for f in frames])
+    return SequenceRegistration(
+        np.asarray(frames, dtype=np.int64), int(reference), poses, rmse, fitness, accepted, dict(reasons)
+    )
+
+
+def _check_frames(frame_indices: Sequence[int], reference: int) -> list[int]:
+    frames = [int(f) for f in frame_indices]
+    if not frames:
+        raise ValueError("argument 'frame_indices' is empty")
+    if len(set(frames)) != len(frames):
+        raise ValueError("argument 'frame_indices' contains duplicates")
+    if int(reference) not in frames:
+        raise ValueError(f"argument 'reference': frame {reference} is not in 'frame_indices'")
+    return frames
+
+
+def _walks(frames: list[int], reference: int) -> list[list[int]]:
+    """The two walks outwards from the reference (each starting with the frame next to it)."""
+    at = frames.index(int(reference))
+    return [frames[at + 1 :], frames[:at][::-1]]
+
+
+def _registration_levels(cloud: PointCloud, centre: np.ndarray | None, config: RegistrationConfig):
+    """Open3D clouds per ICP level (coarse -> fine) of ``cloud`` shifted by ``-centre`` (the local frame;
+    ``None``: the cloud's own confident centroid); ``(levels, centre)``, levels ``None`` if too few points."""
+    if not isinstance(cloud, PointCloud):
+        raise ValueError(f"argument 'load_cloud' must return PointCloud; got {type(cloud).__name__}")
+    cloud = cloud.select(cloud.confidence >= config.min_confidence)
+    if len(cloud) < 16:
+        return None, centre
+    centre = cloud.points.mean(axis=0) if centre is None else centre
+    base = cloud.voxel_downsample(config.voxel_mm).to_open3d().translate(-centre)
+    levels = []
+    for voxel, _, _ in config.scales:
+        level = base if voxel <= config.voxel_mm else base.voxel_down_sample(voxel)
+        levels.append(level)
+    return levels, centre
+
+
+def _icp(source_levels, target_levels, init: np.ndarray, config: RegistrationConfig, first_level: int = 0):
+    """Multi-scale point-to-plane ICP of source onto target from level ``first_level`` on;
+    ``(T, fitness, rmse, information)`` at the finest level."""
+    from open3d.pipelines import registration as reg
+
+    transform = init
+    for level, (_, distance, iterations) in enumerate(config.scales):
+        if level < first_level:
+            continue
+        last = level == len(config.scales) - 1
+        kernel = reg.TukeyLoss(k=config.robust_kernel_mm) if last and config.robust_kernel_mm > 0 else None
+        method = (
+            reg.TransformationEstimationPointToPlane(kernel)
+            if kernel
+            else (reg.TransformationEstimationPointToPlane())
+        )
+        result = reg.registration_icp(
+            source_levels[level],
+            target_levels[level],
+            distance,
+            transform,
+            method,
+            reg.ICPConvergenceCriteria(1e-7, 1e-7, int(iterations)),
+        )
+        transform = np.asarray(result.transformation)
+    distance = config.scales[-1][1]
+    final = reg.evaluate_registration(source_levels[-1], target_levels[-1], distance, transform)
+    information = reg.get_information_matrix_from_point_clouds(
+        source_levels[-1], target_levels[-1], distance, transform
+    )
+    return transform, float(final.fitness), float(final.inlier_rmse), np.asarray(information)
+
+
+def _rotation_deg(transform: np.ndarray) -> float:
+    """Rotation angle of a 4x4 transform, degrees."""
+    cosine = (np.trace(transform[:3, :3]) - 1.0) / 2.0
+    return math.degrees(math.acos(float(np.clip(cosine, -1.0, 1.0))))
+
+
+def _scaled_motion(motion: np.ndarray, factor: float) -> np.ndarray:
+    """The rigid motion ``motion`` (4x4) scaled along its screw: rotation vector and translation times
+    ``factor`` (a constant-velocity extrapolation over ``factor`` steps)."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(motion[:3, :3]).as_rotvec() * factor).as_matrix()
+    out[:3, 3] = motion[:3, 3] * factor
+    return out
+
+
+def _chain_and_close(frames, load_cloud, reference, config, bar):
+    """Step 1-2: chained odometry, loop closures, rejections, in a local frame: the world shifted by
+    ``-centre`` (the reference cloud's centroid), so that poses have small translations and the pose graph
+    is well conditioned (about the rig origin, 1 m away, Levenberg-Marquardt stalls on its first step).
+
+    Returns ``(graph, relative, reasons, centre)``: ``relative[frame] = (anchor, T)`` with the rejected
+    frame's local pose ``= P_anchor_optimised @ T``.
+    """
+    graph, relative, reasons = _Graph(), {}, {}
+    ref_levels, centre = _registration_levels(load_cloud(int(reference)), None, config)
+    if ref_levels is None:
+        raise ValueError(f"argument 'load_cloud': the reference frame {reference} has fewer than 16 points")
+    ref = _Frame(int(reference), ref_levels, np.eye(4))
+    graph.nodes[ref.index] = np.eye(4)
+    bar.update(1)
+    position = {f: i for i, f in enumerate(frames)}
+    for walk in _walks(frames, reference):
+        window: collections.deque[_Frame] = collections.deque([ref], maxlen=config.window + 1)
+        for frame in walk:
+            levels, _ = _registration_levels(load_cloud(frame), centre, config)
+            _register_one(frame, levels, window, ref, position, graph, relative, reasons, config)
+            bar.update(1)
+    return graph, relative, reasons, centre
+
+
+def _predict(window, frame: int, position: dict[int, int]) -> np.ndarray:
+    """Constant-velocity prediction of ``frame``'s pose from the last two accepted frames of the walk."""
+    anchor = window[-1]
+    if len(window) < 2:
+        return anchor.pose
+    before = window[-2]
+    motion = anchor.pose @ invert_rigid(before.pose)
+    steps = abs(position[frame] - position[anchor.index]) / max(
+        abs(position[anchor.index] - position[before.index]), 1
+    )
+    return _scaled_motion(motion, steps) @ anchor.pose
+
+
+def _register_one(frame, levels, window, ref, position, graph, relative, reasons, config) -> None:
+    """Register ``frame`` (its ICP levels) to the window's last frame, check it, add its node and edges."""
+    anchor = window[-1]
+    predicted = _predict(window, frame, position)
+    if levels is None:
+        reasons[frame] = "fewer than 16 confident points"
+        relative[frame] = (anchor.index, invert_rigid(anchor.pose) @ predicted)
+        return
+    init = anchor.pose @ invert_rigid(predicted)  # world-k -> world-anchor
+    transform, fitness, rmse, information = _icp(levels, anchor.levels, init, config)
+    pose = invert_rigid(check_rigid(_orthonormalised(transform))) @ anchor.pose
+    jump = _rotation_deg(pose @ invert_rigid(predicted))
+    reason = _rejection(fitness, rmse, jump, config)
+    if reason:
+        reasons[frame] = reason
+        best = pose if jump <= config.max_rotation_jump_deg else predicted
+        relative[frame] = (anchor.index, invert_rigid(anchor.pose) @ best)
+        return
+    graph.nodes[frame] = pose
+    graph.edges.append((frame, anchor.index, transform, information, False))
+    current = _Frame(frame, levels, pose)
+    targets = [window[-o] for o in config.loop_offsets if o <= len(window)]
+    if config.reference_edges and ref not in targets and ref is not anchor:
+        targets.append(ref)
+    for target in targets:
+        init = target.pose @ invert_rigid(pose)
+        loop, loop_fitness, loop_rmse, loop_info = _icp(
+            levels, target.levels, init, config, config.loop_first_level
+        )
+        if loop_fitness >= config.min_fitness and loop_rmse <= config.max_rmse_mm:
+            graph.edges.append((frame, target.index, loop, loop_info, True))
+    window.append(current)
+
+
+def _rejection(fitness: float, rmse: float, jump: float, config: RegistrationConfig) -> str:
+    """Why an odometry registration is rejected ('' if it is not)."""
+    if fitness < config.min_fitness:
+        return f"fitness {fitness:.2f} < {config.min_fitness}: no overlap with its neighbours"
+    if rmse > config.max_rmse_mm:
+        return f"inlier RMSE {rmse:.2f} mm > {config.max_rmse_mm} mm: the neighbours' surfaces do not agree"
+    if jump > config.max_rotation_jump_deg:
+        return (
+            f"rotation jump {jump:.1f} deg > {config.max_rotation_jump_deg} deg from the chained prediction: "
+            "ICP slid into a wrong minimum"
+        )
+    return ""
+
+
+def _orthonormalised(transform: np.ndarray) -> np.ndarray:
+    """``transform`` with its rotation block projected onto SO(3) (removes float drift)."""
+    u, _, vt = np.linalg.svd(transform[:3, :3])
+    out = np.array(transform, dtype=np.float64)
+    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def _optimise(graph: _Graph, reference: int, config: RegistrationConfig) -> dict[int, np.ndarray]:
+    """Step 3: Levenberg-Marquardt pose-graph optimisation; returns frame -> optimised pose P."""
+    import open3d as o3d
+    from open3d.pipelines import registration as reg
+
+    order = list(graph.nodes)
+    if len(order) < 2:
+        return dict(graph.nodes)
+    node_of = {frame: i for i, frame in enumerate(order)}
+    pose_graph = reg.PoseGraph()
+    for frame in order:
+        pose_graph.nodes.append(reg.PoseGraphNode(invert_rigid(graph.nodes[frame])))  # X = P^-1
+    for source, target, transform, information, uncertain in graph.edges:
+        pose_graph.edges.append(
+            reg.PoseGraphEdge(node_of[source], node_of[target], transform, information, uncertain=uncertain)
+        )
+    option = reg.GlobalOptimizationOption(
+        max_correspondence_distance=config.scales[-1][1],
+        edge_prune_threshold=config.edge_prune_threshold,
+        preference_loop_closure=config.preference_loop_closure,
+        reference_node=node_of[int(reference)],
+    )
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        reg.global_optimization(
+            pose_graph,
+            reg.GlobalOptimizationLevenbergMarquardt(),
+            reg.GlobalOptimizationConvergenceCriteria(),
+            option,
+        )
+    to_model_ref = np.asarray(pose_graph.nodes[node_of[int(reference)]].pose)
+    return {
+        frame: _orthonormalised(to_model_ref)
+        @ invert_rigid(_orthonormalised(np.asarray(pose_graph.nodes[node_of[frame]].pose)))
+        for frame in order
+    }
+
+
+def _all_poses(frames: list[int], optimised: dict[int, np.ndarray], relative: dict) -> np.ndarray:
+    """``(F, 4, 4)`` poses: optimised for accepted frames, anchor-relative estimates for rejected ones."""
+    poses = np.empty((len(frames), 4, 4))
+    for k, frame in enumerate(frames):
+        if frame in optimised:
+            poses[k] = optimised[frame]
+        else:
+            anchor, transform = relative[frame]
+            poses[k] = _orthonormalised(optimised[anchor] @ transform)
+    return poses
+
+
+def _residuals_against_model(frames, load_cloud, reference, poses, reasons, config, bar):
+    """Step 4: fitness and point-to-plane RMSE of each frame against the voxel model of the accepted frames
+    nearer the reference (the reference is the model: fitness 1, RMSE 0)."""
+    pose_of = dict(zip(frames, poses, strict=True))
+    fitness = np.zeros(len(frames))
+    rmse = np.full(len(frames), np.nan)
+    row = {f: i for i, f in enumerate(frames)}
+    reference_model = _model_cloud(load_cloud(int(reference)), np.eye(4), config)
+    fitness[row[int(reference)]], rmse[row[int(reference)]] = 1.0, 0.0
+    for walk in _walks(frames, reference):
+        model = reference_model
+        for frame in walk:
+            cloud = _model_cloud(load_cloud(frame), pose_of[frame], config)
+            bar.update(1)
+            if len(cloud) < 16:
+                continue
+            fitness[row[frame]], rmse[row[frame]] = _point_to_plane(cloud, model, config.final_distance_mm)
+            if frame not in reasons:
+                model = PointCloud.concatenate([model, cloud]).voxel_downsample(config.voxel_mm)
+    return fitness, rmse
+
+
+def _point_to_plane(cloud: PointCloud, model: PointCloud, distance_mm: float) -> tuple[float, float]:
+    """Fraction of ``cloud``'s points with a model point within ``distance_mm``, and the RMSE of their
+    distances to the model's tangent planes (mm; NaN when none)."""
+    from scipy.spatial import cKDTree
+
+    distance, nearest = cKDTree(model.points).query(
+        cloud.points, k=1, distance_upper_bound=distance_mm, workers=-1
+    )
+    inlier = np.isfinite(distance)
+    if not inlier.any():
+        return 0.0, float("nan")
+    offset = cloud.points[inlier] - model.points[nearest[inlier]]
+    residual = np.einsum("ij,ij->i", offset, model.normals[nearest[inlier]])
+    return float(inlier.mean()), float(np.sqrt(np.mean(residual**2)))
+
+
+def _model_cloud(cloud: PointCloud, pose: np.ndarray, config: RegistrationConfig) -> PointCloud:
+    """``cloud`` (world of its frame) in the model frame, confident points, downsampled to ``voxel_mm``."""
+    cloud = cloud.select(cloud.confidence >= config.min_confidence)
+    return cloud.voxel_downsample(config.voxel_mm).transformed(invert_rigid(pose))
+
+
+def fuse_registered(
+    frame_indices: Sequence[int],
+    load_cloud: Callable[[int], PointCloud],
+    registration: SequenceRegistration,
+    voxel_mm: float,
+) -> PointCloud:
+    """All accepted frames' clouds in the model frame, merged on a ``voxel_mm`` grid.
+
+    Each frame is loaded, brought into the model frame (``P_k^-1``), downsampled on the grid and added to
+    running per-voxel sums (confidence-weighted position, normal and colour sums, total weight, maximum
+    confidence), so every frame's points weigh the same whatever the order, and memory is bounded by the
+    occupied voxels, not by the frame count. The result equals ``PointCloud.voxel_downsample`` of all
+    frames' voxel means at once.
+
+    Args:
+        frame_indices: frames to fuse (rejected frames and frames not in ``registration`` are skipped).
+        load_cloud: ``frame index -> PointCloud`` in the rig world frame, mm.
+        registration: :class:`SequenceRegistration` from :func:`register_sequence`.
+        voxel_mm: grid size, mm.
+
+    Returns:
+        The fused :class:`PointCloud` in the model frame (mm); empty when nothing was accepted.
+
+    Raises:
+        ValueError: naming ``voxel_mm`` when it is not > 0.
+    """
+    if not (isinstance(voxel_mm, int | float) and voxel_mm > 0 and math.isfinite(voxel_mm)):
+        raise ValueError(f"argument 'voxel_mm' must be a finite number > 0; got {voxel_mm}")
+    accepted = {
+        int(f): pose
+        for f, pose, ok in zip(
+            registration.frame_indices, registration.poses, registration.accepted, strict=True
+        )
+        if ok
+    }
+    grid = _VoxelSums(float(voxel_mm))
+    for frame in frame_indices:
+        if int(frame) in accepted:
+            cloud = load_cloud(int(frame)).voxel_downsample(voxel_mm)
+            grid.add(cloud.transformed(invert_rigid(accepted[int(frame)])))
+    return grid.cloud()
+
+
+class _VoxelSums:
+    """Running confidence-weighted sums per occupied voxel (keys, weight, sums of points/normals/colours,
+    maximum confidence)."""
+
+    def __init__(self, voxel_mm: float) -> None:
+        self.voxel_mm = voxel_mm
+        self.keys = np.zeros((0, 3), np.int64)
+        self.weight = np.zeros(0)
+        self.sums = np.zeros((0, 9))
+        self.confidence = np.zeros(0, np.float32)
+
+    def add(self, cloud: PointCloud) -> None:
+        if not len(cloud):
+            return
+        weight = np.maximum(cloud.confidence.astype(np.float64), 1e-6)
+        values = np.concatenate([cloud.points, cloud.normals, cloud.colours.astype(np.float64)], axis=1)
+        keys = np.concatenate([self.keys, np.floor(cloud.points / self.voxel_mm).astype(np.int64)])
+        unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        total = np.concatenate([self.weight, weight])
+        sums = np.concatenate([self.sums, values * weight[:, None]])
+        confidence = np.concatenate([self.confidence, cloud.confidence])
+        self.keys = unique
+        self.weight = np.bincount(inverse, weights=total, minlength=len(unique))
+        self.sums = np.stack(
+            [np.bincount(inverse, weights=sums[:, c], minlength=len(unique)) for c in range(9)], axis=1
+        )
+        self.confidence = np.zeros(len(unique), np.float32)
+        np.maximum.at(self.confidence, inverse, confidence)
+
+    def cloud(self) -> PointCloud:
+        if not len(self.keys):
+            return PointCloud.empty()
+        mean = self.sums / self.weight[:, None]
+        return PointCloud.from_arrays(mean[:, :3], mean[:, 3:6], self.confidence, mean[:, 6:9])

@@ -1,0 +1,197 @@
+"""Sequence registration (polarface.geometry.registration): known rigid motions of partial, noisy views of
+the bundled head are recovered; a frame with no overlap is rejected with a reason; clouds are loaded
+lazily; registered frames fuse into the model frame."""
+
+from __future__ import annotations
+
+import math
+import weakref
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from polarface.geometry import load_head_asset
+from polarface.geometry.point_cloud import PointCloud
+from polarface.geometry.poses import invert_rigid, rigid_transform
+from polarface.geometry.registration import (
+    RegistrationConfig,
+    SequenceRegistration,
+    fuse_registered,
+    register_sequence,
+)
+
+# model (+y up, face +z) -> rig world (y down, z away from the camera at the origin), face 1 m away
+RIG_FROM_HEAD = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 1000.0], [0, 0, 0, 1]])
+FRAMES = 10
+REFERENCE = 4
+
+
+@pytest.fixture(scope="module")
+def head_surface():
+    """``(points (M, 3), normals (M, 3))`` sampled area-weighted on the bundled head above the neck."""
+    mesh = load_head_asset(texture_resolution=64).mesh
+    rng = np.random.default_rng(0)
+    areas = mesh.face_areas()
+    faces = rng.choice(len(areas), size=400_000, p=areas / areas.sum())
+    weights = rng.dirichlet(np.ones(3), size=len(faces))
+    points = np.einsum("fk,fkc->fc", weights, mesh.vertices[mesh.faces[faces]])
+    normals = mesh.face_normals()[faces]
+    keep = points[:, 1] > -120.0
+    return points[keep], normals[keep]
+
+
+def true_poses(count: int = FRAMES, step_deg: float = 5.0) -> np.ndarray:
+    """Yaw sweep of ``step_deg`` per frame about the neck, a small pitch nod and sub-mm translations."""
+    pivot = load_head_asset(texture_resolution=64).neck_pivot
+    poses = []
+    for k in range(count):
+        yaw = math.radians(step_deg * (k - REFERENCE))
+        pitch = math.radians(2.0 * math.sin(k))
+        shift = (0.5 * math.sin(k), 0.3 * math.cos(k), 0.2 * k)
+        poses.append(RIG_FROM_HEAD @ rigid_transform(yaw, pitch, 0.0, shift, pivot))
+    return np.stack(poses)
+
+
+def partial_view(surface, pose: np.ndarray, seed: int, count: int = 25_000, noise_mm: float = 0.1):
+    """The part of the head seen from the rig origin in pose ``pose``: an independent subsample of the
+    surface points whose normal faces the camera, with ``noise_mm`` noise along the normal."""
+    points, normals = surface
+    rng = np.random.default_rng(seed)
+    world = points @ pose[:3, :3].T + pose[:3, 3]
+    world_normals = normals @ pose[:3, :3].T
+    to_camera = -world / np.linalg.norm(world, axis=1, keepdims=True)
+    visible = np.flatnonzero(np.einsum("ij,ij->i", world_normals, to_camera) > 0.1)
+    chosen = rng.choice(visible, size=min(count, len(visible)), replace=False)
+    noisy = world[chosen] + world_normals[chosen] * rng.normal(0.0, noise_mm, (len(chosen), 1))
+    return PointCloud.from_arrays(noisy, world_normals[chosen])
+
+
+def unrelated_cloud(seed: int) -> PointCloud:
+    """A small sphere 400 mm to the side of the head: no overlap with any frame."""
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(5000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return PointCloud.from_arrays((400.0, 0.0, 900.0) + 30.0 * directions, directions)
+
+
+class LazyLoader:
+    """``load_cloud`` that counts calls and how many of the clouds it returned are still alive."""
+
+    def __init__(self, make) -> None:
+        self.make = make
+        self.calls: list[int] = []
+        self.returned: list[weakref.ref] = []
+        self.max_alive = 0
+
+    def __call__(self, frame: int) -> PointCloud:
+        alive = sum(ref() is not None for ref in self.returned)
+        self.max_alive = max(self.max_alive, alive)
+        self.calls.append(frame)
+        cloud = self.make(frame)
+        self.returned.append(weakref.ref(cloud))
+        return cloud
+
+
+def pose_errors(estimated: np.ndarray, truth: np.ndarray, reference: int):
+    """Rotation error (deg) and translation error at the head (mm) of each estimated model -> world pose
+    against the true motion relative to the reference frame."""
+    relative = truth @ invert_rigid(truth[reference])
+    head_centre = truth[:, :3, 3]  # where the model origin (head centre) lies in each frame
+    rotation, translation = [], []
+    for k in range(len(truth)):
+        error = estimated[k] @ invert_rigid(relative[k])
+        cosine = (np.trace(error[:3, :3]) - 1.0) / 2.0
+        rotation.append(math.degrees(math.acos(np.clip(cosine, -1.0, 1.0))))
+        moved = error[:3, :3] @ head_centre[k] + error[:3, 3]
+        translation.append(float(np.linalg.norm(moved - head_centre[k])))
+    return np.array(rotation), np.array(translation)
+
+
+@pytest.fixture(scope="module")
+def sweep(head_surface):
+    truth = true_poses()
+    loader = LazyLoader(lambda k: partial_view(head_surface, truth[k], seed=k))
+    result = register_sequence(range(FRAMES), loader, REFERENCE)
+    return truth, loader, result
+
+
+def test_register_sequence_recovers_known_motions(sweep):
+    truth, _, result = sweep
+    assert isinstance(result, SequenceRegistration)
+    assert result.accepted.all() and not result.rejected
+    np.testing.assert_array_equal(result.frame_indices, np.arange(FRAMES))
+    np.testing.assert_allclose(result.poses[REFERENCE], np.eye(4), atol=1e-9)
+    rotation, translation = pose_errors(result.poses, truth, REFERENCE)
+    # measured: rotation <= 0.02 deg, translation <= 0.015 mm (0.1 mm noise, 25k points per view)
+    assert rotation.max() < 0.05, rotation
+    assert translation.max() < 0.1, translation
+    # residuals against the model: a little above the noise (the model is a voxel average)
+    others = np.arange(FRAMES) != REFERENCE
+    assert np.all(result.rmse_mm[others] < 0.3) and np.all(result.fitness[others] > 0.8)
+
+
+def test_world_cloud_is_the_pose_applied_to_the_model(sweep, head_surface):
+    truth, _, result = sweep
+    model = partial_view(head_surface, truth[REFERENCE], seed=99, noise_mm=0.0)
+    frame = 7
+    moved = model.transformed(result.poses[frame]).points
+    expected = model.transformed(truth[frame] @ invert_rigid(truth[REFERENCE])).points
+    assert np.abs(moved - expected).max() < 0.2
+
+
+def test_clouds_are_loaded_lazily(sweep):
+    _, loader, _ = sweep
+    counts = np.bincount(loader.calls, minlength=FRAMES)
+    assert counts.max() <= 2  # one registration pass, one residual pass
+    assert loader.max_alive <= 2  # the loader's clouds are released (only downsampled copies are held)
+
+
+def test_frame_without_overlap_is_rejected_and_the_others_stay_right(head_surface):
+    truth = true_poses(count=8)
+    bad = 6
+    loader = LazyLoader(
+        lambda k: unrelated_cloud(k) if k == bad else partial_view(head_surface, truth[k], seed=k)
+    )
+    result = register_sequence(range(8), loader, REFERENCE, RegistrationConfig(loop_offsets=(2,)))
+    assert set(result.rejected) == {bad}
+    assert "fitness" in result.rejected[bad] and "no overlap" in result.rejected[bad]
+    assert not result.accepted[bad] and result.accepted.sum() == 7
+    rotation, translation = pose_errors(result.poses, truth, REFERENCE)
+    good = np.arange(8) != bad
+    assert rotation[good].max() < 0.05, rotation
+    assert translation[good].max() < 0.1, translation
+    summary = result.to_json()
+    assert summary["rejected"] == {str(bad): result.rejected[bad]} and summary["accepted_count"] == 7
+
+
+def test_fuse_registered_merges_accepted_frames_in_the_model_frame(sweep, head_surface):
+    truth, _, result = sweep
+    frames = [2, REFERENCE, 6]
+    fused = fuse_registered(frames, lambda k: partial_view(head_surface, truth[k], seed=k), result, 1.0)
+    # the model frame is the rig world at the reference: the true surface there is truth[REFERENCE] applied
+    # to the head; every fused point lies on it
+    surface = PointCloud.from_arrays(*head_surface).transformed(truth[REFERENCE])
+    distance, _ = cKDTree(surface.points).query(fused.points)
+    assert np.median(distance) < 0.5
+    # the fused cloud covers more than the reference view alone (the sides seen by frames 2 and 6)
+    alone = fuse_registered([REFERENCE], lambda k: partial_view(head_surface, truth[k], seed=k), result, 1.0)
+    assert len(fused) > 1.1 * len(alone)
+    with pytest.raises(ValueError, match="'voxel_mm'"):
+        fuse_registered(frames, lambda k: partial_view(head_surface, truth[k], seed=k), result, 0.0)
+
+
+def test_bad_arguments_name_the_argument():
+    def never(_):  # pragma: no cover - must not be called
+        raise AssertionError("load_cloud called on bad input")
+
+    with pytest.raises(ValueError, match="'frame_indices'"):
+        register_sequence([], never, 0)
+    with pytest.raises(ValueError, match="'frame_indices'"):
+        register_sequence([1, 1, 2], never, 1)
+    with pytest.raises(ValueError, match="'reference'"):
+        register_sequence([1, 2, 3], never, 7)
+    with pytest.raises(ValueError, match="'load_cloud'"):
+        register_sequence([0, 1], lambda _: PointCloud.empty(), 0)
+    with pytest.raises(ValueError, match="min_fitness"):
+        RegistrationConfig(min_fitness=2.0)
