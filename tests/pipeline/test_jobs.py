@@ -52,7 +52,7 @@ def test_resolve_reconstruct_inputs_errors(tmp_path):
     with pytest.raises(ValueError, match="cannot be combined"):
         resolve_reconstruct_inputs(tmp_path, geometry=tmp_path, mesh=tmp_path / "m", poses=tmp_path / "p")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(FileNotFoundError, match="neither geometry.json"):
+    with pytest.raises(FileNotFoundError, match=r"neither geometry\.json"):
         resolve_reconstruct_inputs(tmp_path, geometry=tmp_path / "empty")
 
 

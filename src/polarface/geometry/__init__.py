@@ -23,6 +23,7 @@ from polarface.geometry.deform import (
     flipped_faces,
     smooth_falloff,
 )
+from polarface.geometry.fusion import PoissonConfig, poisson_mesh
 from polarface.geometry.head_asset import (
     HeadAsset,
     head_placement,
@@ -58,6 +59,12 @@ from polarface.geometry.poses import (
     static_sequence_poses,
 )
 from polarface.geometry.raycast import RayCaster, RayHits, embree_available
+from polarface.geometry.registration import (
+    RegistrationConfig,
+    SequenceRegistration,
+    fuse_registered,
+    register_sequence,
+)
 from polarface.geometry.stereo import (
     StereoConfig,
     StereoDepth,
@@ -85,8 +92,11 @@ __all__ = [
     "HeightNormals",
     "PinholeCamera",
     "PointCloud",
+    "PoissonConfig",
     "RayCaster",
     "RayHits",
+    "RegistrationConfig",
+    "SequenceRegistration",
     "StaticSequenceConfig",
     "StereoConfig",
     "StereoDepth",
@@ -104,6 +114,7 @@ __all__ = [
     "face_areas",
     "face_normals",
     "flipped_faces",
+    "fuse_registered",
     "head_axis_from_poses",
     "head_axis_point_from_poses",
     "head_placement",
@@ -118,8 +129,10 @@ __all__ = [
     "normals_from_height_gradients",
     "normals_from_heights",
     "pick_landmark",
+    "poisson_mesh",
     "rasterize_uv",
     "rectify_pair",
+    "register_sequence",
     "reposition",
     "rigid_transform",
     "rotation_from_euler",

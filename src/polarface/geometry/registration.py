@@ -67,6 +67,14 @@ class RegistrationConfig:
         edge_prune_threshold: Open3D's line-process threshold for pruning wrong loop closures.
         preference_loop_closure: weight of loop closures against odometry in the pose graph.
         final_distance_mm: correspondence distance of the final residuals against the model.
+        global_voxel_mm: when the chained ICP of a frame is rejected, it is retried from a global
+            registration (FPFH features + RANSAC, Open3D) of the two clouds at this voxel size (0: never):
+            a sparse sequence whose frames are far apart (tens of degrees) still registers. The retry
+            is kept when it passes the fitness and RMSE tests (the jump test does not apply to it).
+        max_global_rotation_deg: a global registration rotating the frame by more than this against its
+            neighbour is refused: neighbouring frames of a revolving-chair sequence are closer than that,
+            and a partial face view can match itself turned about (measured: a 170 deg flip of a frame
+            40 deg away fitted well enough otherwise).
     """
 
     voxel_mm: float = 1.0
@@ -82,6 +90,8 @@ class RegistrationConfig:
     edge_prune_threshold: float = 0.25
     preference_loop_closure: float = 1.0
     final_distance_mm: float = 1.5
+    global_voxel_mm: float = 3.0
+    max_global_rotation_deg: float = 45.0
 
     def __post_init__(self) -> None:
         checks = {
@@ -362,6 +372,12 @@ def _register_one(frame, levels, window, ref, position, graph, relative, reasons
     pose = invert_rigid(check_rigid(_orthonormalised(transform))) @ anchor.pose
     jump = _rotation_deg(pose @ invert_rigid(predicted))
     reason = _rejection(fitness, rmse, jump, config)
+    if reason and config.global_voxel_mm > 0:
+        retry = _global_retry(levels, anchor.levels, config)
+        if retry is not None:
+            transform, fitness, rmse, information = retry
+            pose = invert_rigid(check_rigid(_orthonormalised(transform))) @ anchor.pose
+            jump, reason = _rotation_deg(pose @ invert_rigid(predicted)), ""
     if reason:
         reasons[frame] = reason
         best = pose if jump <= config.max_rotation_jump_deg else predicted
@@ -381,6 +397,45 @@ def _register_one(frame, levels, window, ref, position, graph, relative, reasons
         if loop_fitness >= config.min_fitness and loop_rmse <= config.max_rmse_mm:
             graph.edges.append((frame, target.index, loop, loop_info, True))
     window.append(current)
+
+
+def _fpfh(cloud, voxel_mm: float):
+    """``(downsampled cloud, FPFH features)`` of an Open3D cloud with normals."""
+    import open3d as o3d
+
+    down = cloud.voxel_down_sample(voxel_mm)
+    features = o3d.pipelines.registration.compute_fpfh_feature(
+        down, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel_mm, max_nn=100)
+    )
+    return down, features
+
+
+def _global_retry(source_levels, target_levels, config: RegistrationConfig):
+    """ICP from a global FPFH + RANSAC registration (source -> target); ``(T, fitness, rmse, information)``
+    when it passes the fitness and RMSE tests, else None. RANSAC is seeded: runs are reproducible."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    voxel = config.global_voxel_mm
+    source, source_features = _fpfh(source_levels[0], voxel)
+    target, target_features = _fpfh(target_levels[0], voxel)
+    o3d.utility.random.seed(0)
+    found = reg.registration_ransac_based_on_feature_matching(
+        source, target, source_features, target_features, True, 1.5 * voxel,
+        reg.TransformationEstimationPointToPoint(False), 3,
+        [
+            reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+            reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel),
+        ],
+        reg.RANSACConvergenceCriteria(100000, 0.999),
+    )
+    if found.fitness <= 0 or _rotation_deg(np.asarray(found.transformation)) > config.max_global_rotation_deg:
+        return None
+    transform, fitness, rmse, information = _icp(source_levels, target_levels, np.array(found.transformation),
+                                                 config)
+    if _rejection(fitness, rmse, 0.0, config):
+        return None
+    return transform, fitness, rmse, information
 
 
 def _rejection(fitness: float, rmse: float, jump: float, config: RegistrationConfig) -> str:

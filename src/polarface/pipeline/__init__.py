@@ -12,9 +12,21 @@ from polarface.pipeline.evaluate import (
     ground_truth_root,
     polarimetric_metrics,
     rerender_metrics,
+    write_figures,
 )
 from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
-from polarface.pipeline.geometry import GEOMETRY_JSON, GeometryConfig, frame_stereo, reconstruct_geometry
+from polarface.pipeline.evaluate_geometry import (
+    GeometryEvaluationConfig,
+    geometry_metrics,
+    texel_correspondence,
+)
+from polarface.pipeline.geometry import (
+    GEOMETRY_JSON,
+    GeometryConfig,
+    check_stereo_pairs,
+    frame_stereo,
+    reconstruct_geometry,
+)
 from polarface.pipeline.info import folder_info, format_info
 from polarface.pipeline.ior import (
     ANALYZER_IMAGE_NAMES,
@@ -43,11 +55,13 @@ __all__ = [
     "METRIC_GROUPS",
     "STAGES",
     "GeometryConfig",
+    "GeometryEvaluationConfig",
     "ReconstructContext",
     "ReconstructInputs",
     "SkinFitSummary",
     "SpectraFitOptions",
     "biophysical_metrics",
+    "check_stereo_pairs",
     "estimate_ior_from_folder",
     "evaluate",
     "evaluate_biophysical",
@@ -55,6 +69,7 @@ __all__ = [
     "folder_info",
     "format_info",
     "frame_stereo",
+    "geometry_metrics",
     "ground_truth_root",
     "load_stage_inputs",
     "polarimetric_metrics",
@@ -69,5 +84,7 @@ __all__ = [
     "run_demo_pipeline",
     "run_sphere_demo",
     "run_stages",
+    "texel_correspondence",
     "validate_ior",
+    "write_figures",
 ]

@@ -45,10 +45,10 @@ from polarface.geometry.mesh import save_obj, save_ply
 from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_point_cloud
 from polarface.geometry.poses import save_poses
 from polarface.geometry.registration import RegistrationConfig, fuse_registered, register_sequence
-from polarface.geometry.stereo import StereoConfig, StereoDepth, match_stereo_pair
+from polarface.geometry.stereo import StereoConfig, StereoDepth, match_stereo_pair, rectify_pair
 from polarface.io import read_json_object, write_json_atomic
 
-__all__ = ["GEOMETRY_JSON", "GeometryConfig", "frame_stereo", "reconstruct_geometry"]
+__all__ = ["GEOMETRY_JSON", "GeometryConfig", "check_stereo_pairs", "frame_stereo", "reconstruct_geometry"]
 
 LOGGER = logging.getLogger(__name__)
 #: The stage's summary file in GEOM.
@@ -121,6 +121,18 @@ def frame_stereo(
     return results
 
 
+def check_stereo_pairs(store: CaptureStore) -> None:
+    """ValueError unless the capture's rig has stereo pairs (else the message points to ``--mesh`` /
+    ``--poses``) whose calibrations rectify (naming the pair)."""
+    for camera_a, camera_b in store.rig.stereo_camera_pairs():
+        try:
+            rectify_pair(camera_a.pinhole(), camera_b.pinhole())
+        except ValueError as exc:
+            raise ValueError(
+                f"rig of '{store.root}': stereo pair {camera_a.id} + {camera_b.id}: {exc}"
+            ) from exc
+
+
 def _paths(out: Path, frame: int) -> tuple[Path, Path]:
     return out / "clouds" / f"{frame:06d}.npz", out / "frames" / f"{frame:06d}.ply"
 
@@ -189,7 +201,7 @@ def reconstruct_geometry(
 
     started = time.perf_counter()
     store = CaptureStore.open(capture)
-    store.rig.stereo_camera_pairs()  # fails before anything is written
+    check_stereo_pairs(store)  # fails before anything is written
     frames = [record.index for record in store.frames]
     if not frames:
         raise ValueError(f"capture '{capture}' has no complete frame")

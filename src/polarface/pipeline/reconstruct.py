@@ -201,7 +201,9 @@ def _open_capture(ctx: ReconstructContext):
     _check_manifest(store)
     _check_derived_store(store)
     if ctx.stereo:
-        store.rig.stereo_camera_pairs()
+        from polarface.pipeline.geometry import check_stereo_pairs
+
+        check_stereo_pairs(store)
     return store
 
 
