@@ -226,7 +226,9 @@ def reconstruct_geometry(
     failed = {f: entries[str(f)]["error"] for f in frames if "error" in entries[str(f)]}
     if reference in failed:
         raise ValueError(
-            f"the reference frame {reference} has no usable stereo geometry: {failed[reference]}"
+            f"the reference frame {reference} has no usable stereo geometry ({failed[reference]}); check "
+            "the stereo images, choose another reference frame, or give the geometry ('--mesh MESH "
+            "--poses POSES')"
         )
     usable = [f for f in frames if f not in failed]
     def load(frame: int) -> PointCloud:
