@@ -11,7 +11,7 @@ import open3d as o3d
 import pytest
 
 from polarface.cli import main
-from polarface.geometry import load_mesh, load_poses, rasterize_uv
+from polarface.geometry import StereoConfig, load_mesh, load_poses, rasterize_uv
 from polarface.pipeline import GeometryConfig, reconstruct, reconstruct_geometry, resolve_reconstruct_inputs
 from polarface.simulate import SimulationConfig, simulate
 from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
@@ -27,7 +27,9 @@ def sim(tmp_path_factory):
 @pytest.fixture(scope="module")
 def geom(sim, tmp_path_factory):
     out = tmp_path_factory.mktemp("geom") / "GEOM"
-    summary = reconstruct_geometry(sim / "static", out, GeometryConfig(texture_resolution=256), progress=False)
+    summary = reconstruct_geometry(
+        sim / "static", out, GeometryConfig(texture_resolution=256), progress=False
+    )
     return out, summary
 
 
@@ -75,8 +77,13 @@ def test_geometry_stage_resumes_without_redoing_frames(sim, geom):
     assert {p.name: p.stat().st_mtime_ns for p in (copy / "frames").glob("*.ply")} == stamps
     assert np.allclose(load_poses(copy / "poses.json"), load_poses(out / "poses.json"))
     assert again["reference_frame"] == summary["reference_frame"]
-    with pytest.raises(ValueError, match="another config"):
-        reconstruct_geometry(sim / "static", copy, GeometryConfig(texture_resolution=128), progress=False)
+    # another atlas resolution reuses the frames; another stereo configuration is refused
+    other = reconstruct_geometry(sim / "static", copy, GeometryConfig(texture_resolution=128), progress=False)
+    assert other["config"]["texture_resolution"] == 128
+    assert {p.name: p.stat().st_mtime_ns for p in (copy / "frames").glob("*.ply")} == stamps
+    with pytest.raises(ValueError, match=r"another config \(stereo\)"):
+        reconstruct_geometry(sim / "static", copy, GeometryConfig(stereo=StereoConfig(block_size=7)),
+                             progress=False)
 
 
 @pytest.mark.slow
@@ -134,11 +141,11 @@ def test_rig_without_stereo_pairs_points_to_mesh_and_poses(tmp_path, capsys):
     make_sphere_capture(tmp_path / "sphere", SphereCaptureConfig(texture_resolution=16, frames=4))
     capture = tmp_path / "sphere" / "static"
     # the sphere capture's stereo images are black: the reference frame has no stereo point
-    with pytest.raises(ValueError, match="no usable stereo geometry.*--mesh MESH --poses POSES"):
+    with pytest.raises(ValueError, match=r"no usable stereo geometry.*--mesh MESH --poses POSES"):
         reconstruct(resolve_reconstruct_inputs(capture), tmp_path / "RESULT", progress=False)
     assert not (tmp_path / "RESULT").exists()
     _without_stereo_cameras(capture)
-    with pytest.raises(ValueError, match="no stereo camera pair.*--mesh MESH --poses POSES"):
+    with pytest.raises(ValueError, match=r"no stereo camera pair.*--mesh MESH --poses POSES"):
         reconstruct(resolve_reconstruct_inputs(capture), tmp_path / "RESULT")
     assert not (tmp_path / "RESULT").exists()
     assert main(["geometry", str(capture), "--out", str(tmp_path / "GEOM")]) == 2
