@@ -24,8 +24,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import resource
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +43,7 @@ from polarface.geometry.atlas import (
     head_axis_point_from_poses,
 )
 from polarface.geometry.fusion import PoissonConfig, poisson_mesh
-from polarface.geometry.mesh import save_obj, save_ply
+from polarface.geometry.mesh import TriangleMesh, save_obj, save_ply
 from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_point_cloud
 from polarface.geometry.poses import save_poses
 from polarface.geometry.registration import RegistrationConfig, fuse_registered, register_sequence
@@ -110,10 +112,12 @@ def frame_stereo(
     """Dense stereo of every stereo pair of one frame: ``[(pair name, StereoDepth), ...]``.
 
     The raw frames are read from ``store`` and black-level corrected; saturation is tested on the raw
-    counts. Raises ValueError when the rig has no stereo pair (pointing to known-geometry mode).
+    counts. The pairs run in threads (OpenCV releases the GIL), one per CPU core. Raises ValueError
+    when the rig has no stereo pair (pointing to known-geometry mode).
     """
-    results = []
-    for camera_a, camera_b in store.rig.stereo_camera_pairs():
+
+    def one_pair(pair) -> tuple[str, StereoDepth]:
+        camera_a, camera_b = pair
         images = [
             store.read_raw(frame_index, camera.id).astype(np.float32) - camera.black_level
             for camera in (camera_a, camera_b)
@@ -122,8 +126,11 @@ def frame_stereo(
             images[0], images[1], camera_a.pinhole(), camera_b.pinhole(), config,
             saturation=camera_a.saturation_level - camera_a.black_level,
         )
-        results.append((f"{camera_a.id}+{camera_b.id}", depth))
-    return results
+        return f"{camera_a.id}+{camera_b.id}", depth
+
+    pairs = store.rig.stereo_camera_pairs()
+    with ThreadPoolExecutor(max_workers=max(1, min(len(pairs), os.cpu_count() or 1))) as pool:
+        return list(pool.map(one_pair, pairs))
 
 
 def check_stereo_pairs(store: CaptureStore) -> None:
@@ -142,28 +149,45 @@ def _paths(out: Path, frame: int) -> tuple[Path, Path]:
     return out / "clouds" / f"{frame:06d}.npz", out / "frames" / f"{frame:06d}.ply"
 
 
-def _process_frame(store: CaptureStore, frame: int, out: Path, config: GeometryConfig,
-                   previews: bool) -> dict[str, Any]:
-    """Stereo, fusion and meshing of one frame; returns its summary entry."""
+@dataclasses.dataclass(frozen=True)
+class _FrameGeometry:
+    """One frame's stereo result, merged cloud and mesh (None with the reason when meshing failed)."""
+
+    pairs: list[tuple[str, StereoDepth]]
+    cloud: PointCloud
+    mesh: TriangleMesh | None
+    error: str | None
+    seconds: float
+
+
+def _frame_geometry(store: CaptureStore, frame: int, config: GeometryConfig) -> _FrameGeometry:
+    """Stereo, fusion and meshing of one frame (nothing written)."""
     started = time.perf_counter()
     pairs = frame_stereo(store, frame, config.stereo)
     merged = PointCloud.concatenate([depth.cloud for _, depth in pairs])
     cloud = merged.voxel_downsample(config.frame_voxel_mm)
+    try:
+        mesh, error = poisson_mesh(cloud, config.frame_poisson), None
+    except ValueError as exc:
+        mesh, error = None, f"no mesh: {exc}"
+    return _FrameGeometry(pairs, cloud, mesh, error, time.perf_counter() - started)
+
+
+def _write_frame(out: Path, frame: int, result: _FrameGeometry, previews: bool) -> dict[str, Any]:
+    """Write a frame's mesh, previews and cloud (the cloud last: it marks the frame complete); returns
+    its summary entry."""
     cloud_path, mesh_path = _paths(out, frame)
-    entry: dict[str, Any] = {"points": len(cloud), "pairs": {n: len(d.cloud) for n, d in pairs}}
+    entry: dict[str, Any] = {"points": len(result.cloud), "pairs": {n: len(d.cloud) for n, d in result.pairs}}
     if previews:
         from polarface.report.geometry import write_depth_previews
 
-        write_depth_previews(out / "previews", pairs)
-    try:
-        mesh = poisson_mesh(cloud, config.frame_poisson)
-    except ValueError as exc:
-        entry["error"] = f"no mesh: {exc}"
-        save_point_cloud(cloud_path, cloud)
-        return entry
-    save_ply(mesh_path, mesh)
-    save_point_cloud(cloud_path, cloud)  # written last: marks the frame complete
-    entry.update({"mesh_vertices": mesh.vertex_count, "seconds": time.perf_counter() - started})
+        write_depth_previews(out / "previews", result.pairs)
+    if result.mesh is None:
+        entry["error"] = result.error
+    else:
+        save_ply(mesh_path, result.mesh)
+        entry.update({"mesh_vertices": result.mesh.vertex_count, "seconds": result.seconds})
+    save_point_cloud(cloud_path, result.cloud)
     return entry
 
 
@@ -230,22 +254,26 @@ def reconstruct_geometry(
         "config": config.to_json(), "reference_frame": reference, "complete": False,
     }
     previous = _check_resume(out, header)
-    out.mkdir(parents=True, exist_ok=True)
     entries: dict[str, Any] = dict(previous.get("frames", {}))
+    done = {f for f in frames if _paths(out, f)[0].exists() and str(f) in entries}
+    if reference not in done:  # the reference frame first: without it nothing is written
+        first = _frame_geometry(store, reference, config)
+        if first.mesh is None:
+            raise ValueError(
+                f"the reference frame {reference} has no usable stereo geometry ({first.error}); check "
+                "the stereo images, choose another reference frame, or give the geometry ('--mesh MESH "
+                "--poses POSES')"
+            )
+        out.mkdir(parents=True, exist_ok=True)
+        entries[str(reference)] = _write_frame(out, reference, first, previews=True)
     write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries})
     for frame in tqdm(frames, desc="geometry: stereo", unit="frame", disable=not progress):
-        if _paths(out, frame)[0].exists() and str(frame) in entries:
+        if frame == reference or frame in done:
             continue
-        entries[str(frame)] = _process_frame(store, frame, out, config, previews=frame == reference)
+        entries[str(frame)] = _write_frame(out, frame, _frame_geometry(store, frame, config), previews=False)
         write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries})
     stereo_s = time.perf_counter() - started
     failed = {f: entries[str(f)]["error"] for f in frames if "error" in entries[str(f)]}
-    if reference in failed:
-        raise ValueError(
-            f"the reference frame {reference} has no usable stereo geometry ({failed[reference]}); check "
-            "the stereo images, choose another reference frame, or give the geometry ('--mesh MESH "
-            "--poses POSES')"
-        )
     usable = [f for f in frames if f not in failed]
     def load(frame: int) -> PointCloud:
         return load_point_cloud(_paths(out, frame)[0])
