@@ -1038,6 +1038,40 @@ def _ior_rows() -> list[Row]:
     return rows
 
 
+GEOMR = "geometry {sim}/static --quiet --out {ws}/out"
+
+
+def _same_centre(first: int, second: int) -> Callable[[dict], None]:
+    """A rig whose camera ``second`` sits where camera ``first`` is (a broken stereo calibration)."""
+
+    def change(payload: dict) -> None:
+        cameras = payload["cameras"]
+        cameras[second]["world_to_camera"] = cameras[first]["world_to_camera"]
+
+    return change
+
+
+def _geometry_rows() -> list[Row]:
+    """``polarface geometry`` and ``reconstruct``'s default stereo geometry stage. The session's sphere
+    capture has black stereo images: its reference frame has no stereo point."""
+    rig = "sim/static/rig.json"
+    return [
+        row("geometry-capture-missing", GEOMR.replace("{sim}/static", "{ws}/nope"), "nope"),
+        row("geometry-capture-is-file", GEOMR.replace("{sim}/static", "{rig}"), "rig.json"),
+        row("geometry-no-out", "geometry {sim}/static --quiet", "--out"),
+        row("geometry-texture-resolution=4", GEOMR + " --texture-resolution 4", "resolution"),
+        row("geometry-reference-frame=99", GEOMR + " --reference-frame 99", "reference_frame"),
+        row("geometry-no-stereo-points", GEOMR, "--mesh MESH --poses POSES"),
+        row("geometry-pair-broken", GEOMR, "stereo1_a + stereo1_b", edit_json(rig, _same_centre(4, 5))),
+        row("geometry-out-foreign", GEOMR, "out", foreign("out")),
+        row(
+            "reconstruct-stereo-no-points",
+            "reconstruct {sim}/static --texture-resolution 16 --quiet --out {ws}/out",
+            "--mesh MESH --poses POSES",
+        ),
+    ]
+
+
 ROWS: list[Row] = [
     *_stokes_rows(),
     *_ingest_rows(),
@@ -1045,6 +1079,7 @@ ROWS: list[Row] = [
     *_skin_rows(),
     *_simulate_demo_bench_rows(),
     *_reconstruct_rows(),
+    *_geometry_rows(),
     *_evaluate_rows(),
     *_biophysical_rows(),
     *_render_rows(),
