@@ -172,3 +172,23 @@ def test_rig_load_rejects_non_finite_numbers_naming_the_field(tmp_path, edit, fi
         Rig.load(path)
     assert field in str(info.value)
     assert "\n" not in str(info.value)
+
+
+def test_stereo_camera_pairs():
+    rig = paper_rig(width=64, height=48)
+    pairs = rig.stereo_camera_pairs()
+    assert [(a.id, b.id) for a, b in pairs] == [(f"stereo{k}_a", f"stereo{k}_b") for k in range(4)]
+    # without the explicit list the <module>_a / _b names pair them
+    by_name = Rig.model_validate({**rig.model_dump(mode="json"), "stereo_pairs": []})
+    assert [(a.id, b.id) for a, b in by_name.stereo_camera_pairs()] == [(a.id, b.id) for a, b in pairs]
+    data = rig.model_dump(mode="json")
+    with pytest.raises(ValueError, match="stereo_pairs"):
+        Rig.model_validate({**data, "stereo_pairs": [["stereo0_a", "nope"]]})
+    with pytest.raises(ValueError, match="stereo_pairs"):
+        Rig.model_validate({**data, "stereo_pairs": [["stereo0_a", "stereo0_a"]]})
+    lonely = {**data, "stereo_pairs": [], "cameras": [c for c in data["cameras"] if c["id"] != "stereo2_b"]}
+    with pytest.raises(ValueError, match=r"stereo2_a.*no partner"):
+        Rig.model_validate(lonely).stereo_camera_pairs()
+    only_polarimetric = {**lonely, "cameras": [c for c in data["cameras"] if c["role"] == "polarimetric"]}
+    with pytest.raises(ValueError, match="--mesh MESH --poses POSES"):
+        Rig.model_validate(only_polarimetric).stereo_camera_pairs()

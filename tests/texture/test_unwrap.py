@@ -172,3 +172,14 @@ def test_footprint_test_removes_boundary_samples_of_the_sphere_cap(capture):
         counts[name] = unwrap.visible_count()
     assert (counts["checked"] <= counts["unchecked"]).all()
     assert counts["checked"].sum() < counts["unchecked"].sum()
+
+
+def test_excluded_frames_are_left_out(capture):
+    _info, store, mesh, poses, root = capture
+    config = UnwrapConfig(texture_resolution=16, patch=8, excluded_frames=(1,))
+    unwrap = unwrap_capture(store, mesh, poses, root / "excluded.zarr", config, progress=False)
+    assert sorted({v.frame for v in unwrap.views}) == [0, 2] and len(unwrap.views) == 4
+    with pytest.raises(ValueError, match="excluded_frames"):
+        unwrap_capture(store, mesh, poses, root / "none.zarr",
+                       UnwrapConfig(texture_resolution=16, excluded_frames=(0, 1, 2)), progress=False)
+    assert not (root / "none.zarr").exists()
