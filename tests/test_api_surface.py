@@ -48,7 +48,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "reposition", "rigid_transform", "rotation_from_euler", "sample_texture", "save_obj",
         "save_ply", "save_point_cloud", "save_poses", "smooth_falloff", "srgb_to_linear",
         "static_sequence_poses", "texel_uv", "texels_to_world", "undistort_normalized",
-        "vertex_normals",
+        "vertex_normals", "voxel_keys",
     ),
     "polarface.inverse": (
         "BiophysicalConfig", "BiophysicalFit", "IorResult", "POLARIMETRIC_ENGINES",

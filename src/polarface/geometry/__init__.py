@@ -46,7 +46,7 @@ from polarface.geometry.mesh import (
     save_ply,
     vertex_normals,
 )
-from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_point_cloud
+from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_point_cloud, voxel_keys
 from polarface.geometry.poses import (
     StaticSequenceConfig,
     check_rigid,
@@ -148,4 +148,5 @@ __all__ = [
     "texels_to_world",
     "undistort_normalized",
     "vertex_normals",
+    "voxel_keys",
 ]

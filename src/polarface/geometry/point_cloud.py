@@ -18,7 +18,24 @@ import numpy as np
 from polarface.geometry.poses import check_rigid
 from polarface.io.atomic import atomic_path
 
-__all__ = ["PointCloud", "load_point_cloud", "save_point_cloud"]
+__all__ = ["PointCloud", "load_point_cloud", "save_point_cloud", "voxel_keys"]
+
+_KEY_BITS = 21  # per axis: +-2^20 voxels, i.e. +-524 m at 0.5 mm
+
+
+def voxel_keys(points: np.ndarray, voxel_mm: float) -> np.ndarray:
+    """``(N,)`` int64 key of the ``voxel_mm`` cube holding each point of ``(N, 3)`` ``points`` (mm): the three
+    integer voxel coordinates packed into one integer, so that ``np.unique`` sorts 1-D keys.
+
+    Raises:
+        ValueError: a point lies beyond +-2^20 voxels of the origin.
+    """
+    cells = np.floor(np.asarray(points, dtype=np.float64) / voxel_mm).astype(np.int64)
+    half = 1 << (_KEY_BITS - 1)
+    if cells.size and (cells.min() < -half or cells.max() >= half):
+        raise ValueError(f"points lie beyond {half} voxels of {voxel_mm} mm from the origin")
+    shifted = cells + half
+    return (shifted[:, 0] << (2 * _KEY_BITS)) | (shifted[:, 1] << _KEY_BITS) | shifted[:, 2]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,8 +124,7 @@ class PointCloud:
             raise ValueError(f"argument 'voxel_mm' must be > 0; got {voxel_mm}")
         if not len(self):
             return self
-        keys = np.floor(self.points / voxel_mm).astype(np.int64)
-        _, inverse = np.unique(keys, axis=0, return_inverse=True)
+        _, inverse = np.unique(voxel_keys(self.points, voxel_mm), return_inverse=True)
         inverse = inverse.reshape(-1)
         count = int(inverse.max()) + 1
         weight = np.maximum(self.confidence.astype(np.float64), 1e-6)

@@ -34,7 +34,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from polarface.geometry.point_cloud import PointCloud
+from polarface.geometry.point_cloud import PointCloud, voxel_keys
 from polarface.geometry.poses import check_rigid, invert_rigid
 
 __all__ = ["RegistrationConfig", "SequenceRegistration", "fuse_registered", "register_sequence"]
@@ -607,7 +607,7 @@ class _VoxelSums:
 
     def __init__(self, voxel_mm: float) -> None:
         self.voxel_mm = voxel_mm
-        self.keys = np.zeros((0, 3), np.int64)
+        self.keys = np.zeros(0, np.int64)
         self.weight = np.zeros(0)
         self.sums = np.zeros((0, 9))
         self.confidence = np.zeros(0, np.float32)
@@ -617,8 +617,8 @@ class _VoxelSums:
             return
         weight = np.maximum(cloud.confidence.astype(np.float64), 1e-6)
         values = np.concatenate([cloud.points, cloud.normals, cloud.colours.astype(np.float64)], axis=1)
-        keys = np.concatenate([self.keys, np.floor(cloud.points / self.voxel_mm).astype(np.int64)])
-        unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+        keys = np.concatenate([self.keys, voxel_keys(cloud.points, self.voxel_mm)])
+        unique, inverse = np.unique(keys, return_inverse=True)
         inverse = inverse.reshape(-1)
         total = np.concatenate([self.weight, weight])
         sums = np.concatenate([self.sums, values * weight[:, None]])
