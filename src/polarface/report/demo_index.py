@@ -263,6 +263,11 @@ def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any]) 
         "the DoP validation and the chromophore maps.",
     )
     section.link("result/report.html", "Open the reconstruction report (result/report.html)")
+    if (out / "result" / "geometry" / "report.html").is_file():
+        section.link(
+            "result/geometry/report.html",
+            "The geometry from the stereo pairs: depth, meshes, registration (result/geometry/report.html)",
+        )
     section.link("metrics.json", "The metrics against the ground truth (metrics.json)")
     checks = page.section(
         "Errors against the ground truth",

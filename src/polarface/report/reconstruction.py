@@ -206,6 +206,10 @@ def write_report(
         subtitle=f"texture {result.get('texture_resolution')}, "
         f"texel {result.get('texel_size_mm', 0):.3f} mm, {stage.get('texels', 0)} texels fitted",
     )
+    if (folder.geometry_dir / "report.html").is_file():
+        page.section(
+            "Geometry", "Mesh, poses and per-frame meshes reconstructed from the rig's stereo pairs."
+        ).link("geometry/report.html", "Open the geometry report (geometry/report.html)")
     _add_map_section(page, folder, stage, maps, mask)
     _add_loss_section(page, folder)
     _add_view_sections(page, folder, maps)
