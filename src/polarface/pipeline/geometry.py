@@ -256,43 +256,19 @@ def reconstruct_geometry(
         "config": config.to_json(), "reference_frame": reference, "complete": False,
     }
     previous = _check_resume(out, header)
-    entries: dict[str, Any] = dict(previous.get("frames", {}))
-    done = {f for f in frames if _paths(out, f)[0].exists() and str(f) in entries}
-    if reference not in done:  # the reference frame first: without it nothing is written
-        first = _frame_geometry(store, reference, config)
-        if first.mesh is None:
-            raise ValueError(
-                f"the reference frame {reference} has no usable stereo geometry ({first.error}); check "
-                "the stereo images, choose another reference frame, or give the geometry ('--mesh MESH "
-                "--poses POSES')"
-            )
-        out.mkdir(parents=True, exist_ok=True)
-        entries[str(reference)] = _write_frame(out, reference, first, previews=True)
-    write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries})
-    for frame in tqdm(frames, desc="geometry: stereo", unit="frame", disable=not progress):
-        if frame == reference or frame in done:
-            continue
-        entries[str(frame)] = _write_frame(out, frame, _frame_geometry(store, frame, config), previews=False)
-        write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries})
+    entries = _frame_pass(store, out, frames, reference, config, header, dict(previous.get("frames", {})),
+                          progress)
     stereo_s = time.perf_counter() - started
     failed = {f: entries[str(f)]["error"] for f in frames if "error" in entries[str(f)]}
     usable = [f for f in frames if f not in failed]
+
     def load(frame: int) -> PointCloud:
         return load_point_cloud(_paths(out, frame)[0])
 
     registration = register_sequence(usable, load, reference, config.registration, progress=progress)
     poses = _all_poses(frames, usable, registration.poses)
     fused = fuse_registered(usable, load, registration, config.reference_voxel_mm)
-    mesh = poisson_mesh(fused, config.reference_poisson)
-    axis = head_axis_from_poses(poses, reference=frames.index(reference))
-    try:  # the chair's rotation axis; a sequence that hardly turns falls back to a circle fit
-        centre = head_axis_point_from_poses(poses, axis, reference=frames.index(reference))
-    except ValueError:
-        centre = default_axis_point(mesh.vertices, axis)
-    atlas = cylindrical_atlas(
-        mesh, axis, centre, _front_direction(store, centre),
-        CylindricalAtlasConfig(resolution=int(config.texture_resolution)),
-    )
+    atlas = _reference_atlas(store, poses, frames.index(reference), fused, config)
     save_obj(out / "mesh.obj", atlas.mesh)
     save_poses(out / "poses.json", poses)
     rejected = {str(f): reason for f, reason in {**failed, **registration.rejected}.items()}
@@ -312,6 +288,46 @@ def reconstruct_geometry(
     write_geometry_report(out, summary, atlas.mesh, poses, store.rig, frames)
     write_json_atomic(out / GEOMETRY_JSON, summary)
     return summary
+
+
+def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: int, config: GeometryConfig,
+                header: dict[str, Any], entries: dict[str, Any], progress: bool) -> dict[str, Any]:
+    """Stereo and meshes of every frame not done yet, the reference frame first (a capture whose
+    reference frame gives no geometry writes nothing); returns the per-frame summary entries."""
+    done = {f for f in frames if _paths(out, f)[0].exists() and str(f) in entries}
+    if reference not in done:
+        first = _frame_geometry(store, reference, config)
+        if first.mesh is None:
+            raise ValueError(
+                f"the reference frame {reference} has no usable stereo geometry ({first.error}); check "
+                "the stereo images, choose another reference frame, or give the geometry ('--mesh MESH "
+                "--poses POSES')"
+            )
+        out.mkdir(parents=True, exist_ok=True)
+        entries[str(reference)] = _write_frame(out, reference, first, previews=True)
+    write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries})
+    for frame in tqdm(frames, desc="geometry: stereo", unit="frame", disable=not progress):
+        if frame == reference or frame in done:
+            continue
+        entries[str(frame)] = _write_frame(out, frame, _frame_geometry(store, frame, config), previews=False)
+        write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries})
+    return entries
+
+
+def _reference_atlas(store: CaptureStore, poses: np.ndarray, reference_row: int, fused: PointCloud,
+                     config: GeometryConfig):
+    """The reference mesh of the fused cloud with its cylindrical atlas (``CylindricalAtlas``): the axis is
+    the chair's rotation axis from the poses (a sequence that hardly turns falls back to a circle fit)."""
+    mesh = poisson_mesh(fused, config.reference_poisson)
+    axis = head_axis_from_poses(poses, reference=reference_row)
+    try:
+        centre = head_axis_point_from_poses(poses, axis, reference=reference_row)
+    except ValueError:
+        centre = default_axis_point(mesh.vertices, axis)
+    return cylindrical_atlas(
+        mesh, axis, centre, _front_direction(store, centre),
+        CylindricalAtlasConfig(resolution=int(config.texture_resolution)),
+    )
 
 
 def _all_poses(frames: list[int], usable: list[int], poses: np.ndarray) -> np.ndarray:
