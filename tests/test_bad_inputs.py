@@ -1178,6 +1178,7 @@ def test_table_is_large_and_unique():
         "skin-fit",
         "simulate",
         "reconstruct",
+        "geometry",
         "evaluate",
         "biophysical",
         "render",
