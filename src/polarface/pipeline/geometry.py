@@ -131,8 +131,22 @@ def frame_stereo(
         return f"{camera_a.id}+{camera_b.id}", depth
 
     pairs = store.rig.stereo_camera_pairs()
-    with ThreadPoolExecutor(max_workers=max(1, min(len(pairs), os.cpu_count() or 1))) as pool:
+    workers = max(1, min(len(pairs), os.cpu_count() or 1))
+    if max(_sgbm_bytes(a.pinhole(), b.pinhole(), config) for a, b in pairs) > _PARALLEL_SGBM_BYTES:
+        workers = 1  # full-size images: one 8-path SGBM cost volume (GBs) at a time
+    with ThreadPoolExecutor(max_workers=workers) as pool:
         return list(pool.map(one_pair, pairs))
+
+
+#: Pairs are matched in parallel only while one pair's SGBM cost volume stays below this (bytes).
+_PARALLEL_SGBM_BYTES = 2.0e9
+
+
+def _sgbm_bytes(camera_a, camera_b, config: StereoConfig) -> float:
+    """Size of OpenCV's 8-path SGBM cost volume of a pair, ``width x height x disparities`` int16 (bytes;
+    measured on the full preset: 17.7 GB peak with two 2448 x 2048 pairs of 448 disparities at once)."""
+    _, count = rectify_pair(camera_a, camera_b).disparity_range(config.depth_range_mm)
+    return 2.0 * camera_a.width * camera_a.height * count
 
 
 def check_stereo_pairs(store: CaptureStore) -> None:
