@@ -124,6 +124,7 @@ def result_info(root: Path) -> dict[str, Any]:
         "texel_size_mm": result.get("texel_size_mm"),
         "stages": {
             name: {"complete": bool(rec.get("complete", False)), "seconds": _stage_seconds(rec)}
+            | ({"skipped": rec["skipped"]} if rec.get("skipped") else {})
             for name, rec in stages.items() if isinstance(rec, dict)
         },
         "texels": stages.get("polarimetric", {}).get("texels"),
@@ -216,7 +217,8 @@ def _result_lines(info: dict[str, Any]) -> list[str]:
     ]
     for name, stage in info["stages"].items():
         state = "done" if stage["complete"] else "not complete"
-        lines.append(f"    {name:<14} {state:<13} {_number(stage['seconds'], ' s')}")
+        detail = f"skipped: {stage['skipped']}" if stage.get("skipped") else _number(stage["seconds"], " s")
+        lines.append(f"    {name:<14} {state:<13} {detail}")
     lines += _wrapped(f"maps ({len(info['maps'])})", info["maps"])
     lines.append(f"  previews: {info['previews']} PNG; report: {info['report'] or 'not written'}")
     if info["frames"]:
