@@ -13,13 +13,14 @@ from polarface.io.images import (
     write_exr,
     write_png,
 )
-from polarface.io.json_files import read_json_object
+from polarface.io.json_files import json_values, read_json_object
 
 __all__ = [
     "atomic_directory",
     "atomic_path",
     "colormap_png",
     "image_header",
+    "json_values",
     "read_exr",
     "read_gray",
     "read_json_object",

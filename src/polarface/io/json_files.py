@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-__all__ = ["read_json_object"]
+__all__ = ["json_values", "read_json_object"]
 
 
 def read_json_object(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -26,3 +26,13 @@ def read_json_object(path: str | os.PathLike[str]) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ValueError(f"'{path}' must hold a JSON object; got {type(data).__name__}")
     return data
+
+
+def json_values(value: Any) -> Any:
+    """``value`` with every tuple turned into a list, recursively through dicts and lists: what it reads
+    back as after a JSON round trip, so that recorded and current configurations compare equal."""
+    if isinstance(value, dict):
+        return {k: json_values(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_values(v) for v in value]
+    return value

@@ -48,7 +48,7 @@ from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_po
 from polarface.geometry.poses import save_poses
 from polarface.geometry.registration import RegistrationConfig, fuse_registered, register_sequence
 from polarface.geometry.stereo import StereoConfig, StereoDepth, match_stereo_pair, rectify_pair
-from polarface.io import read_json_object, write_json_atomic
+from polarface.io import json_values, read_json_object, write_json_atomic
 
 __all__ = ["GEOMETRY_JSON", "GeometryConfig", "check_stereo_pairs", "frame_stereo", "reconstruct_geometry"]
 
@@ -97,15 +97,7 @@ class GeometryConfig:
 
     def to_json(self) -> dict[str, Any]:
         """The configuration as plain JSON values."""
-        return _jsonable(dataclasses.asdict(self))
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    return value
+        return json_values(dataclasses.asdict(self))
 
 
 def frame_stereo(

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from polarface.io import json_values
 from polarface.results import ResultFolder, default_channel_names
 
 __all__ = [
@@ -287,14 +288,6 @@ def stage_prepare(ctx: ReconstructContext) -> dict[str, Any]:
     }
 
 
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    return value
-
-
 def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
     """Fit the polarimetric maps and write ``maps/``, ``previews/`` (checkpoints in ``checkpoints/``)."""
     from polarface.device import resolve_device
@@ -320,7 +313,7 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
     folder.write_loss_curve(fit.loss_curve)
     masked = {k: float(np.median(v[fit.mask])) for k, v in fit.maps.items() if v.ndim == 2}
     return {
-        "config": _jsonable(dataclasses.asdict(config)),
+        "config": json_values(dataclasses.asdict(config)),
         "device": str(device),
         "patches": fit.patches,
         "samples": fit.sample_count,
@@ -382,7 +375,7 @@ def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
         **geometry,
         "texture_resolution": int(ctx.texture_resolution),
         "holdout_every": int(ctx.holdout_every),
-        "options": _jsonable(dataclasses.asdict(PolarimetricConfig(**ctx.fit_options))),
+        "options": json_values(dataclasses.asdict(PolarimetricConfig(**ctx.fit_options))),
     }
 
 
