@@ -12,14 +12,10 @@ import pytest
 from scipy.spatial import cKDTree
 
 from polarface.geometry import load_head_asset
+from polarface.geometry.fusion import fuse_registered
 from polarface.geometry.point_cloud import PointCloud
 from polarface.geometry.poses import invert_rigid, rigid_transform
-from polarface.geometry.registration import (
-    RegistrationConfig,
-    SequenceRegistration,
-    fuse_registered,
-    register_sequence,
-)
+from polarface.geometry.registration import RegistrationConfig, SequenceRegistration, register_sequence
 
 # model (+y up, face +z) -> rig world (y down, z away from the camera at the origin), face 1 m away
 RIG_FROM_HEAD = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 1000.0], [0, 0, 0, 1]])

@@ -23,7 +23,7 @@ from polarface.geometry.deform import (
     flipped_faces,
     smooth_falloff,
 )
-from polarface.geometry.fusion import PoissonConfig, poisson_mesh
+from polarface.geometry.fusion import PoissonConfig, fuse_registered, poisson_mesh
 from polarface.geometry.head_asset import (
     HeadAsset,
     head_placement,
@@ -46,7 +46,7 @@ from polarface.geometry.mesh import (
     save_ply,
     vertex_normals,
 )
-from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_point_cloud, voxel_keys
+from polarface.geometry.point_cloud import PointCloud, VoxelAccumulator, load_point_cloud, save_point_cloud
 from polarface.geometry.poses import (
     StaticSequenceConfig,
     check_rigid,
@@ -62,7 +62,6 @@ from polarface.geometry.raycast import RayCaster, RayHits, embree_available
 from polarface.geometry.registration import (
     RegistrationConfig,
     SequenceRegistration,
-    fuse_registered,
     register_sequence,
 )
 from polarface.geometry.stereo import (
@@ -103,6 +102,7 @@ __all__ = [
     "StereoRectification",
     "TriangleMesh",
     "UVRaster",
+    "VoxelAccumulator",
     "check_rigid",
     "cylindrical_atlas",
     "default_axis_point",
@@ -148,5 +148,4 @@ __all__ = [
     "texels_to_world",
     "undistort_normalized",
     "vertex_normals",
-    "voxel_keys",
 ]

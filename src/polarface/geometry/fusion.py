@@ -1,4 +1,7 @@
-"""Screened Poisson meshing of an oriented point cloud (issue 14, item 2), trimmed to the data.
+"""Fusion of stereo clouds and screened Poisson meshing (issue 14, items 2-3), trimmed to the data.
+
+:func:`fuse_registered` merges the registered frames' clouds in the model frame on a voxel grid;
+:func:`poisson_mesh` meshes a cloud:
 
 The per-frame fused stereo cloud (:class:`~polarface.geometry.point_cloud.PointCloud`, mm) becomes a
 watertight-free, data-bounded :class:`~polarface.geometry.mesh.TriangleMesh` by Open3D's screened
@@ -21,13 +24,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from polarface.geometry.mesh import TriangleMesh
-from polarface.geometry.point_cloud import PointCloud
+from polarface.geometry.point_cloud import PointCloud, VoxelAccumulator
+from polarface.geometry.poses import invert_rigid
 
-__all__ = ["PoissonConfig", "poisson_mesh"]
+if TYPE_CHECKING:
+    from polarface.geometry.registration import SequenceRegistration
+
+__all__ = ["PoissonConfig", "fuse_registered", "poisson_mesh"]
 
 _MIN_POINTS = 16
 
@@ -223,3 +232,45 @@ def _orient_along_normals(vertices: np.ndarray, faces: np.ndarray, cloud: PointC
     _, nearest = cKDTree(cloud.points).query(corners.mean(axis=1), k=1, workers=-1)
     agreement = np.einsum("fc,fc->f", cross, cloud.normals[nearest])
     return faces if np.sum(np.sign(agreement)) >= 0 else faces[:, ::-1].copy()
+
+
+def fuse_registered(
+    frame_indices: Sequence[int],
+    load_cloud: Callable[[int], PointCloud],
+    registration: SequenceRegistration,
+    voxel_mm: float,
+) -> PointCloud:
+    """All accepted frames' clouds in the model frame, merged on a ``voxel_mm`` grid.
+
+    Each frame is loaded, brought into the model frame (``P_k^-1``), downsampled on the grid and added to
+    running per-voxel sums (confidence-weighted position, normal and colour sums, total weight, maximum
+    confidence), so every frame's points weigh the same whatever the order, and memory is bounded by the
+    occupied voxels, not by the frame count. The result equals ``PointCloud.voxel_downsample`` of all
+    frames' voxel means at once.
+
+    Args:
+        frame_indices: frames to fuse (rejected frames and frames not in ``registration`` are skipped).
+        load_cloud: ``frame index -> PointCloud`` in the rig world frame, mm.
+        registration: :class:`polarface.geometry.registration.SequenceRegistration` from
+            :func:`polarface.geometry.registration.register_sequence`.
+        voxel_mm: grid size, mm.
+
+    Returns:
+        The fused :class:`PointCloud` in the model frame (mm); empty when nothing was accepted.
+
+    Raises:
+        ValueError: naming ``voxel_mm`` when it is not > 0.
+    """
+    accepted = {
+        int(f): pose
+        for f, pose, ok in zip(
+            registration.frame_indices, registration.poses, registration.accepted, strict=True
+        )
+        if ok
+    }
+    grid = VoxelAccumulator(voxel_mm)
+    for frame in frame_indices:
+        if int(frame) in accepted:
+            cloud = load_cloud(int(frame)).voxel_downsample(voxel_mm)
+            grid.add(cloud.transformed(invert_rigid(accepted[int(frame)])))
+    return grid.cloud()

@@ -18,12 +18,12 @@ import numpy as np
 from polarface.geometry.poses import check_rigid
 from polarface.io.atomic import atomic_path
 
-__all__ = ["PointCloud", "load_point_cloud", "save_point_cloud", "voxel_keys"]
+__all__ = ["PointCloud", "VoxelAccumulator", "load_point_cloud", "save_point_cloud"]
 
 _KEY_BITS = 21  # per axis: +-2^20 voxels, i.e. +-524 m at 0.5 mm
 
 
-def voxel_keys(points: np.ndarray, voxel_mm: float) -> np.ndarray:
+def _voxel_keys(points: np.ndarray, voxel_mm: float) -> np.ndarray:
     """``(N,)`` int64 key of the ``voxel_mm`` cube holding each point of ``(N, 3)`` ``points`` (mm): the three
     integer voxel coordinates packed into one integer, so that ``np.unique`` sorts 1-D keys.
 
@@ -118,27 +118,14 @@ class PointCloud:
 
     def voxel_downsample(self, voxel_mm: float) -> PointCloud:
         """Confidence-weighted mean of the points, normals and colours in each ``voxel_mm`` cube; the
-        voxel's confidence is its maximum. Memory and the result's size are bounded by the occupied
-        voxels, not by the input."""
-        if not voxel_mm > 0:
-            raise ValueError(f"argument 'voxel_mm' must be > 0; got {voxel_mm}")
+        voxel's confidence is its maximum (:class:`VoxelAccumulator`). Memory and the result's size are
+        bounded by the occupied voxels, not by the input."""
         if not len(self):
+            VoxelAccumulator(voxel_mm)  # checks the argument
             return self
-        _, inverse = np.unique(voxel_keys(self.points, voxel_mm), return_inverse=True)
-        inverse = inverse.reshape(-1)
-        count = int(inverse.max()) + 1
-        weight = np.maximum(self.confidence.astype(np.float64), 1e-6)
-        total = np.bincount(inverse, weights=weight, minlength=count)
-
-        def mean(values: np.ndarray) -> np.ndarray:
-            columns = [np.bincount(inverse, weights=weight * values[:, k], minlength=count) for k in range(3)]
-            return np.stack(columns, axis=1) / total[:, None]
-
-        confidence = np.zeros(count, np.float32)
-        np.maximum.at(confidence, inverse, self.confidence)
-        return PointCloud.from_arrays(
-            mean(self.points), mean(self.normals), confidence, mean(self.colours.astype(np.float64))
-        )
+        accumulator = VoxelAccumulator(voxel_mm)
+        accumulator.add(self)
+        return accumulator.cloud()
 
     def to_open3d(self):  # -> open3d.geometry.PointCloud
         """An ``open3d.geometry.PointCloud`` with points, normals and colours (lazy import)."""
@@ -148,6 +135,52 @@ class PointCloud:
         cloud.normals = o3d.utility.Vector3dVector(self.normals)
         cloud.colors = o3d.utility.Vector3dVector(self.colours.astype(np.float64))
         return cloud
+
+
+class VoxelAccumulator:
+    """Running confidence-weighted sums per occupied ``voxel_mm`` cube: clouds added one after the other
+    merge as if concatenated and downsampled at once (every point weighs its confidence, at least 1e-6),
+    while memory stays bounded by the occupied voxels, not by the number of clouds.
+
+    Attributes:
+        voxel_mm: the cube's side, mm.
+    """
+
+    def __init__(self, voxel_mm: float) -> None:
+        if not (isinstance(voxel_mm, int | float) and voxel_mm > 0 and np.isfinite(voxel_mm)):
+            raise ValueError(f"argument 'voxel_mm' must be a finite number > 0; got {voxel_mm}")
+        self.voxel_mm = float(voxel_mm)
+        self._keys = np.zeros(0, np.int64)
+        self._weight = np.zeros(0)
+        self._sums = np.zeros((0, 9))  # weighted points, normals, colours
+        self._confidence = np.zeros(0, np.float32)
+
+    def add(self, cloud: PointCloud) -> None:
+        """Merge ``cloud``'s points into the sums."""
+        if not len(cloud):
+            return
+        weight = np.maximum(cloud.confidence.astype(np.float64), 1e-6)
+        values = np.concatenate([cloud.points, cloud.normals, cloud.colours.astype(np.float64)], axis=1)
+        keys = np.concatenate([self._keys, _voxel_keys(cloud.points, self.voxel_mm)])
+        unique, inverse = np.unique(keys, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        total = np.concatenate([self._weight, weight])
+        sums = np.concatenate([self._sums, values * weight[:, None]])
+        confidence = np.concatenate([self._confidence, cloud.confidence])
+        self._keys = unique
+        self._weight = np.bincount(inverse, weights=total, minlength=len(unique))
+        self._sums = np.stack(
+            [np.bincount(inverse, weights=sums[:, c], minlength=len(unique)) for c in range(9)], axis=1
+        )
+        self._confidence = np.zeros(len(unique), np.float32)
+        np.maximum.at(self._confidence, inverse, confidence)
+
+    def cloud(self) -> PointCloud:
+        """The per-voxel means (normals renormalised) and maximum confidences; empty before any point."""
+        if not len(self._keys):
+            return PointCloud.empty()
+        mean = self._sums / self._weight[:, None]
+        return PointCloud.from_arrays(mean[:, :3], mean[:, 3:6], self._confidence, mean[:, 6:9])
 
 
 def save_point_cloud(path: str | os.PathLike[str], cloud: PointCloud) -> Path:

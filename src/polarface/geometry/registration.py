@@ -1,4 +1,5 @@
-"""Rigid registration of the revolving-chair sequence (issue 14, item 3) and fusion into the model frame.
+"""Rigid registration of the revolving-chair sequence (issue 14, item 3); the registered frames are fused
+into the model frame by :func:`polarface.geometry.fusion.fuse_registered`.
 
 Each capture frame ``k`` has a fused stereo cloud in the rig world frame. The head moves rigidly between
 frames; :func:`register_sequence` finds the pose ``P_k`` (model -> world, 4x4, mm) of every frame, where
@@ -39,10 +40,10 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from polarface.geometry.point_cloud import PointCloud, voxel_keys
+from polarface.geometry.point_cloud import PointCloud
 from polarface.geometry.poses import check_rigid, invert_rigid
 
-__all__ = ["RegistrationConfig", "SequenceRegistration", "fuse_registered", "register_sequence"]
+__all__ = ["RegistrationConfig", "SequenceRegistration", "register_sequence"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -564,83 +565,3 @@ def _model_cloud(cloud: PointCloud, pose: np.ndarray, config: RegistrationConfig
     """``cloud`` (world of its frame) in the model frame, confident points, downsampled to ``voxel_mm``."""
     cloud = cloud.select(cloud.confidence >= config.min_confidence)
     return cloud.voxel_downsample(config.voxel_mm).transformed(invert_rigid(pose))
-
-
-def fuse_registered(
-    frame_indices: Sequence[int],
-    load_cloud: Callable[[int], PointCloud],
-    registration: SequenceRegistration,
-    voxel_mm: float,
-) -> PointCloud:
-    """All accepted frames' clouds in the model frame, merged on a ``voxel_mm`` grid.
-
-    Each frame is loaded, brought into the model frame (``P_k^-1``), downsampled on the grid and added to
-    running per-voxel sums (confidence-weighted position, normal and colour sums, total weight, maximum
-    confidence), so every frame's points weigh the same whatever the order, and memory is bounded by the
-    occupied voxels, not by the frame count. The result equals ``PointCloud.voxel_downsample`` of all
-    frames' voxel means at once.
-
-    Args:
-        frame_indices: frames to fuse (rejected frames and frames not in ``registration`` are skipped).
-        load_cloud: ``frame index -> PointCloud`` in the rig world frame, mm.
-        registration: :class:`SequenceRegistration` from :func:`register_sequence`.
-        voxel_mm: grid size, mm.
-
-    Returns:
-        The fused :class:`PointCloud` in the model frame (mm); empty when nothing was accepted.
-
-    Raises:
-        ValueError: naming ``voxel_mm`` when it is not > 0.
-    """
-    if not (isinstance(voxel_mm, int | float) and voxel_mm > 0 and math.isfinite(voxel_mm)):
-        raise ValueError(f"argument 'voxel_mm' must be a finite number > 0; got {voxel_mm}")
-    accepted = {
-        int(f): pose
-        for f, pose, ok in zip(
-            registration.frame_indices, registration.poses, registration.accepted, strict=True
-        )
-        if ok
-    }
-    grid = _VoxelSums(float(voxel_mm))
-    for frame in frame_indices:
-        if int(frame) in accepted:
-            cloud = load_cloud(int(frame)).voxel_downsample(voxel_mm)
-            grid.add(cloud.transformed(invert_rigid(accepted[int(frame)])))
-    return grid.cloud()
-
-
-class _VoxelSums:
-    """Running confidence-weighted sums per occupied voxel (keys, weight, sums of points/normals/colours,
-    maximum confidence)."""
-
-    def __init__(self, voxel_mm: float) -> None:
-        self.voxel_mm = voxel_mm
-        self.keys = np.zeros(0, np.int64)
-        self.weight = np.zeros(0)
-        self.sums = np.zeros((0, 9))
-        self.confidence = np.zeros(0, np.float32)
-
-    def add(self, cloud: PointCloud) -> None:
-        if not len(cloud):
-            return
-        weight = np.maximum(cloud.confidence.astype(np.float64), 1e-6)
-        values = np.concatenate([cloud.points, cloud.normals, cloud.colours.astype(np.float64)], axis=1)
-        keys = np.concatenate([self.keys, voxel_keys(cloud.points, self.voxel_mm)])
-        unique, inverse = np.unique(keys, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        total = np.concatenate([self.weight, weight])
-        sums = np.concatenate([self.sums, values * weight[:, None]])
-        confidence = np.concatenate([self.confidence, cloud.confidence])
-        self.keys = unique
-        self.weight = np.bincount(inverse, weights=total, minlength=len(unique))
-        self.sums = np.stack(
-            [np.bincount(inverse, weights=sums[:, c], minlength=len(unique)) for c in range(9)], axis=1
-        )
-        self.confidence = np.zeros(len(unique), np.float32)
-        np.maximum.at(self.confidence, inverse, confidence)
-
-    def cloud(self) -> PointCloud:
-        if not len(self.keys):
-            return PointCloud.empty()
-        mean = self.sums / self.weight[:, None]
-        return PointCloud.from_arrays(mean[:, :3], mean[:, 3:6], self.confidence, mean[:, 6:9])

@@ -42,11 +42,11 @@ from polarface.geometry.atlas import (
     head_axis_from_poses,
     head_axis_point_from_poses,
 )
-from polarface.geometry.fusion import PoissonConfig, poisson_mesh
+from polarface.geometry.fusion import PoissonConfig, fuse_registered, poisson_mesh
 from polarface.geometry.mesh import TriangleMesh, save_obj, save_ply
 from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_point_cloud
 from polarface.geometry.poses import save_poses
-from polarface.geometry.registration import RegistrationConfig, fuse_registered, register_sequence
+from polarface.geometry.registration import RegistrationConfig, register_sequence
 from polarface.geometry.stereo import StereoConfig, StereoDepth, match_stereo_pair, rectify_pair
 from polarface.io import json_values, read_json_object, write_json_atomic
 
