@@ -1,0 +1,609 @@
+"""Mesh tracking through a dynamic sequence by multi-view optical flow, stabilised by anchor frames.
+
+The vertices of the reference mesh (placed at ``frames[0]``, rig world, mm) are carried from frame to
+frame by dense optical flow (OpenCV DIS, Kroeger et al. 2016) in every camera and constrained to each
+frame's stereo surface, so the per-frame meshes keep the reference's topology and UVs. Drift is
+bounded with anchor frames (Beeler et al. 2011, "High-quality passive facial performance capture using
+anchor frames"): frames whose images resemble ``frames[0]`` are tracked *directly* from ``frames[0]``,
+and every other frame is tracked both from the previous frame and from the latest anchor, the two
+estimates averaged per vertex with their confidences.
+
+One propagation ``a -> b`` (source positions known):
+
+1. Images are normalised per camera (log, then local contrast: subtract a Gaussian mean and divide by
+   the local standard deviation, ``normalisation_sigma_px``) and quantised to 8 bit: this removes the
+   shading changes of a moving face and the arbitrary scale of the inputs.
+2. Per camera, a vertex is visible at ``a`` when it projects inside the image, faces the camera
+   (vertex normal . unit direction to the camera > ``min_facing``) and is not occluded (Embree shadow
+   ray to the camera centre on the source mesh).
+3. Forward flow ``a -> b`` moves its pixel; the backward flow ``b -> a`` must bring it back within
+   ``forward_backward_px`` (reliability ``r = facing (1 - e_fb / forward_backward_px)``).
+4. The moved pixel's ray is intersected with the target frame's surface. The rig's camera pairs have
+   60 to 600 mm baselines at ~1 m, so a ray-ray triangulation has a depth error of ~1 to 7 mm per pixel
+   of flow error, while the stereo surface is good to a few tenths of a mm: the surface fixes the
+   depth and the flow only the tangential position. Per vertex the cameras' surface points are
+   averaged with weights ``r``; cameras farther than ``consensus_mm`` from the weighted median are
+   dropped (a flow that slipped onto an occluder). Confidence ``1 - prod(1 - r_c)``.
+5. The merged estimates give displacements from ``frames[0]`` for the tracked vertices; untracked
+   vertices get a harmonic interpolation of the displacement over the (seam-welded) mesh graph and
+   confidence 0; ``smoothing_iterations`` of neighbour averaging remove flow noise, and the tracked
+   vertices are snapped back to the surface (closest point, Open3D).
+
+Anchors: the similarity of frame ``t`` to ``frames[0]`` is the normalised cross-correlation of the
+normalised images sampled at the pixels of the vertices visible at ``frames[0]`` (mean over cameras);
+``t`` is an anchor when it is at least ``anchor_similarity`` and its direct tracking succeeds.
+
+Measured on the demo simulation's 10 dynamic frames (ground-truth frame-0 mesh as reference,
+ground-truth meshes + 0.3 mm normal noise as surfaces, all ten cameras: the two polarimetric ``i_sss``
+images and the eight stereo images), error over the vertices visible at frame 0 (see the test file and
+the numbers in :class:`TrackingConfig`).
+
+Units: mm, pixels; rig world (OpenCV cameras).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+from polarface.geometry.camera import PinholeCamera
+from polarface.geometry.mesh import TriangleMesh
+from polarface.geometry.raycast import RayCaster
+from polarface.io import atomic_path
+
+__all__ = [
+    "TrackedSequence",
+    "TrackingConfig",
+    "TrackingFrame",
+    "load_tracked",
+    "save_tracked",
+    "track_mesh",
+]
+
+_DIS_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingConfig:
+    """Settings of :func:`track_mesh` (defaults measured on the demo simulation, module docstring).
+
+    Attributes:
+        flow_preset: OpenCV DIS preset, ``"ultrafast"``, ``"fast"`` or ``"medium"``.
+        variational_iterations: DIS variational refinement iterations (0 = off).
+        normalisation_sigma_px: Gaussian sigma of the local contrast normalisation, pixels.
+        forward_backward_px: largest forward-backward flow error of a reliable camera, pixels.
+        min_facing: smallest cosine between vertex normal and direction to the camera.
+        image_margin_px: a projection must lie this far inside the image, pixels.
+        consensus_mm: cameras whose surface point is farther than this from the weighted median are
+            dropped, mm.
+        anchor_similarity: NCC with ``frames[0]`` above which a frame is an anchor, in [-1, 1]; None
+            disables anchors (pure frame-to-frame chaining).
+        smoothing_iterations: neighbour-averaging passes over the displacement field.
+        min_tracked_fraction: a frame is failed when fewer than this fraction of the vertices visible
+            at ``frames[0]`` are tracked.
+    """
+
+    flow_preset: str = "medium"
+    variational_iterations: int = 5
+    normalisation_sigma_px: float = 6.0
+    forward_backward_px: float = 1.0
+    min_facing: float = 0.2
+    image_margin_px: float = 4.0
+    consensus_mm: float = 1.0
+    anchor_similarity: float | None = 0.9
+    smoothing_iterations: int = 2
+    min_tracked_fraction: float = 0.3
+
+    def __post_init__(self) -> None:
+        if self.flow_preset not in _DIS_PRESETS:
+            raise ValueError(
+                f"field 'flow_preset' must be one of {sorted(_DIS_PRESETS)}; got {self.flow_preset!r}")
+        positive = ("normalisation_sigma_px", "forward_backward_px", "consensus_mm")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"field '{name}' must be > 0; got {getattr(self, name)}")
+        if self.variational_iterations < 0 or self.smoothing_iterations < 0 or self.image_margin_px < 0:
+            raise ValueError(
+                "fields 'variational_iterations', 'smoothing_iterations', 'image_margin_px' must be >= 0")
+        if not -1.0 <= self.min_facing < 1.0:
+            raise ValueError(f"field 'min_facing' must lie in [-1, 1); got {self.min_facing}")
+        if not 0.0 <= self.min_tracked_fraction <= 1.0:
+            raise ValueError(
+                f"field 'min_tracked_fraction' must lie in [0, 1]; got {self.min_tracked_fraction}")
+        if self.anchor_similarity is not None and not -1.0 <= self.anchor_similarity <= 1.0:
+            raise ValueError(
+                f"field 'anchor_similarity' must be None or lie in [-1, 1]; got {self.anchor_similarity}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingFrame:
+    """One frame's inputs.
+
+    Attributes:
+        index: capture frame index.
+        images: camera id -> ``(H, W)`` float32 linear intensity (any scale, >= 0; small negative
+            noise is clipped to 0), the camera's full image size.
+        surface: the frame's stereo mesh, rig world, mm (None: no geometry, the frame fails).
+    """
+
+    index: int
+    images: dict[str, np.ndarray]
+    surface: TriangleMesh | None
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackedSequence:
+    """Tracked reference mesh through a sequence.
+
+    Attributes:
+        frames: ``(T,)`` capture frame indices.
+        vertices: ``(T, N, 3)`` float64 rig-world positions, mm (reference topology and UVs).
+        confidence: ``(T, N)`` float32 in [0, 1]; 0 = not tracked (filled from neighbours).
+        anchors: anchor frames (``frames[0]`` first).
+        failed: frame -> reason (face out of view, no surface, tracking lost).
+    """
+
+    frames: tuple[int, ...]
+    vertices: np.ndarray
+    confidence: np.ndarray
+    anchors: tuple[int, ...]
+    failed: dict[int, str]
+
+    def tracked_fraction(self) -> np.ndarray:
+        """``(T,)`` fraction of vertices with confidence > 0."""
+        return (self.confidence > 0).mean(axis=1)
+
+    def to_json(self) -> dict:
+        """Summary without the big arrays: frames, anchors, failed, per-frame tracked fraction and
+        mean confidence of the tracked vertices."""
+        tracked = self.confidence > 0
+        mean_conf = [float(c[t].mean()) if t.any() else 0.0
+                     for c, t in zip(self.confidence, tracked, strict=True)]
+        return {
+            "frames": list(self.frames),
+            "vertex_count": int(self.vertices.shape[1]),
+            "anchors": list(self.anchors),
+            "failed": {str(k): v for k, v in self.failed.items()},
+            "tracked_fraction": [round(float(f), 4) for f in self.tracked_fraction()],
+            "mean_confidence": [round(m, 4) for m in mean_conf],
+        }
+
+
+# ---- inputs ----------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True, eq=False)
+class _PreparedFrame:
+    """A frame's normalised 8-bit images ``(H, W)`` per camera and its surface (mm, rig world)."""
+
+    index: int
+    images: dict[str, np.ndarray]
+    surface: TriangleMesh | None
+
+
+def _normalise_image(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Log intensity with local contrast normalisation, quantised to uint8 (mid-grey 128, 1 local
+    standard deviation = 42 levels)."""
+    linear = np.maximum(image.astype(np.float32), 0.0)
+    scale = float(np.percentile(linear, 99.0))
+    if not scale > 0:
+        return np.full(linear.shape, 128, np.uint8)
+    log = np.log(linear + 1e-3 * scale)
+    high_pass = log - cv2.GaussianBlur(log, (0, 0), sigma_px)
+    local_std = np.sqrt(cv2.GaussianBlur(high_pass * high_pass, (0, 0), sigma_px)) + 0.01
+    return np.clip(128.0 + 42.0 * high_pass / local_std, 0.0, 255.0).astype(np.uint8)
+
+
+def _prepare(frame: TrackingFrame, index: int, cameras: Mapping[str, PinholeCamera],
+             config: TrackingConfig) -> _PreparedFrame:
+    if not isinstance(frame, TrackingFrame):
+        raise ValueError(f"load_frame({index}) must return a TrackingFrame; got {type(frame).__name__}")
+    if int(frame.index) != int(index):
+        raise ValueError(f"load_frame({index}) returned a TrackingFrame with index {frame.index}")
+    if frame.surface is not None and not isinstance(frame.surface, TriangleMesh):
+        raise ValueError(f"frame {index}: field 'surface' must be a TriangleMesh or None")
+    images = {}
+    for camera_id, image in frame.images.items():
+        if camera_id not in cameras:
+            raise ValueError(f"frame {index}: unknown camera id {camera_id!r} in 'images' "
+                             f"(cameras: {sorted(cameras)})")
+        camera = cameras[camera_id]
+        image = np.asarray(image)
+        if image.shape != (camera.height, camera.width):
+            raise ValueError(f"frame {index}: image of camera {camera_id!r} must have shape "
+                             f"({camera.height}, {camera.width}); got {image.shape}")
+        if not np.isfinite(image).all():
+            raise ValueError(f"frame {index}: image of camera {camera_id!r} has NaN/inf values")
+        images[camera_id] = _normalise_image(image, config.normalisation_sigma_px)
+    if not images:
+        raise ValueError(f"frame {index}: field 'images' is empty")
+    return _PreparedFrame(int(index), images, frame.surface)
+
+
+def _bilinear(field: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Sample ``field`` ``(H, W, C)`` at pixel positions ``(M, 2)`` (x, y), clamped to the image."""
+    height, width = field.shape[:2]
+    x = np.clip(points[:, 0], 0.0, width - 1.0)
+    y = np.clip(points[:, 1], 0.0, height - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.int64), width - 2) if width > 1 else np.zeros(len(x), np.int64)
+    y0 = np.minimum(np.floor(y).astype(np.int64), height - 2) if height > 1 else np.zeros(len(y), np.int64)
+    fx = (x - x0)[:, None]
+    fy = (y - y0)[:, None]
+    x1 = np.minimum(x0 + 1, width - 1)
+    y1 = np.minimum(y0 + 1, height - 1)
+    top = field[y0, x0] * (1 - fx) + field[y0, x1] * fx
+    bottom = field[y1, x0] * (1 - fx) + field[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+# ---- one propagation -------------------------------------------------------------------------------
+def _visibility(mesh: TriangleMesh, cameras: Mapping[str, PinholeCamera], camera_ids: Sequence[str],
+                config: TrackingConfig) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per camera: ``(pixels (N, 2), weight (N,))`` with weight = facing cosine where the vertex is
+    visible (inside the image, facing, unoccluded), else 0."""
+    if not camera_ids:
+        return {}
+    centres = np.stack([cameras[c].center for c in camera_ids])
+    unoccluded = RayCaster(mesh).shadow_rays(mesh.vertices, mesh.normals, centres, pairwise=True)
+    result = {}
+    margin = config.image_margin_px
+    for k, camera_id in enumerate(camera_ids):
+        camera = cameras[camera_id]
+        pixels, depth = camera.project(mesh.vertices)
+        to_camera = camera.center - mesh.vertices
+        to_camera /= np.linalg.norm(to_camera, axis=1, keepdims=True)
+        facing = np.einsum("nc,nc->n", mesh.normals, to_camera)
+        with np.errstate(invalid="ignore"):
+            inside = ((depth > 0) & (pixels[:, 0] >= margin) & (pixels[:, 0] <= camera.width - 1 - margin)
+                      & (pixels[:, 1] >= margin) & (pixels[:, 1] <= camera.height - 1 - margin))
+        visible = inside & (facing > config.min_facing) & unoccluded[:, k]
+        result[camera_id] = (np.nan_to_num(pixels), np.where(visible, facing, 0.0))
+    return result
+
+
+def _merge_cameras(points: np.ndarray, weights: np.ndarray, consensus_mm: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Robust weighted mean of per-camera surface points ``(C, N, 3)`` with weights ``(C, N)``:
+    ``(positions (N, 3) NaN where none, quality (N,) = 1 - prod(1 - w))``."""
+    valid = weights > 0
+    masked = np.where(valid[..., None], points, np.nan)
+    with np.errstate(invalid="ignore"), np.testing.suppress_warnings() as sup:
+        sup.filter(RuntimeWarning)
+        centre = np.nanmedian(masked, axis=0)
+    distance = np.linalg.norm(np.nan_to_num(points) - np.nan_to_num(centre)[None], axis=-1)
+    kept = np.where(valid & (distance <= consensus_mm), weights, 0.0)
+    total = kept.sum(axis=0)
+    merged = np.full(centre.shape, np.nan)
+    has = total > 0
+    merged[has] = (kept[:, has, None] * np.nan_to_num(points[:, has])).sum(axis=0) / total[has, None]
+    quality = 1.0 - np.prod(1.0 - np.clip(kept, 0.0, 1.0), axis=0)
+    return merged, quality
+
+
+class _Propagator:
+    """Carries vertex positions from a source frame to a target frame (module docstring, steps 2-4)."""
+
+    def __init__(self, reference: TriangleMesh, cameras: Mapping[str, PinholeCamera], config: TrackingConfig):
+        self.reference = reference
+        self.cameras = cameras
+        self.config = config
+        self.flow = cv2.DISOpticalFlow_create(_DIS_PRESETS[config.flow_preset])
+        self.flow.setVariationalRefinementIterations(int(config.variational_iterations))
+
+    def visible(self, positions: np.ndarray, camera_ids: Sequence[str]
+                ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """:func:`_visibility` of the reference mesh moved to ``positions`` (N, 3) mm."""
+        return _visibility(self.reference.with_vertices(positions), self.cameras, camera_ids, self.config)
+
+    def __call__(self, positions: np.ndarray, source: _PreparedFrame, target: _PreparedFrame,
+                 target_caster: RayCaster) -> tuple[np.ndarray, np.ndarray]:
+        """``(positions (N, 3) mm, NaN where untracked; quality (N,) in [0, 1])`` at ``target``."""
+        camera_ids = sorted(set(source.images) & set(target.images))
+        visibility = self.visible(positions, camera_ids)
+        count = len(positions)
+        points = np.full((len(camera_ids), count, 3), np.nan)
+        weights = np.zeros((len(camera_ids), count))
+        threshold = self.config.forward_backward_px
+        for k, camera_id in enumerate(camera_ids):
+            pixels, facing = visibility[camera_id]
+            seen = np.flatnonzero(facing > 0)
+            if seen.size == 0:
+                continue
+            camera = self.cameras[camera_id]
+            image_a, image_b = source.images[camera_id], target.images[camera_id]
+            forward = self.flow.calc(image_a, image_b, None)
+            backward = self.flow.calc(image_b, image_a, None)
+            start = pixels[seen]
+            moved = start + _bilinear(forward, start)
+            error = np.linalg.norm(moved + _bilinear(backward, moved) - start, axis=1)
+            inside = ((moved[:, 0] >= 0) & (moved[:, 0] <= camera.width - 1)
+                      & (moved[:, 1] >= 0) & (moved[:, 1] <= camera.height - 1))
+            reliability = facing[seen] * np.clip(1.0 - error / threshold, 0.0, 1.0) * inside
+            keep = reliability > 0
+            if not keep.any():
+                continue
+            origins, directions = camera.pixel_rays(moved[keep])
+            hits = target_caster.first_hits(origins, directions)
+            index = seen[keep][hits.hit]
+            points[k, index] = hits.point[hits.hit]
+            weights[k, index] = reliability[keep][hits.hit]
+        return _merge_cameras(points, weights, self.config.consensus_mm)
+
+
+# ---- regularisation --------------------------------------------------------------------------------
+class _MeshGraph:
+    """Edge graph of the reference mesh with UV-seam duplicates welded (one node per position)."""
+
+    def __init__(self, reference: TriangleMesh):
+        _, node = np.unique(np.round(reference.vertices, 6), axis=0, return_inverse=True)
+        self.node = node.reshape(-1)
+        self.count = int(self.node.max()) + 1
+        faces = self.node[reference.faces]
+        rows = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2], faces[:, 1], faces[:, 2], faces[:, 0]])
+        cols = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0], faces[:, 0], faces[:, 1], faces[:, 2]])
+        off_diagonal = rows != cols
+        adjacency = scipy.sparse.coo_matrix(
+            (np.ones(int(off_diagonal.sum())), (rows[off_diagonal], cols[off_diagonal])),
+            shape=(self.count, self.count)).tocsr()
+        adjacency.data[:] = 1.0
+        self.adjacency = adjacency
+        self.degree = np.asarray(adjacency.sum(axis=1)).reshape(-1)
+        multiplicity = np.bincount(self.node, minlength=self.count).astype(np.float64)
+        self._gather = scipy.sparse.csr_matrix(
+            (1.0 / multiplicity[self.node], (self.node, np.arange(len(self.node)))),
+            shape=(self.count, len(self.node)))
+
+    def to_nodes(self, values: np.ndarray) -> np.ndarray:
+        """Per-vertex ``(N, k)`` -> per-node mean ``(M, k)``."""
+        return self._gather @ values
+
+    def fill(self, values: np.ndarray, known: np.ndarray) -> np.ndarray:
+        """Harmonic interpolation of node values ``(M, k)`` from the ``known`` ``(M,)`` nodes; nodes of
+        components without a known node get 0."""
+        unknown = ~known
+        if not unknown.any() or not known.any():
+            return np.where(known[:, None], values, 0.0)
+        laplacian = scipy.sparse.diags(self.degree) - self.adjacency
+        block = laplacian[unknown][:, unknown] + scipy.sparse.identity(int(unknown.sum())) * 1e-9
+        rhs = self.adjacency[unknown][:, known] @ values[known]
+        solved = scipy.sparse.linalg.spsolve(block.tocsc(), rhs)
+        out = values.copy()
+        out[unknown] = np.asarray(solved).reshape(-1, values.shape[1])
+        return out
+
+    def smooth(self, values: np.ndarray, iterations: int) -> np.ndarray:
+        """``iterations`` passes of ``v <- (v + mean of neighbours) / 2``."""
+        safe_degree = np.maximum(self.degree, 1.0)[:, None]
+        for _ in range(iterations):
+            values = 0.5 * values + 0.5 * (self.adjacency @ values) / safe_degree
+        return values
+
+
+class _SurfaceQuery:
+    """Closest points on a triangle mesh (Open3D ``RaycastingScene``, float32 about the centroid)."""
+
+    def __init__(self, surface: TriangleMesh):
+        import open3d as o3d
+
+        self._o3d = o3d
+        self.centre = surface.vertices.mean(axis=0)
+        self.vertices = surface.vertices
+        self.faces = surface.faces
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor((surface.vertices - self.centre).astype(np.float32)),
+                                 o3d.core.Tensor(surface.faces.astype(np.uint32)))
+
+    def closest(self, points: np.ndarray) -> np.ndarray:
+        """``(M, 3)`` closest surface points (mm) of ``points`` ``(M, 3)`` (float64 from barycentrics)."""
+        if len(points) == 0:
+            return np.zeros((0, 3))
+        answer = self.scene.compute_closest_points(
+            self._o3d.core.Tensor((points - self.centre).astype(np.float32)))
+        face = answer["primitive_ids"].numpy().astype(np.int64)
+        uv = answer["primitive_uvs"].numpy().astype(np.float64)
+        barycentric = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+        return np.einsum("mk,mkc->mc", barycentric, self.vertices[self.faces[face]])
+
+
+def _regularise(estimate: np.ndarray, tracked: np.ndarray, rest: np.ndarray, graph: _MeshGraph,
+                surface: _SurfaceQuery, config: TrackingConfig) -> np.ndarray:
+    """Tracked vertices snapped to the surface, the displacement from ``rest`` harmonically filled
+    over the untracked vertices, then smoothed (averages out the surface's noise): ``(N, 3)`` mm."""
+    snapped = np.nan_to_num(estimate)
+    snapped[tracked] = surface.closest(snapped[tracked])
+    displacement = np.where(tracked[:, None], snapped - rest, 0.0)
+    node_weight = graph.to_nodes(tracked.astype(np.float64)[:, None])[:, 0]
+    node_values = graph.to_nodes(displacement) / np.maximum(node_weight, 1e-12)[:, None]
+    node_known = node_weight > 0.5
+    node_values = graph.fill(np.where(node_known[:, None], node_values, 0.0), node_known)
+    node_values = graph.smooth(node_values, config.smoothing_iterations)
+    return rest + node_values[graph.node]
+
+
+# ---- public API ------------------------------------------------------------------------------------
+def _similarity(first: _PreparedFrame, frame: _PreparedFrame,
+                samples: Mapping[str, np.ndarray]) -> float:
+    """Mean over cameras of the NCC between the normalised images of ``first`` and ``frame`` at the
+    pixels ``samples[camera]`` ``(M, 2)`` of the vertices visible at ``first``."""
+    scores = []
+    for camera_id, pixels in samples.items():
+        if camera_id not in frame.images or len(pixels) < 16:
+            continue
+        a = _bilinear(first.images[camera_id].astype(np.float32)[..., None], pixels)[:, 0]
+        b = _bilinear(frame.images[camera_id].astype(np.float32)[..., None], pixels)[:, 0]
+        a, b = a - a.mean(), b - b.mean()
+        denominator = float(np.sqrt((a * a).sum() * (b * b).sum()))
+        scores.append(float((a * b).sum()) / denominator if denominator > 0 else 0.0)
+    return float(np.mean(scores)) if scores else -1.0
+
+
+def _blend(estimates: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex quality-weighted mean of estimates ``(positions (N, 3), quality (N,))``."""
+    numerator = np.zeros_like(estimates[0][0])
+    total = np.zeros(len(numerator))
+    quality = np.zeros(len(numerator))
+    for positions, weight in estimates:
+        ok = np.isfinite(positions[:, 0]) & (weight > 0)
+        numerator[ok] += weight[ok, None] * positions[ok]
+        total[ok] += weight[ok]
+        quality[ok] = np.maximum(quality[ok], weight[ok])
+    merged = np.full_like(numerator, np.nan)
+    merged[total > 0] = numerator[total > 0] / total[total > 0, None]
+    return merged, quality
+
+
+def _check_inputs(reference: TriangleMesh, cameras: Mapping[str, PinholeCamera], frames: Sequence[int]
+                  ) -> tuple[int, ...]:
+    if not isinstance(reference, TriangleMesh):
+        raise ValueError(f"argument 'reference' must be a TriangleMesh; got {type(reference).__name__}")
+    if not cameras:
+        raise ValueError("argument 'cameras' must name at least one camera")
+    for camera_id, camera in cameras.items():
+        if not isinstance(camera, PinholeCamera):
+            raise ValueError(f"argument 'cameras': {camera_id!r} is not a PinholeCamera")
+    indices = tuple(int(f) for f in frames)
+    if not indices:
+        raise ValueError("argument 'frames' must not be empty")
+    if len(set(indices)) != len(indices):
+        raise ValueError(f"argument 'frames' must not repeat a frame; got {list(indices)}")
+    return indices
+
+
+def track_mesh(
+    reference: TriangleMesh,
+    cameras: Mapping[str, PinholeCamera],
+    load_frame: Callable[[int], TrackingFrame],
+    frames: Sequence[int],
+    config: TrackingConfig = TrackingConfig(),
+    *,
+    progress: bool = False,
+) -> TrackedSequence:
+    """Track the vertices of ``reference`` through ``frames`` (module docstring).
+
+    Args:
+        reference: the reference mesh placed at ``frames[0]`` (rig world, mm): its vertices are the
+            positions at ``frames[0]``, which is the first anchor.
+        cameras: camera id -> calibrated camera (rig world, mm); frames may hold images of a subset.
+        load_frame: frame index -> :class:`TrackingFrame`; called once or twice per frame, in order.
+        frames: capture frame indices, processed in order.
+        config: :class:`TrackingConfig`.
+        progress: show a tqdm bar.
+
+    Returns:
+        :class:`TrackedSequence`; frames without surface or with too few tracked vertices are listed in
+        ``failed`` (their vertices are the last good frame's, confidence 0) and tracking goes on.
+
+    Raises:
+        ValueError: on empty or repeated ``frames``, no cameras, unknown camera ids or wrongly shaped
+            images in a frame, or when no reference vertex is visible in ``frames[0]``'s images.
+    """
+    from tqdm import tqdm
+
+    indices = _check_inputs(reference, cameras, frames)
+    propagate = _Propagator(reference, cameras, config)
+    graph = _MeshGraph(reference)
+    rest = reference.vertices.copy()
+    first = _prepare(load_frame(indices[0]), indices[0], cameras, config)
+    visibility = propagate.visible(rest, sorted(first.images))
+    visible_first = np.any([weight > 0 for _, weight in visibility.values()], axis=0)
+    if not visible_first.any():
+        raise ValueError(f"argument 'reference': no vertex is visible in the images of frame {indices[0]}")
+    samples = {c: pixels[weight > 0] for c, (pixels, weight) in visibility.items()}
+    vertices = np.empty((len(indices), len(rest), 3))
+    confidence = np.zeros((len(indices), len(rest)), np.float32)
+    vertices[0], confidence[0] = rest, 1.0
+    anchors, failed = [indices[0]], {}
+    last_good, anchor = (first, rest), (first, rest)
+    use_anchors = config.anchor_similarity is not None
+    for i, index in enumerate(tqdm(indices[1:], desc="track", unit="frame", disable=not progress), start=1):
+        frame = _prepare(load_frame(index), index, cameras, config)
+        vertices[i] = last_good[1]
+        if frame.surface is None:
+            failed[index] = f"frame {index}: no surface (no stereo geometry)"
+            continue
+        caster = RayCaster(frame.surface)
+        estimate, quality, is_anchor = None, None, False
+        if use_anchors and _similarity(first, frame, samples) >= config.anchor_similarity:
+            estimate, quality = propagate(rest, first, frame, caster)
+            direct_fraction = float((quality > 0)[visible_first].mean())
+            is_anchor = direct_fraction >= config.min_tracked_fraction
+        if is_anchor:
+            chained = propagate(last_good[1], last_good[0], frame, caster)
+            missing = ~(quality > 0)
+            estimate[missing], quality[missing] = chained[0][missing], chained[1][missing]
+        else:
+            estimates = [propagate(last_good[1], last_good[0], frame, caster)]
+            if use_anchors and anchor[0].index != last_good[0].index:
+                estimates.append(propagate(anchor[1], anchor[0], frame, caster))
+            estimate, quality = _blend(estimates)
+        tracked = quality > 0
+        fraction = float(tracked[visible_first].mean())
+        if fraction < config.min_tracked_fraction:
+            reason = "face out of view" if not set(frame.images) & set(first.images) else "tracking lost"
+            failed[index] = (f"frame {index}: {reason} ({100 * fraction:.0f} % of the vertices visible "
+                             f"at frame {indices[0]} tracked)")
+            continue
+        vertices[i] = _regularise(estimate, tracked, rest, graph, _SurfaceQuery(frame.surface), config)
+        confidence[i] = np.clip(quality, 0.0, 1.0)
+        last_good = (frame, vertices[i].copy())
+        if is_anchor:
+            anchors.append(index)
+            anchor = last_good
+    return TrackedSequence(indices, vertices, confidence, tuple(anchors), failed)
+
+
+# ---- files -----------------------------------------------------------------------------------------
+def save_tracked(path: str | os.PathLike[str], tracked: TrackedSequence) -> Path:
+    """Write ``tracked`` to an ``.npz`` file atomically; returns the path."""
+    target = Path(path)
+    if target.suffix != ".npz":
+        raise ValueError(f"argument 'path' must end in .npz; got {target}")
+    failed_frames = np.array(sorted(tracked.failed), np.int64)
+    with atomic_path(target) as tmp, open(tmp, "wb") as handle:
+        np.savez_compressed(
+            handle,
+            frames=np.asarray(tracked.frames, np.int64),
+            vertices=np.asarray(tracked.vertices, np.float64),
+            confidence=np.asarray(tracked.confidence, np.float32),
+            anchors=np.asarray(tracked.anchors, np.int64),
+            failed_frames=failed_frames,
+            failed_reasons=np.array([tracked.failed[int(f)] for f in failed_frames], dtype=str),
+        )
+    return target
+
+
+def load_tracked(path: str | os.PathLike[str]) -> TrackedSequence:
+    """Read a :func:`save_tracked` file.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        ValueError: naming the file when it is not a tracked sequence or its arrays disagree.
+    """
+    source = Path(path)
+    if not source.is_file():
+        raise FileNotFoundError(f"tracked sequence file {source} does not exist")
+    names = ("frames", "vertices", "confidence", "anchors", "failed_frames", "failed_reasons")
+    try:
+        with np.load(source, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in names}
+    except (OSError, ValueError, KeyError) as error:
+        raise ValueError(f"{source}: not a tracked sequence ({error})") from error
+    frames, vertices, confidence = arrays["frames"], arrays["vertices"], arrays["confidence"]
+    count = len(frames)
+    failed_count = len(arrays["failed_frames"])
+    if (frames.ndim != 1 or vertices.ndim != 3 or vertices.shape[::2] != (count, 3)
+            or confidence.shape != vertices.shape[:2] or len(arrays["failed_reasons"]) != failed_count):
+        raise ValueError(f"{source}: arrays disagree: frames {frames.shape}, vertices {vertices.shape}, "
+                         f"confidence {confidence.shape}")
+    failed = {int(f): str(r) for f, r in zip(arrays["failed_frames"], arrays["failed_reasons"], strict=True)}
+    return TrackedSequence(tuple(int(f) for f in frames), vertices.astype(np.float64),
+                           confidence.astype(np.float32), tuple(int(a) for a in arrays["anchors"]), failed)
