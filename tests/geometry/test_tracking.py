@@ -8,6 +8,8 @@ iteration). Three cameras 100 mm apart, 600 px focal: 0.83 mm per pixel on the p
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -102,7 +104,8 @@ def _plane_sequence(amplitudes, noise: float = 0.0, seed: int = 0, no_surface: t
 
 
 def _errors(tracked: TrackedSequence, truth) -> np.ndarray:
-    return np.stack([np.linalg.norm(tracked.vertices[i] - truth(f), axis=1) for i, f in enumerate(tracked.frames)])
+    return np.stack([np.linalg.norm(tracked.vertices[i] - truth(f), axis=1)
+                     for i, f in enumerate(tracked.frames)])
 
 
 def test_plane_with_known_smooth_deformation_is_tracked():
@@ -119,3 +122,61 @@ def test_plane_with_known_smooth_deformation_is_tracked():
     assert (tracked.tracked_fraction() > 0.95).all()
     assert tracked.vertices.shape == (6, reference.vertex_count, 3)
     assert tracked.confidence.dtype == np.float32
+
+
+def test_anchor_frames_bound_the_drift_of_chaining():
+    """The texture moves away and comes back (last frame = first) under per-frame image noise: chaining
+    accumulates the flow noise, the anchor scheme tracks the returning frames directly from frame 0."""
+    amplitudes = list(2.0 * np.sin(np.pi * np.arange(10) / 9.0))
+    reference, cameras, load, truth = _plane_sequence(amplitudes, noise=0.04, seed=3)
+    anchored = track_mesh(reference, cameras, load, range(10))
+    chained = track_mesh(reference, cameras, load, range(10), TrackingConfig(anchor_similarity=None))
+    last_anchored = np.median(_errors(anchored, truth)[-1])
+    last_chained = np.median(_errors(chained, truth)[-1])
+    assert chained.anchors == (0,)
+    assert 9 in anchored.anchors
+    assert last_chained > 2.0 * last_anchored
+    # the returning frame sees only its own image noise: below 0.05 px on the plane
+    assert last_anchored < 0.05 * MM_PER_PX
+
+
+def test_frame_without_surface_fails_and_tracking_goes_on(tmp_path):
+    amplitudes = [0.0, 0.5, 1.0, 1.5]
+    reference, cameras, load, truth = _plane_sequence(amplitudes, no_surface=(2,))
+    tracked = track_mesh(reference, cameras, load, range(4))
+    assert set(tracked.failed) == {2} and "frame 2" in tracked.failed[2]
+    assert (tracked.confidence[2] == 0).all()
+    np.testing.assert_array_equal(tracked.vertices[2], tracked.vertices[1])
+    assert np.median(_errors(tracked, truth)[3]) < 0.1 * MM_PER_PX
+    summary = tracked.to_json()
+    assert summary["failed"] == {"2": tracked.failed[2]} and summary["tracked_fraction"][2] == 0.0
+    path = save_tracked(tmp_path / "tracking.npz", tracked)
+    loaded = load_tracked(path)
+    np.testing.assert_array_equal(loaded.vertices, tracked.vertices)
+    np.testing.assert_array_equal(loaded.confidence, tracked.confidence)
+    assert (loaded.frames, loaded.anchors, loaded.failed) == (tracked.frames, tracked.anchors, tracked.failed)
+
+
+def test_bad_input_is_refused(tmp_path):
+    reference, cameras, load, _ = _plane_sequence([0.0, 0.5])
+    with pytest.raises(ValueError, match="frames"):
+        track_mesh(reference, cameras, load, [])
+    with pytest.raises(ValueError, match="cameras"):
+        track_mesh(reference, {}, load, [0, 1])
+    with pytest.raises(ValueError, match="unknown camera id 'nope'"):
+        track_mesh(reference, {"centre": cameras["centre"]}, lambda i: TrackingFrame(
+            i, {"nope": np.zeros((160, 200), np.float32)}, None), [0, 1])
+    with pytest.raises(ValueError, match=r"camera 'centre' must have shape \(160, 200\)"):
+        track_mesh(reference, cameras, lambda i: TrackingFrame(
+            i, {"centre": np.zeros((10, 10), np.float32)}, None), [0, 1])
+    with pytest.raises(ValueError, match="'images' is empty"):
+        track_mesh(reference, cameras, lambda i: TrackingFrame(i, {}, None), [0, 1])
+    with pytest.raises(ValueError, match="index 5"):
+        track_mesh(reference, cameras, lambda i: dataclasses.replace(load(i), index=5), [0, 1])
+    with pytest.raises(ValueError, match="anchor_similarity"):
+        TrackingConfig(anchor_similarity=2.0)
+    with pytest.raises(FileNotFoundError, match=r"missing\.npz"):
+        load_tracked(tmp_path / "missing.npz")
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match=r"bad\.npz"):
+        load_tracked(tmp_path / "bad.npz")

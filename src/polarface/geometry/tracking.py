@@ -117,7 +117,8 @@ class TrackingConfig:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"field '{name}' must be > 0; got {getattr(self, name)}")
-        if self.variational_iterations < 0 or self.flow_finest_scale < 0 or self.smoothing_iterations < 0 or self.image_margin_px < 0:
+        counts = (self.variational_iterations, self.flow_finest_scale, self.smoothing_iterations)
+        if min(counts) < 0 or self.image_margin_px < 0:
             raise ValueError(
                 "fields 'flow_finest_scale', 'variational_iterations', 'smoothing_iterations', "
                 "'image_margin_px' must be >= 0")
