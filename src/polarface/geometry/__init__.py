@@ -71,6 +71,14 @@ from polarface.geometry.stereo import (
     match_stereo_pair,
     rectify_pair,
 )
+from polarface.geometry.tracking import (
+    TrackedSequence,
+    TrackingConfig,
+    TrackingFrame,
+    load_tracked,
+    save_tracked,
+    track_mesh,
+)
 from polarface.geometry.uv_raster import (
     UVRaster,
     dilate_texture,
@@ -100,6 +108,9 @@ __all__ = [
     "StereoConfig",
     "StereoDepth",
     "StereoRectification",
+    "TrackedSequence",
+    "TrackingConfig",
+    "TrackingFrame",
     "TriangleMesh",
     "UVRaster",
     "VoxelAccumulator",
@@ -124,6 +135,7 @@ __all__ = [
     "load_mesh",
     "load_point_cloud",
     "load_poses",
+    "load_tracked",
     "look_at",
     "match_stereo_pair",
     "normals_from_height_gradients",
@@ -141,11 +153,13 @@ __all__ = [
     "save_ply",
     "save_point_cloud",
     "save_poses",
+    "save_tracked",
     "smooth_falloff",
     "srgb_to_linear",
     "static_sequence_poses",
     "texel_uv",
     "texels_to_world",
+    "track_mesh",
     "undistort_normalized",
     "vertex_normals",
 ]
