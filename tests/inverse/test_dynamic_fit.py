@@ -212,11 +212,12 @@ def test_patch_loss_gradcheck_and_engines_agree(frame):
 
 
 # ------------------------------------------------------------------------------------------ the fit
-def test_fit_recovers_the_changed_albedo_and_keeps_the_fixed_maps(frame):
+@pytest.mark.parametrize("engine", ["fused", "torch"])
+def test_fit_recovers_the_changed_albedo_and_keeps_the_fixed_maps(frame, engine):
     store, static, truth = frame
     mask = np.ones((SIDE, SIDE), bool)
     config = DynamicConfig(patch=16)
-    fit = fit_dynamic_frame(store, static, mask, config)
+    fit = fit_dynamic_frame(store, static, mask, config, engine=engine)
     disk = _changed_disk() & fit.mask
     start_error = np.abs(static["rho_sss_bar"][disk] / truth["rho_sss_bar"][disk] - 1)
     error = np.abs(fit.maps["rho_sss_bar"][disk] / truth["rho_sss_bar"][disk] - 1)
