@@ -63,10 +63,12 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "median_shapes", "per_texel_relative_residual", "relative_rmse",
     ),
     "polarface.inverse.polarimetric": (
+        "DYNAMIC_VARIABLES", "DynamicConfig", "DynamicPatchProblem", "DynamicWeights",
         "FusedSamples", "LobeRefinement", "LossWeights", "PARAMETER_NAMES", "POLARIMETRIC_ENGINES",
         "PatchProblem", "PolarimetricConfig", "PolarimetricEngine", "PolarimetricFit",
         "SampleBatch", "SamplePrediction", "benchmark_problem", "build_fused_samples",
-        "build_patch_samples", "data_losses", "fit_polarimetric", "fused_data_loss",
+        "build_patch_samples", "data_losses", "dynamic_regularisers", "fit_dynamic_frame",
+        "fit_polarimetric", "fused_data_loss",
         "fused_loss_and_grad", "init_albedos", "init_eta", "initial_raw", "laplacian_penalty",
         "maps_from_raw", "nan_median_filter", "optimise_patch", "pack_parameters",
         "precompute_samples", "raw_from_maps", "refine_lobes", "refine_patch_lobes",

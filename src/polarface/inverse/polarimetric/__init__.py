@@ -11,7 +11,8 @@ Modules: ``config`` (options, reparameterisation), ``model`` (per-sample forward
 ``init`` (closed-form starts), ``problem`` (a patch's samples and loss), ``fused``/``kernel``/
 ``kernel_math``/``step`` (the numba engine), ``engines`` (registry), ``optimise`` (first-order
 optimiser), ``refine`` (Levenberg-Marquardt on the lobe maps), ``fit`` (the patch loop), ``bench``
-(throughput benchmark).
+(throughput benchmark), ``dynamic`` (the per-frame fit of a dynamic sequence,
+:func:`fit_dynamic_frame`).
 
 Maps follow ``SIM/ground_truth/maps`` conventions: ``eta, alpha_s, alpha_ss, rho_s, rho_ss,
 displacement_mm`` as ``(Ht, Wt)`` float32 and ``rho_sss_bar`` as ``(Ht, Wt, 6)``.
@@ -24,6 +25,14 @@ from polarface.inverse.polarimetric.config import (
     initial_raw,
     maps_from_raw,
     raw_from_maps,
+)
+from polarface.inverse.polarimetric.dynamic import (
+    DYNAMIC_VARIABLES,
+    DynamicConfig,
+    DynamicPatchProblem,
+    DynamicWeights,
+    dynamic_regularisers,
+    fit_dynamic_frame,
 )
 from polarface.inverse.polarimetric.engines import POLARIMETRIC_ENGINES, PolarimetricEngine, resolve_engine
 from polarface.inverse.polarimetric.fit import PolarimetricFit, fit_polarimetric
@@ -58,8 +67,12 @@ from polarface.inverse.polarimetric.refine import (
 )
 
 __all__ = [
+    "DYNAMIC_VARIABLES",
     "PARAMETER_NAMES",
     "POLARIMETRIC_ENGINES",
+    "DynamicConfig",
+    "DynamicPatchProblem",
+    "DynamicWeights",
     "FusedSamples",
     "LobeRefinement",
     "LossWeights",
@@ -73,6 +86,8 @@ __all__ = [
     "build_fused_samples",
     "build_patch_samples",
     "data_losses",
+    "dynamic_regularisers",
+    "fit_dynamic_frame",
     "fit_polarimetric",
     "fused_data_loss",
     "fused_loss_and_grad",

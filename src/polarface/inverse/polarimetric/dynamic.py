@@ -1,0 +1,473 @@
+"""Per-frame (dynamic) polarimetric fit (paper supplement, "Dynamic Inverse Rendering Details").
+
+A dynamic frame is seen by few views (typically the two polarimetric cameras of one frame: one sees
+channels 0-2, the other 3-5), too few to separate all the static unknowns. With the refractive index
+and both roughnesses fixed from the static result, :func:`fit_dynamic_frame` optimises per texel
+``rho_s^t, rho_ss^t, rho_sss_bar^t`` (6 channels) and the displacement ``H^t`` (mm) of the frame,
+minimising
+
+    w_sss L_sss + w_s L_s + w_phi L_phi + L_reg~   (defaults 1, 1, 0.2)
+
+with the static stage's data terms (:mod:`polarface.inverse.polarimetric.losses`; the fused kernel or
+the torch reference, :mod:`polarface.inverse.polarimetric.engines`; the DoP term ``L_psi`` only
+constrains eta and is left out) and the regulariser (:func:`dynamic_regularisers`, per atlas texel of
+the patch; superscript 0 = the static maps)
+
+    L_reg~ = 0.001 sum (H^t - H^0)^2 + 500 sum (Laplacian (H^t - H^0))^2
+             + 0.01 sum (rho_s^t - rho_s^0)^2 + 0.01 sum (rho_ss^t - rho_ss^0)^2
+             + 0.01 sum_texel W^t sum_c (rho_sss_bar^t - rho_sss_bar^0)^2,
+    W^t = |mean_c rho_sss_bar^0 - mean_c rho_sss_bar^t|   (per texel, mean over the 6 channels).
+
+Choices where the supplement says "similar to" the static terms: both H terms act on the *change*
+``H^t - H^0`` from the static displacement (the skin's fine relief moves with the tracked surface;
+the static stage pulls H towards 0, the base mesh): the temporal term on its square, the spatial term
+on its 4-neighbour Laplacian (:func:`~polarface.inverse.polarimetric.losses.laplacian_penalty`). A
+Laplacian of ``H^t`` itself would, at weight 500 against 0.001, flatten the static relief in every
+frame, most where the data are weak: on the simulator's demo frame 0 with the true static maps as
+``H^0`` it raised the median displacement error from 0.0023 mm to 0.0075 mm. ``W^t`` is
+recomputed from the current estimate at every step and treated as a constant (no gradient flows
+through it): it is 0 where the subsurface albedo has not changed, so a start at the static maps is
+free to move, and it grows with the change, so the term acts as a soft ``|change|^3`` pull on large
+deviations of the channels' mean. Like the static loss, the patch loss is divided by the number of
+atlas texels of the patch.
+
+Reparameterisation (ranges from the static :class:`~polarface.inverse.polarimetric.config.PolarimetricConfig`)
+and patch processing with halos are those of :mod:`polarface.inverse.polarimetric.fit`; the optimiser
+is torch's RMSprop (or Adam) with the static stage's learning-rate schedule
+(:func:`~polarface.inverse.polarimetric.optimise.learning_rate_schedule`); only the raw variables of
+``rho_s, rho_ss, rho_sss_bar, displacement_mm`` are leaves, eta and the roughnesses are constants.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Mapping
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from polarface.inverse.polarimetric.config import (
+    PARAMETER_NAMES,
+    PolarimetricConfig,
+    initial_raw,
+    maps_from_raw,
+    raw_from_maps,
+)
+from polarface.inverse.polarimetric.engines import PolarimetricEngine, resolve_engine
+from polarface.inverse.polarimetric.fit import PolarimetricFit, _coverage, _patch_side
+from polarface.inverse.polarimetric.fused import fused_data_loss, pack_parameters
+from polarface.inverse.polarimetric.losses import LossWeights, data_losses, laplacian_penalty
+from polarface.inverse.polarimetric.model import render_samples
+from polarface.inverse.polarimetric.optimise import learning_rate_schedule
+from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
+from polarface.texture import UnwrapStore
+
+__all__ = [
+    "DYNAMIC_VARIABLES",
+    "DynamicConfig",
+    "DynamicPatchProblem",
+    "DynamicWeights",
+    "dynamic_regularisers",
+    "fit_dynamic_frame",
+]
+
+#: The maps optimised per frame; the other :data:`PARAMETER_NAMES` (eta, alpha_s, alpha_ss) stay static.
+DYNAMIC_VARIABLES = ("rho_s", "rho_ss", "rho_sss_bar", "displacement_mm")
+_FIXED = tuple(name for name in PARAMETER_NAMES if name not in DYNAMIC_VARIABLES)
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicWeights:
+    """Loss weights of the per-frame fit (defaults: the paper's supplement, dynamic stage).
+
+    Attributes:
+        sss, s, phi: weights of the data terms ``L_sss, L_s, L_phi``.
+        h_temporal: weight of ``sum (H^t - H^0)^2`` (mm^2); h_laplacian: of
+            ``sum (Laplacian (H^t - H^0))^2`` (mm^2, per texel step).
+        rho_s_temporal, rho_ss_temporal: of ``sum (rho^t - rho^0)^2`` of the two lobe albedos.
+        rho_sss_bar_temporal: of ``sum W^t sum_c (rho_sss_bar^t - rho_sss_bar^0)^2`` (module docstring).
+    """
+
+    sss: float = 1.0
+    s: float = 1.0
+    phi: float = 0.2
+    h_temporal: float = 0.001
+    h_laplacian: float = 500.0
+    rho_s_temporal: float = 0.01
+    rho_ss_temporal: float = 0.01
+    rho_sss_bar_temporal: float = 0.01
+
+    def __post_init__(self) -> None:
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if not (value >= 0.0 and value < float("inf")):
+                raise ValueError(f"argument 'weights.{field.name}' must be finite and >= 0; got {value}")
+
+    def data_weights(self) -> LossWeights:
+        """The data-term weights as static :class:`LossWeights` (``psi = 0``; its regularisers unused)."""
+        return LossWeights(psi=0.0, sss=self.sss, s=self.s, phi=self.phi)
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicConfig:
+    """Options of the per-frame fit.
+
+    Attributes:
+        weights: :class:`DynamicWeights`.
+        optimizer, lr, iterations, lr_final_fraction, warmup: as in
+            :class:`~polarface.inverse.polarimetric.config.PolarimetricConfig` (fewer iterations than the
+            static stage: a frame starts from the static or the previous frame's maps).
+        patch: largest patch side (texels; a frame has ~2 samples per texel, so patches can be larger
+            than the static 64); halo: halo width (texels, >= 2); sample_budget: most samples per patch.
+        min_views: fewest views that must see a texel for it to enter the result mask.
+        boundary_margin: erosion (texels) of the region seen by ``min_views`` views.
+        seed: torch seed.
+    """
+
+    weights: DynamicWeights = dataclasses.field(default_factory=DynamicWeights)
+    optimizer: str = "rmsprop"
+    lr: float = 0.03
+    iterations: int = 100
+    lr_final_fraction: float = 0.1
+    warmup: int = 10
+    patch: int = 256
+    halo: int = 4
+    sample_budget: int = 300_000
+    min_views: int = 2
+    boundary_margin: int = 1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.weights, DynamicWeights):
+            raise ValueError(
+                f"argument 'weights' must be a DynamicWeights; got {type(self.weights).__name__}"
+            )
+        self.optimiser_config(PolarimetricConfig())  # validates the shared fields, naming them
+
+    def optimiser_config(self, static_config: PolarimetricConfig) -> PolarimetricConfig:
+        """``static_config`` (for its reparameterisation ranges) with this config's optimiser and patch
+        options."""
+        shared = ("optimizer", "lr", "iterations", "lr_final_fraction", "warmup", "patch", "halo",
+                  "sample_budget", "min_views", "boundary_margin", "seed")  # fmt: skip
+        return dataclasses.replace(
+            static_config, refine_lobes_iterations=0, **{name: getattr(self, name) for name in shared}
+        )
+
+
+def dynamic_regularisers(
+    current: Mapping[str, torch.Tensor], reference: Mapping[str, torch.Tensor], mask: torch.Tensor
+) -> dict[str, torch.Tensor]:
+    """The unweighted regularisers of ``L_reg~`` (module docstring) over the valid texels of a patch.
+
+    Args:
+        current, reference: the frame's and the static maps, ``rho_s``, ``rho_ss``, ``displacement_mm``
+            ``(h, w)`` and ``rho_sss_bar`` ``(h, w, 6)`` (mm for H); mask: ``(h, w)`` bool valid texels.
+
+    Returns:
+        ``h_temporal, h_laplacian, rho_s_temporal, rho_ss_temporal, rho_sss_bar_temporal`` scalar
+        tensors. ``W^t`` of the last term is detached (a constant for the gradient).
+    """
+    weight = mask.to(current["rho_s"].dtype)
+    height_change = current["displacement_mm"] - reference["displacement_mm"]
+    if height_change.shape != mask.shape:
+        raise ValueError(
+            f"argument 'current' displacement_mm {tuple(height_change.shape)} must match 'mask' "
+            f"{tuple(mask.shape)}"
+        )
+    squared = lambda name: (((current[name] - reference[name]) ** 2) * weight).sum()  # noqa: E731
+    change = current["rho_sss_bar"] - reference["rho_sss_bar"]
+    w_t = change.mean(dim=-1).abs().detach()
+    return {
+        "h_temporal": ((height_change * height_change) * weight).sum(),
+        "h_laplacian": laplacian_penalty(height_change, mask),
+        "rho_s_temporal": squared("rho_s"),
+        "rho_ss_temporal": squared("rho_ss"),
+        "rho_sss_bar_temporal": ((change * change).sum(-1) * w_t * weight).sum(),
+    }
+
+
+class DynamicPatchProblem:
+    """The per-frame loss of one patch: the static :class:`PatchProblem`'s samples and normals-from-H,
+    the fixed maps (eta, alpha_s, alpha_ss) and the static reference maps as constants.
+
+    Args:
+        problem: the patch's :class:`PatchProblem` (fused samples or a sample batch).
+        fixed_raw: raw variables (``(h, w, 1)`` tensors) of ``eta, alpha_s, alpha_ss``.
+        reference_raw: raw variables of the static ``rho_s, rho_ss, rho_sss_bar, displacement_mm``.
+        weights: :class:`DynamicWeights`.
+    """
+
+    def __init__(
+        self,
+        problem: PatchProblem,
+        fixed_raw: Mapping[str, torch.Tensor],
+        reference_raw: Mapping[str, torch.Tensor],
+        weights: DynamicWeights,
+    ) -> None:
+        self.problem = problem
+        self.weights = weights
+        self.fixed_raw = {k: fixed_raw[k].detach() for k in _FIXED}
+        with torch.no_grad():
+            reference = self._maps(dict(reference_raw))
+        self.reference = {k: reference[k] for k in DYNAMIC_VARIABLES}
+        self.fixed = {k: reference[k] for k in _FIXED}
+
+    def _maps(self, raw: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Physical maps ``(h, w)`` (``rho_sss_bar`` ``(h, w, 6)``) of the optimised raw variables."""
+        maps = maps_from_raw({**self.fixed_raw, **raw}, self.problem.config)
+        return {k: v if k == "rho_sss_bar" else v[..., 0] for k, v in maps.items()}
+
+    def loss(self, raw: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """``(total, terms)``: the weighted loss per valid texel and the unweighted terms (``data``:
+        the weighted data loss, then the :func:`dynamic_regularisers`)."""
+        problem, wts = self.problem, self.weights
+        maps = self._maps({k: raw[k] for k in DYNAMIC_VARIABLES})
+        normal = problem.normals(maps["displacement_mm"])
+        flat = lambda name: maps[name].reshape(normal.shape[0], -1)  # noqa: E731
+        fixed = lambda name: self.fixed[name].reshape(-1)  # noqa: E731
+        if problem.fused is not None:
+            params = pack_parameters(
+                normal, fixed("eta"), fixed("alpha_s"), fixed("alpha_ss"), flat("rho_s"), flat("rho_ss"),
+                flat("rho_sss_bar"),
+            )  # fmt: skip
+            data = fused_data_loss(params, problem.fused, wts.data_weights(), problem.scale)
+        else:
+            batch = problem.batch
+            texel = batch.texel
+            prediction = render_samples(
+                batch, normal[texel], fixed("eta")[texel], fixed("alpha_s")[texel], fixed("alpha_ss")[texel],
+                flat("rho_s")[texel, 0], flat("rho_ss")[texel, 0],
+                torch.gather(flat("rho_sss_bar")[texel], 1, batch.channels),
+            )  # fmt: skip
+            terms = data_losses(prediction, batch.observed, problem.scale)
+            data = wts.sss * terms["sss"] + wts.s * terms["s"] + wts.phi * terms["phi"]
+        reg = dynamic_regularisers(maps, self.reference, problem.mask)
+        total = data + sum(getattr(wts, name) * value for name, value in reg.items())
+        return total / max(problem.texel_count, 1), {"data": data, **reg}
+
+
+def _checked_maps(
+    maps: Mapping[str, np.ndarray], argument: str, resolution: tuple[int, int], mask: np.ndarray
+) -> dict[str, np.ndarray]:
+    """``maps`` as float64 ``(Ht, Wt, c)`` arrays; ValueError naming ``argument`` and the map."""
+    missing = [name for name in PARAMETER_NAMES if name not in maps]
+    if missing:
+        raise ValueError(f"argument '{argument}' lacks the maps {missing} (needs {list(PARAMETER_NAMES)})")
+    out = {}
+    for name in PARAMETER_NAMES:
+        value = np.asarray(maps[name], dtype=np.float64)
+        want = (*resolution, 6) if name == "rho_sss_bar" else resolution
+        if value.shape != want:
+            raise ValueError(
+                f"argument '{argument}' map '{name}' has shape {value.shape}; the unwrap store needs {want}"
+            )
+        if not np.isfinite(value[mask]).all():
+            raise ValueError(f"argument '{argument}' map '{name}' holds NaN/inf inside 'static_mask'")
+        out[name] = value if value.ndim == 3 else value[..., None]
+    return out
+
+
+def _raw_maps(maps: Mapping[str, np.ndarray], config: PolarimetricConfig) -> dict[str, np.ndarray]:
+    """Raw variables (float32 ``(Ht, Wt, c)``) of ``maps``; non-finite texels (outside the static mask)
+    take the static stage's initial values."""
+    fallback = initial_raw(maps["eta"].shape[:2], config)
+    raw = raw_from_maps(
+        {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in maps.items()}, config
+    )
+    out = {}
+    for name, value in raw.items():
+        bad = ~np.isfinite(maps[name])
+        out[name] = np.where(bad, fallback[name], value).astype(np.float32)
+    return out
+
+
+@dataclasses.dataclass
+class _FrameState:
+    """Raw variables (name -> ``(Ht, Wt, c)`` float32): ``start`` (being optimised), ``static`` (the fixed
+    maps and the temporal references); running totals: loss curve (sums over patches), samples,
+    optimiser seconds and work (samples x iterations)."""
+
+    start: dict[str, np.ndarray]
+    static: dict[str, np.ndarray]
+    curve: list[float] = dataclasses.field(default_factory=list)
+    samples: int = 0
+    optimise_s: float = 0.0
+    work: float = 0.0
+
+
+def _optimise(
+    problem: DynamicPatchProblem, raw: dict[str, torch.Tensor], config: PolarimetricConfig, curve: list[float]
+) -> dict[str, torch.Tensor]:
+    """The optimiser loop on one patch (leaves: :data:`DYNAMIC_VARIABLES`); returns detached raw variables."""
+    leaves = {k: raw[k].detach().clone().requires_grad_(True) for k in DYNAMIC_VARIABLES}
+    optimizer_type = torch.optim.Adam if config.optimizer == "adam" else torch.optim.RMSprop
+    optimizer = optimizer_type(list(leaves.values()), lr=config.lr)
+    for step, lr in enumerate(learning_rate_schedule(config)):
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        optimizer.zero_grad(set_to_none=True)
+        total, _ = problem.loss(leaves)
+        total.backward()
+        optimizer.step()
+        if len(curve) <= step:
+            curve.append(0.0)
+        curve[step] += float(total.detach())
+    return {k: v.detach() for k, v in leaves.items()}
+
+
+def _fit_patch(
+    unwrap: UnwrapStore,
+    rows: slice,
+    cols: slice,
+    fitting: list[int],
+    engine: PolarimetricEngine,
+    config: PolarimetricConfig,
+    weights: DynamicWeights,
+    scale: float,
+    device: torch.device,
+    state: _FrameState,
+) -> None:
+    """Fit one patch (interior ``rows x cols`` plus a halo) and write its interior into ``state.start``."""
+    dtype = torch.float32
+    height, width = unwrap.resolution
+    r0, r1 = max(rows.start - config.halo, 0), min(rows.stop + config.halo, height)
+    c0, c1 = max(cols.start - config.halo, 0), min(cols.stop + config.halo, width)
+    hrows, hcols = slice(r0, r1), slice(c0, c1)
+    built = build_patch_samples(
+        unwrap, hrows, hcols, fitting, unwrap.views, dtype=dtype, device=device, fused=engine.fused_samples
+    )
+    batch, geometry = built[0], built[1]
+    if batch is None:
+        return
+    fused = built[2] if engine.fused_samples else None
+    problem = PatchProblem(batch, geometry, config, scale, dtype, device, fused)
+    if fused is not None:
+        problem.batch = None  # the fused samples carry the data; free the reference batch
+    tensor = lambda a: torch.as_tensor(a[hrows, hcols], dtype=dtype, device=device)  # noqa: E731
+    patch = DynamicPatchProblem(
+        problem,
+        {k: tensor(state.static[k]) for k in _FIXED},
+        {k: tensor(state.static[k]) for k in DYNAMIC_VARIABLES},
+        weights,
+    )
+    tick = time.perf_counter()
+    result = _optimise(patch, {k: tensor(state.start[k]) for k in DYNAMIC_VARIABLES}, config, state.curve)
+    state.optimise_s += time.perf_counter() - tick
+    state.samples += batch.count
+    state.work += batch.count * int(config.iterations)
+    interior = (slice(rows.start - r0, rows.stop - r0), slice(cols.start - c0, cols.stop - c0))
+    for name, value in result.items():
+        state.start[name][rows, cols] = value[interior].cpu().numpy()
+
+
+def fit_dynamic_frame(
+    unwrap: UnwrapStore,
+    static_maps: Mapping[str, np.ndarray],
+    static_mask: np.ndarray,
+    config: DynamicConfig | None = None,
+    *,
+    static_config: PolarimetricConfig | None = None,
+    start_maps: Mapping[str, np.ndarray] | None = None,
+    device: torch.device | str = "cpu",
+    progress: bool = False,
+    engine: str = "auto",
+    threads: int | None = 1,
+) -> PolarimetricFit:
+    """Fit one dynamic frame's ``rho_s, rho_ss, rho_sss_bar`` and displacement (module docstring).
+
+    Args:
+        unwrap: the frame's complete :class:`UnwrapStore` (its fitting views; texel geometry = the frame's
+            tracked mesh, same UV atlas and resolution as the static result).
+        static_maps: the static result's maps, :data:`PARAMETER_NAMES` -> ``(Ht, Wt)`` (``rho_sss_bar``
+            ``(Ht, Wt, 6)``; H in mm); values outside ``static_mask`` may be NaN.
+        static_mask: ``(Ht, Wt)`` bool texels the static result reconstructed.
+        config: :class:`DynamicConfig`.
+        static_config: the static stage's configuration; its reparameterisation ranges (``eta_range``,
+            ``alpha_range``, ``rho_max``, ``h_scale_mm``) are used.
+        start_maps: start of the optimisation (e.g. the previous frame's maps, same layout as
+            ``static_maps``); default the static maps.
+        device, engine, threads: as in :func:`~polarface.inverse.polarimetric.fit.fit_polarimetric`.
+        progress: tqdm bar over patches.
+
+    Returns:
+        :class:`~polarface.inverse.polarimetric.fit.PolarimetricFit`: all maps (float32; eta, alpha_s,
+        alpha_ss are float32 copies of the static ones), mask = ``static_mask`` & texels seen by
+        ``config.min_views`` views (that region eroded by ``config.boundary_margin``), the loss curve
+        (mean per patch), timings ``optimise_s`` and ``fit_s`` (s), throughput (sample iterations/s)
+        and the per-texel view count.
+
+    Raises:
+        ValueError: incomplete unwrap store or one without a fitting view or visible texel; maps missing,
+            mis-shaped or non-finite inside the mask (naming ``static_maps``/``start_maps``);
+            ``static_mask`` of the wrong shape; bad ``threads`` or ``engine``.
+    """
+    config = config or DynamicConfig()
+    chosen = resolve_engine(engine, device)
+    if threads is not None and int(threads) < 1:
+        raise ValueError(f"argument 'threads' must be >= 1; got {threads}")
+    if not unwrap.complete:
+        raise ValueError(f"argument 'unwrap': store '{unwrap.path}' is incomplete; rerun the unwrapping")
+    mask = np.asarray(static_mask)
+    if mask.shape != unwrap.resolution or mask.dtype != bool:
+        raise ValueError(
+            f"argument 'static_mask' must be bool {unwrap.resolution}; got {mask.dtype} {mask.shape}"
+        )
+    static = _checked_maps(static_maps, "static_maps", unwrap.resolution, mask)
+    start = static if start_maps is None else _checked_maps(start_maps, "start_maps", unwrap.resolution, mask)
+    optimiser_config = config.optimiser_config(static_config or PolarimetricConfig())
+    previous_threads = torch.get_num_threads()
+    flushing = torch.set_flush_denormal(True)  # RMSprop's running averages reach denormals (fit.py)
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    try:
+        torch.manual_seed(config.seed)
+        fit = _fit_frame(
+            unwrap, static, start, optimiser_config, config.weights, torch.device(device), chosen, progress
+        )
+    finally:
+        torch.set_num_threads(previous_threads)
+        if flushing:
+            torch.set_flush_denormal(False)
+    fit.mask &= mask
+    for name in _FIXED:
+        fit.maps[name] = np.array(static_maps[name], dtype=np.float32)
+    return fit
+
+
+def _fit_frame(
+    unwrap: UnwrapStore,
+    static: dict[str, np.ndarray],
+    start: dict[str, np.ndarray],
+    config: PolarimetricConfig,
+    weights: DynamicWeights,
+    device: torch.device,
+    engine: PolarimetricEngine,
+    progress: bool,
+) -> PolarimetricFit:
+    """The patch loop of :func:`fit_dynamic_frame` on checked float64 maps."""
+    started = time.perf_counter()
+    fitting = [i for i, v in enumerate(unwrap.views) if not v.held_out]
+    if not fitting:
+        raise ValueError("argument 'unwrap': every view is held out (no fitting view)")
+    scale = unwrap.mean_i_sss(fitting)
+    if not scale > 0:
+        raise ValueError("argument 'unwrap': no texel is visible in any fitting view")
+    state = _FrameState(_raw_maps(start, config), _raw_maps(static, config))
+    patches = list(unwrap.patches(_patch_side(unwrap, config, fitting)))
+    for rows, cols in tqdm(patches, desc="dynamic fit", unit="patch", disable=not progress):
+        _fit_patch(unwrap, rows, cols, fitting, engine, config, weights, scale, device, state)
+    mask_seen, view_count = _coverage(unwrap, config)
+    with torch.no_grad():
+        maps = maps_from_raw(
+            {k: torch.from_numpy(v.astype(np.float64)) for k, v in state.start.items()}, config
+        )
+    out = {k: v.numpy().astype(np.float32) for k, v in maps.items()}
+    out = {k: v if k == "rho_sss_bar" else v[..., 0] for k, v in out.items()}
+    throughput = state.work / state.optimise_s if state.optimise_s > 0 else 0.0
+    timings = {"fit_s": time.perf_counter() - started, "optimise_s": state.optimise_s}
+    return PolarimetricFit(
+        out, mask_seen, [v / max(len(patches), 1) for v in state.curve], timings, throughput, state.samples,
+        len(patches), view_count=view_count.astype(np.int32),
+    )  # fmt: skip
