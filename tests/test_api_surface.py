@@ -51,9 +51,9 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "undistort_normalized", "vertex_normals",
     ),
     "polarface.inverse": (
-        "BiophysicalConfig", "BiophysicalFit", "IorResult", "POLARIMETRIC_ENGINES",
+        "BiophysicalConfig", "BiophysicalFit", "DynamicConfig", "IorResult", "POLARIMETRIC_ENGINES",
         "PolarimetricConfig", "PolarimetricFit", "SphereScene", "estimate_ior", "fit_biophysical",
-        "fit_polarimetric",
+        "fit_dynamic_frame", "fit_polarimetric",
     ),
     "polarface.inverse.biophysical": (
         "BiophysicalConfig", "BiophysicalFit", "PARAMETER_ORDER", "TotalsTable",
