@@ -113,7 +113,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "texture_observations", "texture_space_exitance", "trace_sphere",
     ),
     "polarface.report": (
-        "HtmlPage", "ImageItem", "Section", "biophysical_section", "write_report",
+        "HtmlPage", "ImageItem", "Section", "biophysical_section", "dynamic_section", "write_report",
     ),
     "polarface.results": (
         "CHROMOPHORE_MAPS", "CHROMOPHORE_PREVIEWS", "DIAGNOSTIC_MAPS", "DiagnosticMap",
