@@ -192,3 +192,15 @@ def test_bad_inputs_name_the_path(sim, tmp_path):
     (root / "tracking" / "tracked.npz").unlink()
     with pytest.raises(FileNotFoundError, match=r"tracked\.npz"):
         dynamic_metrics(root, sim)
+
+
+def test_info_lists_the_dynamic_frames(sim, tmp_path):
+    from polarface.pipeline import folder_info, format_info
+
+    root = write_truth_result(sim, tmp_path / "result")
+    record = ResultFolder(root).stage_record("dynamic")
+    record |= {"frames": [0, 1, 2], "failed_frames": {"2": "tracking lost"}}
+    ResultFolder(root).update_result(stage="dynamic", record=record)
+    info = folder_info(root)
+    assert info["dynamic"] == {"frames": 3, "done": 2, "failed": {"2": "tracking lost"}}
+    assert "dynamic frames: 3, done 2, failed 1: 2 (tracking lost)" in format_info(info)
