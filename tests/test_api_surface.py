@@ -52,9 +52,9 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "track_mesh", "undistort_normalized", "vertex_normals",
     ),
     "polarface.inverse": (
-        "BiophysicalConfig", "BiophysicalFit", "IorResult", "POLARIMETRIC_ENGINES",
+        "BiophysicalConfig", "BiophysicalFit", "DynamicConfig", "IorResult", "POLARIMETRIC_ENGINES",
         "PolarimetricConfig", "PolarimetricFit", "SphereScene", "estimate_ior", "fit_biophysical",
-        "fit_polarimetric",
+        "fit_dynamic_frame", "fit_polarimetric",
     ),
     "polarface.inverse.biophysical": (
         "BiophysicalConfig", "BiophysicalFit", "PARAMETER_ORDER", "TotalsTable",
@@ -116,7 +116,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "texture_observations", "texture_space_exitance", "trace_sphere",
     ),
     "polarface.report": (
-        "HtmlPage", "ImageItem", "Section", "biophysical_section", "write_report",
+        "HtmlPage", "ImageItem", "Section", "biophysical_section", "dynamic_section", "write_report",
     ),
     "polarface.results": (
         "CHROMOPHORE_MAPS", "CHROMOPHORE_PREVIEWS", "DIAGNOSTIC_MAPS", "DiagnosticMap",

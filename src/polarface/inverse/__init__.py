@@ -1,7 +1,8 @@
 """Inverse rendering stages (paper Sec. 5): static polarimetric maps, then biophysical parameters.
 
 :mod:`polarface.inverse.polarimetric` recovers eta, alpha_s, alpha_ss, rho_s, rho_ss, rho_sss_bar and
-the displacement map in texture space; :mod:`polarface.inverse.biophysical` fits the chromophore maps
+the displacement map in texture space (and, per frame of a dynamic sequence, the albedos and the
+displacement: ``fit_dynamic_frame``); :mod:`polarface.inverse.biophysical` fits the chromophore maps
 to rho_sss_bar; :mod:`polarface.inverse.ior` is the single-view sphere refractive-index measurement of
 the paper's validation table. This facade holds each stage's entry point; the subpackages hold the rest.
 """
@@ -10,8 +11,10 @@ from polarface.inverse.biophysical import BiophysicalConfig, BiophysicalFit, fit
 from polarface.inverse.ior import IorResult, SphereScene, estimate_ior
 from polarface.inverse.polarimetric import (
     POLARIMETRIC_ENGINES,
+    DynamicConfig,
     PolarimetricConfig,
     PolarimetricFit,
+    fit_dynamic_frame,
     fit_polarimetric,
 )
 
@@ -19,11 +22,13 @@ __all__ = [
     "POLARIMETRIC_ENGINES",
     "BiophysicalConfig",
     "BiophysicalFit",
+    "DynamicConfig",
     "IorResult",
     "PolarimetricConfig",
     "PolarimetricFit",
     "SphereScene",
     "estimate_ior",
     "fit_biophysical",
+    "fit_dynamic_frame",
     "fit_polarimetric",
 ]

@@ -15,7 +15,10 @@ and no value appears under two keys (keys listed in ``docs/reconstruct.md``, "ev
 * ``biophysical``: :func:`evaluate_biophysical` (same naming scheme: ``median_abs_error`` ...); skipped
   when the RESULT or the ground truth has no chromophore maps;
 * ``geometry``: :func:`polarface.pipeline.evaluate_geometry.geometry_metrics` (surface accuracy,
-  completeness and pose errors of the stereo geometry stage); skipped in known-geometry mode.
+  completeness and pose errors of the stereo geometry stage); skipped in known-geometry mode;
+* ``dynamic``: :func:`polarface.pipeline.evaluate_dynamic.dynamic_metrics` (tracking, per-frame map and
+  normal errors, blood-flow recovery, flicker of a dynamic sequence); skipped when the RESULT has no
+  per-frame folders or the ground truth no ``dynamic/``.
 
 The ground truth (``SIM/ground_truth`` or that folder itself) has the RESULT's ``maps/`` layout, its
 rest mesh ``mesh_rest.obj`` and poses ``static/poses.json``. Map metrics (``polarimetric``,
@@ -35,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
+from polarface.pipeline.evaluate_dynamic import dynamic_group
 from polarface.pipeline.evaluate_geometry import (
     GEOMETRY_ERROR_PNG,
     TexelCorrespondence,
@@ -246,6 +250,7 @@ METRIC_GROUPS: dict[str, Callable[[Path, Path], dict]] = {
     "rerender": rerender_metrics,
     "biophysical": biophysical_metrics,
     "geometry": geometry_metrics,
+    "dynamic": dynamic_group,
 }
 
 

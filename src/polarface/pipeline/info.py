@@ -106,6 +106,20 @@ def _stage_seconds(record: dict[str, Any]) -> float | None:
     return float(numbers[0]) if len(numbers) == 1 else None
 
 
+def _dynamic_frames(record: Any, frame_folders: list[str]) -> dict[str, Any] | None:
+    """The dynamic frames of a RESULT: ``frames`` (count), ``done`` (count with maps), ``failed``
+    ``{index: reason}``, from ``stages.dynamic`` (None when it has no such record nor frame folder)."""
+    if not isinstance(record, dict) or not record:
+        return {"frames": len(frame_folders), "done": None, "failed": {}} if frame_folders else None
+    failed = record.get("failed_frames") if isinstance(record.get("failed_frames"), dict) else {}
+    frames, completed = record.get("frames"), record.get("completed")
+    return {
+        "frames": len(frames) if isinstance(frames, list) else len(frame_folders),
+        "done": len(completed) if isinstance(completed, list) else None,
+        "failed": {str(k): str(v) for k, v in failed.items()},
+    }
+
+
 def result_info(root: Path) -> dict[str, Any]:
     """Header, stages done (with their times), maps, previews, report and configuration of a RESULT."""
     folder = ResultFolder(root)
@@ -132,6 +146,7 @@ def result_info(root: Path) -> dict[str, Any]:
         "previews": len(previews),
         "report": folder.report_path.name if folder.report_path.is_file() else None,
         "frames": frames,
+        "dynamic": _dynamic_frames(stages.get("dynamic"), frames),
         "configuration": {
             name: rec["config"] for name, rec in stages.items() if isinstance(rec, dict) and "config" in rec
         },
@@ -223,6 +238,11 @@ def _result_lines(info: dict[str, Any]) -> list[str]:
     lines.append(f"  previews: {info['previews']} PNG; report: {info['report'] or 'not written'}")
     if info["frames"]:
         lines.append(f"  frames: {len(info['frames'])} ({info['frames'][0]} .. {info['frames'][-1]})")
+    dynamic = info.get("dynamic")
+    if dynamic:
+        failed = [f"{t} ({reason})" for t, reason in dynamic["failed"].items()]
+        lines += _wrapped(f"dynamic frames: {dynamic['frames']}, done {_number(dynamic['done'])}, "
+                          f"failed {len(failed)}", failed)
     for name, config in info["configuration"].items():
         lines += _wrapped(f"configuration of {name}", _flat(config))
     return lines

@@ -36,6 +36,12 @@ and patch processing with halos are those of :mod:`polarface.inverse.polarimetri
 is torch's RMSprop (or Adam) with the static stage's learning-rate schedule
 (:func:`~polarface.inverse.polarimetric.optimise.learning_rate_schedule`); only the raw variables of
 ``rho_s, rho_ss, rho_sss_bar, displacement_mm`` are leaves, eta and the roughnesses are constants.
+
+Measured on the simulator's demo dynamic frames (ground-truth frame mesh, the true static maps as the
+static result; defaults, 2 shared CPU cores): ~1e5 samples and 6-7 s per frame; median relative
+error of rho_sss_bar 2.3 % inside the result mask (the static start: 0 %; the objective's minimum under
+noise); in the pressed forehead patch, whose albedo the static maps miss, the error falls from 8.4 % to
+1.2 % (frame 0) and the mean change of the albedo is recovered (0.0184 fitted and true).
 """
 
 from __future__ import annotations
