@@ -192,3 +192,18 @@ def test_stereo_camera_pairs():
     only_polarimetric = {**lonely, "cameras": [c for c in data["cameras"] if c["role"] == "polarimetric"]}
     with pytest.raises(ValueError, match="--mesh MESH --poses POSES"):
         Rig.model_validate(only_polarimetric).stereo_camera_pairs()
+
+
+def test_geometry_differences_name_the_fields_that_differ():
+    from polarface.capture.rig import paper_rig
+
+    rig = paper_rig(width=64, height=48)
+    assert rig.geometry_differences(paper_rig(width=64, height=48)) == []
+    other = rig.model_copy(deep=True)
+    other.cameras[0].K[0][0] += 1.0
+    other.cameras[1].exposure = 3.0  # sensor settings may differ between captures
+    other.lights[2].position_mm = (1.0, 2.0, 3.0)
+    differences = rig.geometry_differences(other)
+    assert differences == [f"cameras[{rig.cameras[0].id}].K", f"lights[{rig.lights[2].id}].position_mm"]
+    resized = rig.geometry_differences(paper_rig(width=128, height=96))
+    assert "cameras[pol_upper].width" in resized and "cameras[pol_upper].K" in resized

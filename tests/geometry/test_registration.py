@@ -15,7 +15,12 @@ from polarface.geometry import load_head_asset
 from polarface.geometry.fusion import fuse_registered
 from polarface.geometry.point_cloud import PointCloud
 from polarface.geometry.poses import invert_rigid, rigid_transform
-from polarface.geometry.registration import RegistrationConfig, SequenceRegistration, register_sequence
+from polarface.geometry.registration import (
+    RegistrationConfig,
+    SequenceRegistration,
+    register_pair,
+    register_sequence,
+)
 
 # model (+y up, face +z) -> rig world (y down, z away from the camera at the origin), face 1 m away
 RIG_FROM_HEAD = np.array([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 1000.0], [0, 0, 0, 1]])
@@ -204,3 +209,33 @@ def test_edges_do_not_keep_open3d_results_alive(head_surface):
     target, _ = _registration_levels(partial_view(head_surface, truth[0], seed=0), centre, config)
     transform, _, _, information = _icp(source, target, np.eye(4), config)
     assert transform.base is None and information.base is None
+
+
+def test_register_pair_recovers_a_known_motion_of_the_whole_head_onto_a_partial_view(head_surface):
+    """The dynamic stage's alignment: the whole reference head onto one frame's front view."""
+    points, normals = head_surface
+    whole = PointCloud.from_arrays(points[::8] @ RIG_FROM_HEAD[:3, :3].T + RIG_FROM_HEAD[:3, 3],
+                                   normals[::8] @ RIG_FROM_HEAD[:3, :3].T)
+    truth = rigid_transform(math.radians(3.0), math.radians(-2.0), 0.0, (4.0, -3.0, 2.0))
+    truth = RIG_FROM_HEAD @ truth @ invert_rigid(RIG_FROM_HEAD)  # a motion about the rig origin
+    view = partial_view(head_surface, truth @ RIG_FROM_HEAD, seed=7)
+    result = register_pair(whole, view)
+    error = result.transform @ invert_rigid(truth)
+    angle = math.degrees(math.acos(np.clip((np.trace(error[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    assert angle < 0.05, angle
+    centre = RIG_FROM_HEAD[:3, 3]
+    assert np.linalg.norm(error[:3, :3] @ centre + error[:3, 3] - centre) < 0.05
+    assert 0.2 < result.fitness < 0.8  # the whole head vs its front: about half has a partner
+    assert result.target_fitness > 0.6  # the whole head explains the view (sparse source: every 8th sample)
+    assert 0.0 < result.rmse_mm < 1.5  # point-to-point within the finest distance (sparse samples)
+
+
+def test_register_pair_names_a_cloud_without_points(head_surface):
+    points, normals = head_surface
+    cloud = PointCloud.from_arrays(points[:1000], normals[:1000])
+    with pytest.raises(ValueError, match="'source'"):
+        register_pair(PointCloud.empty(), cloud)
+    with pytest.raises(ValueError, match="'target'"):
+        register_pair(cloud, PointCloud.empty())
+    with pytest.raises(ValueError, match="'init'"):
+        register_pair(cloud, cloud, np.full((4, 4), np.nan))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 
 import numpy as np
+import pytest
 
 from polarface.io import colormap_png, read_png
 from polarface.report.demo_index import METRIC_TARGETS, demo_index_page, metric_rows
@@ -61,3 +62,30 @@ def test_colormap_label_draws_a_scale_bar(tmp_path):
     colormap_png(tmp_path / "bar.png", image, cmap="twilight", label="AoLP (rad)")
     assert read_png(tmp_path / "plain.png").shape == (8, 8, 3)
     assert read_png(tmp_path / "bar.png").shape[1] > 400
+
+
+def test_dynamic_scalars_reduce_the_per_frame_lists_to_what_the_targets_bound():
+    from polarface.report.demo_index import DYNAMIC_TARGETS, dynamic_scalars
+
+    dynamic = {
+        "frames": 3,
+        "tracking_mm": {"median_per_frame": [0.2, 0.25, 0.3], "max": 0.45},
+        "c_h_out_patch_abs_error": [0.004, 0.012, None],
+        "recovery_time_constant_s": {"ground_truth": 0.667, "reconstructed": 0.8},
+        "c_m_patch_drift_max": 0.001,
+        "rho_sss_bar_median_relative_error": [0.02, 0.03, 0.025],
+        "normal_median_deg": [2.0, 2.5, 2.2],
+        "rho_s_flicker_median": 0.01,
+        "seconds_per_frame": 42.0,
+    }
+    scalars = dynamic_scalars(dynamic)
+    assert scalars["tracking_median_worst_mm"] == 0.3
+    assert scalars["tracking_drift_ratio"] == pytest.approx(1.5)
+    assert scalars["c_h_out_patch_worst"] == 0.012  # None (a failed frame) is skipped
+    assert scalars["recovery_time_constant_relative_error"] == pytest.approx(0.133 / 0.667, rel=1e-3)
+    rows = metric_rows({"dynamic": dynamic, "dynamic_scalars": scalars}, DYNAMIC_TARGETS)
+    verdicts = {row[0]: row[3] for row in rows}
+    assert verdicts["tracking drift: last / first frame median"] == "FAIL"
+    assert verdicts["C_h_out patch abs error, worst frame"] == "FAIL"
+    assert verdicts["rho_s flicker median"] == "pass"
+    assert all(v in ("pass", "FAIL") for v in verdicts.values())

@@ -345,6 +345,41 @@ class Rig(_Model):
         """Cameras with role ``polarimetric``, in file order."""
         return [c for c in self.cameras if c.role == "polarimetric"]
 
+    def geometry_differences(self, other: Rig, atol: float = 1e-6) -> list[str]:
+        """What differs between this rig and ``other`` in what the reconstruction relies on: the cameras
+        (ids, roles, sensors, sizes, ``K``, distortion, ``world_to_camera``), the lights (positions,
+        polarizers, Stokes vectors, radiant intensities) and the spectral calibration; exposure and
+        black/white levels may differ between captures. One entry per difference, naming the field
+        (e.g. ``cameras[pol_upper].K``); empty when the rigs agree within ``atol``."""
+
+        def close(a, b) -> bool:
+            a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+            return a.shape == b.shape and bool(np.allclose(a, b, rtol=0.0, atol=atol))
+
+        differences = []
+        mine, theirs = {c.id: c for c in self.cameras}, {c.id: c for c in other.cameras}
+        if mine.keys() != theirs.keys():
+            differences.append(f"cameras: {sorted(mine)} vs {sorted(theirs)}")
+        for camera_id in sorted(mine.keys() & theirs.keys()):
+            a, b = mine[camera_id], theirs[camera_id]
+            for field in ("role", "sensor", "width", "height", "colour_channels"):
+                if getattr(a, field) != getattr(b, field):
+                    differences.append(f"cameras[{camera_id}].{field}")
+            for field in ("K", "distortion", "world_to_camera"):
+                if not close(getattr(a, field), getattr(b, field)):
+                    differences.append(f"cameras[{camera_id}].{field}")
+        if len(self.lights) != len(other.lights):
+            differences.append(f"lights: {len(self.lights)} vs {len(other.lights)} modules")
+        for a, b in zip(self.lights, other.lights, strict=False):
+            for field in ("position_mm", "polarizer_angle", "stokes", "radiant_intensity"):
+                if not close(getattr(a, field), getattr(b, field)):
+                    differences.append(f"lights[{a.id}].{field}")
+        if (self.spectral is None) != (other.spectral is None) or (
+            self.spectral is not None and self.spectral.model_dump() != other.spectral.model_dump()
+        ):
+            differences.append("spectral")
+        return differences
+
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Rig:
         """Read and validate a ``rig.json``.

@@ -14,6 +14,9 @@ done:
 * ``geometry``: ``geometry/`` from the stereo pairs (skipped with known geometry);
 * ``prepare``: ``rig.json``, ``mesh.obj``, ``result.json`` skeleton, ``unwrap.zarr`` (texture space);
 * ``polarimetric``: ``maps/*.exr`` + ``maps/mask.png``, ``previews/*.png``, ``checkpoints/``;
+* ``biophysical``: chromophore maps;
+* ``dynamic`` (with ``--dynamic DYNAMIC``): per-frame stereo, tracking of the reference mesh, per-frame
+  maps and chromophores in ``RESULT/tracking`` and ``RESULT/frames/NNNN`` (``docs/dynamic.md``);
 * ``report``: ``report.html`` (maps, loss curve, residuals, DoP/AoLP of observation vs re-render).
 
 Bad input (no poses, mismatched UV atlas, all-invisible texels, NaN observations) raises ValueError
@@ -81,6 +84,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=1,
         help="torch threads of the fit (default 1: fastest on a busy 2-core CPU; try 2+ on an idle one)",
     )
+    parser.add_argument(
+        "--dynamic",
+        type=Path,
+        default=None,
+        metavar="DYNAMIC",
+        help="also reconstruct a dynamic capture of the same rig frame by frame (a capture store, or a "
+        "simulation folder: SIM/dynamic) into RESULT/frames (docs/dynamic.md)",
+    )
+    parser.add_argument(
+        "--frames", default=None, help="dynamic frames whose maps are fitted, e.g. '0-4,7' (default: all)"
+    )
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run in RESULT")
     add_force_argument(parser, "RESULT")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -128,4 +142,6 @@ def _reconstruct(args: argparse.Namespace, out: Path) -> dict:
         threads=args.threads,
         resume=args.resume,
         progress=not args.quiet,
+        dynamic=args.dynamic,
+        frames=args.frames,
     )

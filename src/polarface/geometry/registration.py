@@ -43,7 +43,9 @@ import numpy as np
 from polarface.geometry.point_cloud import PointCloud
 from polarface.geometry.poses import check_rigid, invert_rigid
 
-__all__ = ["RegistrationConfig", "SequenceRegistration", "register_sequence"]
+__all__ = [
+    "PairRegistration", "RegistrationConfig", "SequenceRegistration", "register_pair", "register_sequence",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -245,6 +247,55 @@ def register_sequence(
     return SequenceRegistration(
         np.asarray(frames, dtype=np.int64), int(reference), poses, rmse, fitness, accepted, dict(reasons)
     )
+
+
+@dataclasses.dataclass(frozen=True)
+class PairRegistration:
+    """Result of :func:`register_pair`.
+
+    Attributes:
+        transform: ``(4, 4)`` float64 rigid source -> target (mm).
+        fitness: fraction of the source's points within the finest correspondence distance of the target.
+        rmse_mm: inlier point-to-point RMSE at that distance, mm.
+        target_fitness: fraction of the target's points within that distance of the moved source (how
+            much of the target the source explains: ~1 for a whole head onto one view of it).
+    """
+
+    transform: np.ndarray
+    fitness: float
+    rmse_mm: float
+    target_fitness: float
+
+
+def register_pair(
+    source: PointCloud,
+    target: PointCloud,
+    init: np.ndarray | None = None,
+    config: RegistrationConfig = RegistrationConfig(),
+) -> PairRegistration:
+    """Rigid multi-scale point-to-plane ICP of ``source`` onto ``target`` (both with normals, mm) from
+    ``init`` (``(4, 4)`` source -> target, default identity), the levels and robust kernel of
+    :func:`register_sequence`; e.g. a reference mesh's vertices onto another capture's first frame.
+
+    Raises:
+        ValueError: a cloud with fewer than 16 confident points (naming it), or a non-rigid ``init``.
+    """
+    init = np.eye(4) if init is None else check_rigid(np.asarray(init, dtype=np.float64), "init")
+    source_levels, centre = _registration_levels(source, None, config)
+    if source_levels is None:
+        raise ValueError("argument 'source' has fewer than 16 confident points to register")
+    target_levels, _ = _registration_levels(target, centre, config)
+    if target_levels is None:
+        raise ValueError("argument 'target' has fewer than 16 confident points to register")
+    shift = np.eye(4)
+    shift[:3, 3] = centre
+    local_init = invert_rigid(shift) @ init @ shift
+    local, fitness, rmse, _ = _icp(source_levels, target_levels, local_init, config)
+    from open3d.pipelines import registration as reg
+
+    reverse = reg.evaluate_registration(target_levels[-1], source_levels[-1], config.scales[-1][1],
+                                        invert_rigid(local))
+    return PairRegistration(shift @ local @ invert_rigid(shift), fitness, rmse, float(reverse.fitness))
 
 
 def _check_frames(frame_indices: Sequence[int], reference: int) -> list[int]:

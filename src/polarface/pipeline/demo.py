@@ -4,9 +4,10 @@
 
   1. simulation: a synthetic capture of the bundled head with the paper's rig -> DIR/sim
   2. reconstruction from the raw frames only: geometry from the stereo pairs (mesh with a cylindrical
-     atlas, poses), texture-space polarimetric inverse rendering, then the biophysical stage
-     -> DIR/result (geometry/, maps as EXR, previews, report.html); the simulator's geometry is used
-     only by the evaluation
+     atlas, poses), texture-space polarimetric inverse rendering, then the biophysical stage; then the
+     dynamic sequence frame by frame (tracking, per-frame maps and chromophores)
+     -> DIR/result (geometry/, tracking/, frames/, maps as EXR, previews, report.html); the simulator's
+     geometry is used only by the evaluation
   3. evaluation: errors against the simulator's ground truth -> DIR/metrics.json, figures (the
      geometry error heat map) -> DIR/figures/
   4. DIR/index.html: a landing page linking the report, the metrics and the simulated frames, with the
@@ -69,8 +70,9 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
     say(json.dumps({"out": str(sim), "timings": summary["timings"], "peak_rss_mb": summary["peak_rss_mb"]},
                    indent=2))
     resume = result.exists()
-    say(f"polarface demo: polarface reconstruct {sim} --out {result}{' --resume' if resume else ''}")
-    record = reconstruct(resolve_reconstruct_inputs(sim), result, resume=resume)
+    say(f"polarface demo: polarface reconstruct {sim} --dynamic {sim} --out {result}"
+        f"{' --resume' if resume else ''}")
+    record = reconstruct(resolve_reconstruct_inputs(sim), result, resume=resume, dynamic=sim)
     say(reconstruct_summary_line(result, record))
     figures = out / "figures"
     say(f"polarface demo: polarface evaluate {result} --gt {sim} --out {out / 'metrics.json'} "

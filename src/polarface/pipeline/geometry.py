@@ -50,7 +50,10 @@ from polarface.geometry.registration import RegistrationConfig, register_sequenc
 from polarface.geometry.stereo import StereoConfig, StereoDepth, match_stereo_pair, rectify_pair
 from polarface.io import json_values, read_json_object, write_json_atomic
 
-__all__ = ["GEOMETRY_JSON", "GeometryConfig", "check_stereo_pairs", "frame_stereo", "reconstruct_geometry"]
+__all__ = [
+    "GEOMETRY_JSON", "FrameGeometry", "GeometryConfig", "check_stereo_pairs", "frame_geometry",
+    "frame_stereo", "reconstruct_geometry",
+]
 
 LOGGER = logging.getLogger(__name__)
 #: The stage's summary file in GEOM.
@@ -158,7 +161,7 @@ def _paths(out: Path, frame: int) -> tuple[Path, Path]:
 
 
 @dataclasses.dataclass(frozen=True)
-class _FrameGeometry:
+class FrameGeometry:
     """One frame's stereo result, merged cloud and mesh (None with the reason when meshing failed)."""
 
     pairs: list[tuple[str, StereoDepth]]
@@ -168,7 +171,7 @@ class _FrameGeometry:
     seconds: float
 
 
-def _frame_geometry(store: CaptureStore, frame: int, config: GeometryConfig) -> _FrameGeometry:
+def frame_geometry(store: CaptureStore, frame: int, config: GeometryConfig) -> FrameGeometry:
     """Stereo, fusion and meshing of one frame (nothing written)."""
     started = time.perf_counter()
     pairs = frame_stereo(store, frame, config.stereo)
@@ -178,10 +181,10 @@ def _frame_geometry(store: CaptureStore, frame: int, config: GeometryConfig) -> 
         mesh, error = poisson_mesh(cloud, config.frame_poisson), None
     except ValueError as exc:
         mesh, error = None, f"no mesh: {exc}"
-    return _FrameGeometry(pairs, cloud, mesh, error, time.perf_counter() - started)
+    return FrameGeometry(pairs, cloud, mesh, error, time.perf_counter() - started)
 
 
-def _write_frame(out: Path, frame: int, result: _FrameGeometry, previews: bool) -> dict[str, Any]:
+def _write_frame(out: Path, frame: int, result: FrameGeometry, previews: bool) -> dict[str, Any]:
     """Write a frame's mesh, previews and cloud (the cloud last: it marks the frame complete); returns
     its summary entry."""
     cloud_path, mesh_path = _paths(out, frame)
@@ -302,7 +305,7 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
     reference frame gives no geometry writes nothing); returns the per-frame summary entries."""
     done = {f for f in frames if _paths(out, f)[0].exists() and str(f) in entries}
     if reference not in done:
-        first = _frame_geometry(store, reference, config)
+        first = frame_geometry(store, reference, config)
         if first.mesh is None:
             raise ValueError(
                 f"the reference frame {reference} has no usable stereo geometry ({first.error}); check "
@@ -315,7 +318,7 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
     for frame in tqdm(frames, desc="geometry: stereo", unit="frame", disable=not progress):
         if frame == reference or frame in done:
             continue
-        entries[str(frame)] = _write_frame(out, frame, _frame_geometry(store, frame, config), previews=False)
+        entries[str(frame)] = _write_frame(out, frame, frame_geometry(store, frame, config), previews=False)
         write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries})
     return entries
 

@@ -11,6 +11,9 @@ run starts; a resumed run whose inputs or options differ is refused (:func:`chec
 * ``prepare``: ``rig.json``, ``mesh.obj``, ``result.json`` header, ``unwrap.zarr`` (texture space);
 * ``polarimetric``: ``maps/*.exr`` + ``maps/mask.png``, ``previews/*.png``, ``checkpoints/``;
 * ``biophysical``: chromophore maps and diffusion profiles (:mod:`polarface.pipeline.biophysical`);
+* ``dynamic``: with a dynamic capture, per-frame geometry, tracking, maps and chromophores in
+  ``tracking/`` and ``frames/NNNN/`` (:mod:`polarface.pipeline.dynamic`); it resumes per frame itself,
+  so a resumed run always enters it (and the report after it);
 * ``report``: ``report.html`` (:mod:`polarface.report`).
 
 Bad input (no poses, mismatched UV atlas, all-invisible texels, NaN observations) raises ValueError
@@ -37,16 +40,19 @@ __all__ = [
     "STAGES",
     "ReconstructContext",
     "ReconstructInputs",
+    "check_capture_manifest",
     "check_fingerprint",
     "input_fingerprint",
     "reconstruct",
     "resolve_reconstruct_inputs",
     "run_stages",
     "stage_biophysical",
+    "stage_dynamic",
     "stage_geometry",
     "stage_polarimetric",
     "stage_prepare",
     "stage_report",
+    "write_result_report",
 ]
 
 LOGGER = logging.getLogger(__name__)
@@ -70,6 +76,8 @@ class ReconstructContext:
     threads: int | None = 1
     geometry_dir: Path | None = None
     stereo: bool = False
+    dynamic: Path | None = None
+    frames: str | None = None
 
     @property
     def folder(self) -> ResultFolder:
@@ -158,7 +166,7 @@ def resolve_reconstruct_inputs(
     return ReconstructInputs(capture, mesh_path, poses_path, int(resolution), geometry_dir)
 
 
-def _check_manifest(store) -> None:
+def check_capture_manifest(store) -> None:
     """The capture's ``manifest.json`` describes a finished capture whose frame count is its frame list's."""
     path = store.root / "manifest.json"
     manifest = store.manifest
@@ -199,7 +207,7 @@ def _open_capture(ctx: ReconstructContext):
     from polarface.capture.store import CaptureStore
 
     store = CaptureStore.open(ctx.capture)
-    _check_manifest(store)
+    check_capture_manifest(store)
     _check_derived_store(store)
     if ctx.stereo:
         from polarface.pipeline.geometry import check_stereo_pairs
@@ -221,6 +229,16 @@ def _load_geometry(ctx: ReconstructContext):
             f"'{ctx.poses_path}' holds {len(poses)} poses but the capture has {len(frames)} frames"
         )
     return store, mesh, poses
+
+
+def _check_dynamic_capture(ctx: ReconstructContext) -> None:
+    """The dynamic capture is finished, of the static capture's rig, and ``ctx.frames`` names its frames
+    (checked before anything is written)."""
+    from polarface.capture.store import CaptureStore
+    from polarface.pipeline.dynamic import open_dynamic_capture
+
+    static = CaptureStore.open(ctx.capture)
+    open_dynamic_capture(ctx.dynamic, static.rig, static.root / "rig.json", ctx.frames)
 
 
 def stage_geometry(ctx: ReconstructContext) -> dict[str, Any]:
@@ -334,15 +352,33 @@ def stage_biophysical(ctx: ReconstructContext) -> dict[str, Any]:
     return run_biophysical_stage(ctx.folder, device=ctx.device, progress=ctx.progress)
 
 
-def stage_report(ctx: ReconstructContext) -> dict[str, Any]:
-    """Write ``report.html`` (:func:`polarface.report.write_report`, plus the biophysical section)."""
-    from polarface.report import biophysical_section, write_report
+def stage_dynamic(ctx: ReconstructContext) -> dict[str, Any]:
+    """The dynamic sequence frame by frame (:func:`polarface.pipeline.dynamic.reconstruct_dynamic`);
+    skipped without a dynamic capture."""
+    from polarface.pipeline.dynamic import reconstruct_dynamic
+
+    if ctx.dynamic is None:
+        return {"skipped": "no dynamic capture (--dynamic)"}
+    return reconstruct_dynamic(ctx.out, ctx.dynamic, frames=ctx.frames, device=ctx.device,
+                               threads=ctx.threads, progress=ctx.progress)
+
+
+def write_result_report(folder: ResultFolder) -> dict[str, Any]:
+    """Write ``report.html`` of a RESULT (:func:`polarface.report.write_report`, plus the biophysical and,
+    with per-frame folders, the dynamic sections); returns the timings."""
+    from polarface.report import biophysical_section, dynamic_section, write_report
 
     started = time.perf_counter()
-    folder = ctx.folder
     extra = [lambda page: biophysical_section(page, folder)] if folder.has_map("c_m") else []
+    if folder.frame_indices():
+        extra.append(lambda page: dynamic_section(page, folder))
     write_report(folder, extra_sections=extra)
     return {"timings": {"report_s": time.perf_counter() - started}}
+
+
+def stage_report(ctx: ReconstructContext) -> dict[str, Any]:
+    """Write ``report.html`` (:func:`write_result_report`)."""
+    return write_result_report(ctx.folder)
 
 
 #: The stages in order: (name, function).
@@ -351,8 +387,11 @@ STAGES: list[tuple[str, Callable[[ReconstructContext], dict]]] = [
     ("prepare", stage_prepare),
     ("polarimetric", stage_polarimetric),
     ("biophysical", stage_biophysical),
+    ("dynamic", stage_dynamic),
     ("report", stage_report),
 ]
+#: Stages a resumed run enters even when recorded complete (they skip their finished work themselves).
+RERUN_ON_RESUME = ("dynamic", "report")
 
 
 def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
@@ -370,6 +409,12 @@ def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
         geometry = {"geometry": GeometryConfig(texture_resolution=ctx.texture_resolution).to_json()}
     else:
         geometry = {"mesh": file_identity(ctx.mesh_path), "poses": file_identity(ctx.poses_path)}
+    if ctx.dynamic is not None:
+        from polarface.pipeline.dynamic import DynamicStageConfig
+
+        geometry["dynamic"] = {
+            "capture": capture_identity(ctx.dynamic), "config": DynamicStageConfig().to_json()
+        }
     return {
         "capture": capture_identity(ctx.capture),
         **geometry,
@@ -419,7 +464,8 @@ def run_stages(ctx: ReconstructContext, stages=None) -> dict[str, Any]:
     folder = ctx.folder
     check_fingerprint(ctx)
     for name, function in stages:
-        if ctx.resume and folder.stage_complete(name):
+        rerun = name in RERUN_ON_RESUME and ctx.dynamic is not None
+        if ctx.resume and folder.stage_complete(name) and not rerun:
             LOGGER.info("stage %s already complete; skipped", name)
             continue
         LOGGER.info("stage %s", name)
@@ -437,6 +483,8 @@ def reconstruct(
     threads: int | None = 1,
     resume: bool = False,
     progress: bool = True,
+    dynamic: str | Path | None = None,
+    frames: str | None = None,
 ) -> dict[str, Any]:
     """Validate the inputs, then run :data:`STAGES` into ``out``; returns ``result.json``'s content.
 
@@ -445,6 +493,8 @@ def reconstruct(
         out: the RESULT folder (must be empty or absent unless ``resume``).
         fit_options: :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides.
         holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
+        dynamic: a dynamic capture of the same rig (or a simulation folder) reconstructed frame by frame
+            after the static stages; frames: its frames to fit (``"0-4,7"``; None: all).
 
     Raises:
         ValueError, FileNotFoundError: bad input; a RESULT folder this call created is removed.
@@ -466,6 +516,13 @@ def reconstruct(
         inputs.texture_resolution, device, resume, progress, holdout_every, options, threads=threads,
         geometry_dir=geometry_dir, stereo=stereo,
     )
+    if dynamic is not None:
+        from polarface.pipeline.dynamic import resolve_dynamic_capture
+
+        ctx.dynamic = resolve_dynamic_capture(dynamic)
+    elif frames is not None:
+        raise ValueError("argument '--frames' selects frames of a dynamic capture: pass '--dynamic' too")
+    ctx.frames = frames
     created = not out.exists()
     try:
         # validate the inputs before anything is written
@@ -473,6 +530,8 @@ def reconstruct(
 
         PolarimetricConfig(**options)
         _open_capture(ctx) if stereo else _load_geometry(ctx)
+        if ctx.dynamic is not None:
+            _check_dynamic_capture(ctx)
         out.mkdir(parents=True, exist_ok=True)
         return run_stages(ctx)
     except (ValueError, FileNotFoundError):

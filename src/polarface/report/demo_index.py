@@ -24,11 +24,13 @@ from polarface.report.html import HtmlPage, ImageItem
 from polarface.results import CHROMOPHORE_MAPS, POLARIMETRIC_MAPS, RHO_SSS_BAR, ResultFolder
 
 __all__ = [
+    "DYNAMIC_TARGETS",
     "GEOMETRY_ERROR_FIGURE",
     "GEOMETRY_TARGETS",
     "METRIC_TARGETS",
     "MetricTarget",
     "demo_index_page",
+    "dynamic_scalars",
     "metric_rows",
     "write_comparisons",
     "write_frame_previews",
@@ -98,6 +100,56 @@ GEOMETRY_TARGETS: tuple[MetricTarget, ...] = (
     MetricTarget("pose translation error median (head centre)",
                  ("geometry", "pose_translation_mm", "median"), 0.2, unit=" mm"),
 )
+
+#: The issue's targets of the dynamic sequence, on :func:`dynamic_scalars` of ``metrics["dynamic"]``.
+DYNAMIC_TARGETS: tuple[MetricTarget, ...] = (
+    MetricTarget("tracking error median, worst frame", ("dynamic_scalars", "tracking_median_worst_mm"), 0.3,
+                 unit=" mm"),
+    MetricTarget("tracking error p90, worst frame", ("dynamic_scalars", "tracking_max_mm"), 0.5, unit=" mm"),
+    MetricTarget("tracking drift: last / first frame median", ("dynamic_scalars", "tracking_drift_ratio"),
+                 1.2),
+    MetricTarget("C_h_out patch abs error, worst frame", ("dynamic_scalars", "c_h_out_patch_worst"), 0.01),
+    MetricTarget("recovery time constant relative error",
+                 ("dynamic_scalars", "recovery_time_constant_relative_error"), 0.2, scale=100.0, unit=" %"),
+    MetricTarget("C_m patch drift max", ("dynamic", "c_m_patch_drift_max"), 0.005),
+    MetricTarget("rho_sss_bar median relative error, worst frame",
+                 ("dynamic_scalars", "rho_sss_bar_worst"), 0.04, scale=100.0, unit=" %"),
+    MetricTarget("normal median error, worst frame", ("dynamic_scalars", "normal_worst_deg"), 3.0,
+                 unit=" deg"),
+    MetricTarget("rho_s flicker median", ("dynamic", "rho_s_flicker_median"), 0.02, scale=100.0, unit=" %"),
+    MetricTarget("seconds per frame (tracking and both stages)", ("dynamic", "seconds_per_frame"), 60.0,
+                 unit=" s"),
+)
+
+
+def dynamic_scalars(dynamic: Mapping[str, Any]) -> dict[str, float]:
+    """The per-frame lists of the evaluation's ``dynamic`` group reduced to what the targets bound: the
+    worst frame of each list, the last / first tracking median, and the recovery time constant's
+    relative error (keys of :data:`DYNAMIC_TARGETS`; absent values are left out)."""
+    out: dict[str, float] = {}
+
+    def finite(values: Any) -> list[float]:
+        return [float(v) for v in values or [] if v is not None and np.isfinite(v)]
+
+    tracking = dynamic.get("tracking_mm") or {}
+    medians = finite(tracking.get("median_per_frame"))
+    if medians:
+        out["tracking_median_worst_mm"] = max(medians)
+        out["tracking_drift_ratio"] = medians[-1] / medians[0] if medians[0] > 0 else float("inf")
+    if isinstance(tracking.get("max"), int | float):
+        out["tracking_max_mm"] = float(tracking["max"])
+    for key, name in (("c_h_out_patch_abs_error", "c_h_out_patch_worst"),
+                      ("rho_sss_bar_median_relative_error", "rho_sss_bar_worst"),
+                      ("normal_median_deg", "normal_worst_deg")):
+        values = finite(dynamic.get(key))
+        if values:
+            out[name] = max(values)
+    tau = dynamic.get("recovery_time_constant_s") or {}
+    truth, estimate = tau.get("ground_truth"), tau.get("reconstructed")
+    if isinstance(truth, int | float) and isinstance(estimate, int | float) and truth > 0:
+        out["recovery_time_constant_relative_error"] = abs(estimate - truth) / truth
+    return out
+
 
 #: The geometry error heat map under the demo folder (``evaluate(..., figures_dir=DIR / "figures")``,
 #: :data:`polarface.pipeline.evaluate_geometry.GEOMETRY_ERROR_PNG`), shown when present.
@@ -279,6 +331,11 @@ def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any]) 
     if isinstance(geometry, Mapping) and "skipped" not in geometry:
         checks.table(metric_rows(metrics, GEOMETRY_TARGETS), header=("geometry", "value", "target", "pass"),
                      column_classes=("", "num", "num", ""))
+    dynamic = metrics.get("dynamic")
+    if isinstance(dynamic, Mapping) and "skipped" not in dynamic:
+        derived = {**metrics, "dynamic_scalars": dynamic_scalars(dynamic)}
+        checks.table(metric_rows(derived, DYNAMIC_TARGETS), header=("dynamic sequence", "value", "target",
+                     "pass"), column_classes=("", "num", "num", ""))
     comparisons = write_comparisons(out, out / "result", out / "sim" / "ground_truth")
     if comparisons:
         page.section(

@@ -68,6 +68,7 @@ class ResultFolder:
     checkpoints_dir = _under_root(layout.CHECKPOINTS_DIR)
     exports_dir = _under_root(layout.EXPORTS_DIR)
     geometry_dir = _under_root(layout.GEOMETRY_DIR)
+    tracking_dir = _under_root(layout.TRACKING_DIR)
     result_json_path = _under_root(layout.RESULT_JSON)
     unwrap_path = _under_root(layout.UNWRAP_STORE)
     report_path = _under_root(layout.REPORT_HTML)

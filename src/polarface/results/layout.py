@@ -24,6 +24,7 @@ __all__ = [
     "RESULT_FORMAT",
     "RESULT_VERSION",
     "RHO_SSS_BAR",
+    "TRACKING_DIR",
     "DiagnosticMap",
     "default_channel_names",
 ]
@@ -39,6 +40,8 @@ CHECKPOINTS_DIR = "checkpoints"
 FRAMES_DIR = "frames"
 GEOMETRY_DIR = "geometry"
 EXPORTS_DIR = "exports"
+#: The dynamic stage's geometry: per-frame stereo meshes and the tracked reference mesh.
+TRACKING_DIR = "tracking"
 
 #: Files under the RESULT root.
 RESULT_JSON = "result.json"

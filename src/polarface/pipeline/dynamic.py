@@ -1,0 +1,499 @@
+"""The dynamic stage: a dynamic capture reconstructed frame by frame on top of a static RESULT (paper
+Sec. "Geometry Reconstruction and Tracking", supplement "Dynamic Inverse Rendering Details").
+
+``reconstruct_dynamic(RESULT, DYNAMIC_CAPTURE)`` needs the static stages' result in RESULT (reference
+mesh ``mesh.obj`` with its atlas, ``maps/``, ``rig.json``) and a capture of the same rig. It writes
+(``docs/dynamic.md``, ``docs/result_folder.md``)::
+
+    RESULT/tracking/
+      tracking.json        capture identity, configuration, per-frame stereo entries, alignment, anchors,
+                           failed frames, timings
+      stereo/NNNNNN.ply    each dynamic frame's fused stereo mesh (rig world, mm)
+      tracked.npz          the reference mesh's vertices tracked through the sequence
+                           (:func:`polarface.geometry.tracking.save_tracked`)
+    RESULT/frames/NNNN/    one RESULT-like folder per frame: mesh.obj (the tracked mesh, model frame),
+                           unwrap.zarr, maps/ (all polarimetric maps and the chromophores), previews/,
+                           result.json (its stages: polarimetric, biophysical)
+    RESULT/result.json     stages.dynamic: frames, completed, failed_frames, anchors, timestamps_s,
+                           alignment, timings, seconds_per_frame
+
+Steps: (1) per frame, stereo of the rig's pairs fused and meshed (:func:`polarface.pipeline.geometry.
+frame_geometry`); (2) the reference mesh is aligned rigidly to the first frame's stereo surface
+(:func:`polarface.geometry.registration.register_pair`, from the identity: the static model frame is
+the rig world of the static reference frame and the subject sits in the same rig); (3) its vertices are
+tracked through the sequence (:func:`polarface.geometry.tracking.track_mesh`); (4) per selected frame:
+the tracked mesh is unwrapped (texel geometry of that frame, same atlas), the polarimetric maps are fitted
+with eta and both roughnesses fixed from the static result
+(:func:`polarface.inverse.polarimetric.dynamic.fit_dynamic_frame`), then the chromophores
+(:func:`polarface.pipeline.biophysical.run_biophysical_stage`). Steps 1-3 are over the whole sequence;
+step 4's frames are independent. Every step resumes: stereo meshes, the alignment, the tracking and
+each frame's stages are kept once written, and a folder written with another capture or configuration
+is refused. A frame that fails (no stereo surface, tracking lost, nothing visible) is recorded with its
+reason and skipped; the others go on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import resource
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from polarface.capture.store import CaptureStore
+from polarface.geometry.mesh import TriangleMesh, load_mesh, save_ply
+from polarface.geometry.point_cloud import PointCloud
+from polarface.geometry.poses import invert_rigid
+from polarface.geometry.registration import RegistrationConfig, register_pair
+from polarface.geometry.tracking import (
+    TrackedSequence,
+    TrackingConfig,
+    TrackingFrame,
+    load_tracked,
+    save_tracked,
+    track_mesh,
+)
+from polarface.inverse.polarimetric.dynamic import DynamicConfig
+from polarface.io import json_values, read_json_object, write_json_atomic
+from polarface.pipeline.geometry import GeometryConfig, check_stereo_pairs, frame_geometry
+from polarface.results import ResultFolder
+
+__all__ = [
+    "TRACKING_JSON",
+    "DynamicStageConfig",
+    "open_dynamic_capture",
+    "parse_frame_selection",
+    "reconstruct_dynamic",
+    "resolve_dynamic_capture",
+]
+
+LOGGER = logging.getLogger(__name__)
+#: The tracking summary in ``RESULT/tracking``.
+TRACKING_JSON = "tracking.json"
+_TRACKED_NPZ = "tracked.npz"
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicStageConfig:
+    """Options of the dynamic stage (defaults: the paper's weights, module docstring).
+
+    Attributes:
+        geometry: the per-frame stereo and meshing (only its ``stereo``, ``frame_voxel_mm`` and
+            ``frame_poisson`` are used).
+        alignment: ICP of the reference mesh onto the first frame's stereo surface.
+        min_alignment_fitness: fraction of the first frame's stereo surface within the finest ICP
+            distance of the aligned reference mesh; below it the alignment is refused (another subject,
+            or the subject far from where the static capture had them). Measured: 0.98 (demo), 0.60 (tiny);
+            median distance of the reference to the truth after alignment 0.31 mm (1.38 mm before).
+        tracking: :class:`polarface.geometry.tracking.TrackingConfig`.
+        fit: :class:`polarface.inverse.polarimetric.dynamic.DynamicConfig`.
+        biophysical: run the chromophore fit per frame.
+    """
+
+    geometry: GeometryConfig = dataclasses.field(default_factory=GeometryConfig)
+    alignment: RegistrationConfig = dataclasses.field(default_factory=RegistrationConfig)
+    min_alignment_fitness: float = 0.4
+    tracking: TrackingConfig = dataclasses.field(default_factory=TrackingConfig)
+    fit: DynamicConfig = dataclasses.field(default_factory=DynamicConfig)
+    biophysical: bool = True
+
+    def to_json(self) -> dict[str, Any]:
+        """The configuration as plain JSON values."""
+        return json_values(dataclasses.asdict(self))
+
+
+def resolve_dynamic_capture(path: str | Path) -> Path:
+    """The dynamic capture store of ``path``: a capture store, or a simulation folder (``SIM/dynamic``).
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist. ValueError: it is not a capture store.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"dynamic capture '{path}' does not exist")
+    if (path / "dynamic" / "manifest.json").is_file():
+        path = path / "dynamic"
+    if not (path / "manifest.json").is_file():
+        raise ValueError(f"'--dynamic {path}' is not a capture store (no manifest.json)")
+    return path
+
+
+def parse_frame_selection(spec: str | Sequence[int] | None, frames: Sequence[int]) -> list[int]:
+    """Frames selected by ``spec`` (``"0-4,7"``, a list of indices, or None for all) among ``frames``.
+
+    Raises:
+        ValueError: a malformed spec, or a frame that is not in the capture (naming ``--frames``).
+    """
+    frames = [int(f) for f in frames]
+    if spec is None:
+        return frames
+    chosen: set[int] = set()
+    if isinstance(spec, str):
+        for part in (p.strip() for p in spec.split(",")):
+            try:
+                if "-" in part[1:]:
+                    low, high = part.split("-", 1) if not part.startswith("-") else ("", part)
+                    chosen.update(range(int(low), int(high) + 1))
+                else:
+                    chosen.add(int(part))
+            except ValueError:
+                raise ValueError(
+                    f"argument '--frames': {spec!r} is not a list of frames and ranges (e.g. '0-4,7')"
+                ) from None
+    else:
+        chosen = {int(f) for f in spec}
+    unknown = sorted(chosen - set(frames))
+    if unknown:
+        raise ValueError(f"argument '--frames': frame(s) {unknown} are not in the dynamic capture {frames}")
+    return [f for f in frames if f in chosen]
+
+
+def _check_static_result(folder: ResultFolder) -> None:
+    required = (folder.rig_path, folder.mesh_path, folder.map_path("eta"), folder.map_path("mask", ".png"))
+    missing = [path for path in required if not path.is_file()]
+    if missing or not folder.stage_complete("polarimetric"):
+        what = f"'{missing[0]}' is missing" if missing else "its polarimetric stage is not complete"
+        raise ValueError(
+            f"'{folder.root}' holds no static result ({what}); the dynamic stage needs one: run "
+            "'polarface reconstruct STATIC_CAPTURE --out RESULT' first (or add '--dynamic' to it)"
+        )
+
+
+def open_dynamic_capture(capture: Path, rig, rig_path: Path,
+                         frames: str | Sequence[int] | None = None) -> CaptureStore:
+    """The dynamic capture store, checked: finished, its rig's geometry equal to ``rig`` (the static
+    capture's, read from ``rig_path``; :meth:`polarface.capture.rig.Rig.geometry_differences`), stereo
+    pairs that rectify, and ``frames`` among its frames (:func:`parse_frame_selection`).
+
+    Raises:
+        ValueError: naming the rig files and the differing fields, or the bad selection.
+    """
+    from polarface.pipeline.reconstruct import check_capture_manifest
+
+    store = CaptureStore.open(capture)
+    check_capture_manifest(store)
+    differences = store.rig.geometry_differences(rig)
+    if differences:
+        more = f" (+{len(differences) - 6} more)" if len(differences) > 6 else ""
+        raise ValueError(
+            f"the rig of the dynamic capture '{store.root / 'rig.json'}' differs from the static one "
+            f"'{rig_path}': {', '.join(differences[:6])}{more}; reconstruct captures of one rig"
+        )
+    check_stereo_pairs(store)
+    parse_frame_selection(frames, [record.index for record in store.frames])
+    return store
+
+
+class _TrackingFolder:
+    """``RESULT/tracking``: the summary (written after every step) and its files."""
+
+    def __init__(self, root: Path, header: dict[str, Any]) -> None:
+        self.root = root
+        self.summary: dict[str, Any] = {**header, "frames": {}}
+        path = root / TRACKING_JSON
+        if path.is_file():
+            previous = read_json_object(path)
+            for key in ("capture", "config"):
+                if previous.get(key) != header[key]:
+                    raise ValueError(
+                        f"'{path}' was written for another dynamic {key} (recorded "
+                        f"{_short(previous.get(key))}); rerun into a new RESULT folder or with the same "
+                        "capture and options"
+                    )
+            self.summary = {**previous, **header}
+
+    def stereo_path(self, frame: int) -> Path:
+        return self.root / "stereo" / f"{frame:06d}.ply"
+
+    def save(self) -> None:
+        write_json_atomic(self.root / TRACKING_JSON, self.summary)
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, dict) and "sha256" in value:
+        return f"sha256 {str(value['sha256'])[:12]}"
+    return "another configuration"
+
+
+def _stereo_pass(store: CaptureStore, tracking: _TrackingFolder, frames: list[int], config: GeometryConfig,
+                 progress: bool) -> float:
+    """Each frame's stereo mesh into ``tracking/stereo`` (frames already done are skipped); seconds."""
+    started = time.perf_counter()
+    entries = tracking.summary["frames"]
+    for frame in tqdm(frames, desc="dynamic: stereo", unit="frame", disable=not progress):
+        if str(frame) in entries:
+            continue
+        result = frame_geometry(store, frame, config)
+        entry: dict[str, Any] = {"points": len(result.cloud), "seconds": result.seconds}
+        if result.mesh is None:
+            entry["error"] = result.error
+        else:
+            save_ply(tracking.stereo_path(frame), result.mesh)
+            entry["mesh_vertices"] = result.mesh.vertex_count
+        entries[str(frame)] = entry
+        tracking.save()
+    return time.perf_counter() - started
+
+
+def _surface_cloud(mesh: TriangleMesh, spacing_mm: float = 0.7, seed: int = 0) -> PointCloud:
+    """Points sampled on ``mesh`` about ``spacing_mm`` apart (area-weighted, deterministic) with the face
+    normals: a mesh's vertices can be centimetres apart (a decimated reference), too sparse for the
+    correspondence distances of the alignment."""
+    areas = mesh.face_areas()
+    count = int(np.clip(areas.sum() / spacing_mm**2, 1000, 400_000))
+    rng = np.random.default_rng(seed)
+    faces = rng.choice(len(areas), size=count, p=areas / areas.sum())
+    weights = rng.dirichlet(np.ones(3), size=count)
+    points = np.einsum("nk,nkc->nc", weights, mesh.vertices[mesh.faces[faces]])
+    return PointCloud.from_arrays(points, mesh.face_normals()[faces])
+
+
+def _start_poses(folder: ResultFolder, count: int = 12) -> list[np.ndarray]:
+    """Starts of the alignment: the identity (stereo geometry's model frame is the rig world of the static
+    reference frame) and up to ``count`` of the static frames' model -> rig-world poses, evenly spread
+    (a given mesh has its own model frame; the subject sits in the dynamic capture as in one of them)."""
+    from polarface.geometry.poses import load_poses
+
+    path = Path(str(folder.stage_record("prepare").get("poses") or ""))
+    if not path.is_file():
+        return [np.eye(4)]
+    poses = load_poses(path)
+    rows = np.unique(np.linspace(0, len(poses) - 1, min(count, len(poses))).round().astype(int))
+    return [np.eye(4), *(poses[row] for row in rows)]
+
+
+def _align_reference(folder: ResultFolder, reference: TriangleMesh, tracking: _TrackingFolder, first: int,
+                     config: DynamicStageConfig) -> np.ndarray:
+    """The rigid transform static model frame -> the dynamic capture's rig world (recorded once): the ICP
+    with the best fitness among the starts of :func:`_start_poses`."""
+    recorded = tracking.summary.get("alignment")
+    if recorded is not None:
+        return np.asarray(recorded["transform"], dtype=np.float64)
+    path = tracking.stereo_path(first)
+    if not path.is_file():
+        reason = tracking.summary["frames"].get(str(first), {}).get("error", "no stereo mesh")
+        raise ValueError(
+            f"the first dynamic frame {first} has no stereo surface ({reason}): the reference mesh cannot "
+            "be placed in the dynamic capture"
+        )
+    source, target = _surface_cloud(reference), _surface_cloud(load_mesh(path))
+    trials = [register_pair(source, target, start, config.alignment) for start in _start_poses(folder)]
+    aligned = max(trials, key=lambda trial: (round(trial.target_fitness, 3), -trial.rmse_mm))
+    if aligned.target_fitness < config.min_alignment_fitness:
+        raise ValueError(
+            f"the reference mesh does not fit the first dynamic frame {first}'s stereo surface (ICP: "
+            f"{100 * aligned.target_fitness:.0f} % of the frame's surface explained, fewer than "
+            f"{100 * config.min_alignment_fitness:.0f} %): is it the same subject and rig?"
+        )
+    tracking.summary["alignment"] = {
+        "frame": first, "transform": aligned.transform.tolist(), "fitness": aligned.target_fitness,
+        "rmse_mm": aligned.rmse_mm,
+    }
+    tracking.save()
+    return aligned.transform
+
+
+def _tracking_images(store: CaptureStore, frame: int) -> dict[str, np.ndarray]:
+    """``camera id -> (H, W)`` float32 image of a frame: the polarimetric cameras' subsurface image
+    ``I_sss`` (cross-polarized: no specular highlights) and the stereo cameras' black-corrected raw,
+    averaged over colour channels."""
+    images = {}
+    for camera in store.rig.cameras:
+        if camera.role == "polarimetric":
+            image = store.observation("i_sss", frame, camera.id)
+        else:
+            image = store.read_raw(frame, camera.id).astype(np.float32) - camera.black_level
+        image = image.mean(axis=-1) if image.ndim == 3 else image
+        images[camera.id] = np.clip(image, 0.0, None).astype(np.float32)
+    return images
+
+
+def _track(store: CaptureStore, tracking: _TrackingFolder, reference: TriangleMesh, frames: list[int],
+           config: TrackingConfig, progress: bool) -> tuple[TrackedSequence, float]:
+    path = tracking.root / _TRACKED_NPZ
+    if path.is_file():
+        tracked = load_tracked(path)
+        if list(tracked.frames) == frames and tracked.vertices.shape[1] == reference.vertex_count:
+            return tracked, float(tracking.summary.get("tracking_s", 0.0))
+    started = time.perf_counter()
+
+    def load_frame(frame: int) -> TrackingFrame:
+        surface_path = tracking.stereo_path(frame)
+        surface = load_mesh(surface_path) if surface_path.is_file() else None
+        return TrackingFrame(frame, _tracking_images(store, frame), surface)
+
+    cameras = {camera.id: camera.pinhole() for camera in store.rig.cameras}
+    tracked = track_mesh(reference, cameras, load_frame, frames, config, progress=progress)
+    save_tracked(path, tracked)
+    seconds = time.perf_counter() - started
+    tracking.summary.update({"tracking": tracked.to_json(), "tracking_s": seconds})
+    tracking.save()
+    return tracked, seconds
+
+
+def _static_inputs(folder: ResultFolder) -> tuple[dict[str, np.ndarray], np.ndarray, Any]:
+    """The static maps (float32, ``rho_sss_bar`` in result.json's channel order), mask and the static
+    stage's :class:`PolarimetricConfig` (its reparameterisation ranges)."""
+    from polarface.inverse.polarimetric import PolarimetricConfig
+
+    maps = folder.read_maps(folder.channel_names())
+    mask = maps.pop("mask")
+    recorded = folder.stage_record("polarimetric").get("config", {})
+    ranges = {}
+    for key in ("eta_range", "alpha_range"):
+        if key in recorded:
+            ranges[key] = tuple(float(v) for v in recorded[key])
+    for key in ("rho_max", "h_scale_mm"):
+        if key in recorded:
+            ranges[key] = float(recorded[key])
+    return {k: v.astype(np.float32) for k, v in maps.items()}, mask, PolarimetricConfig(**ranges)
+
+
+def _frame_done(frame_folder: ResultFolder, config: DynamicStageConfig) -> bool:
+    last = "biophysical" if config.biophysical else "polarimetric"
+    return frame_folder.stage_complete(last)
+
+
+def _process_frame(store: CaptureStore, folder: ResultFolder, frame: int, frames: list[int],
+                   mesh: TriangleMesh, alignment: np.ndarray, static: tuple, config: DynamicStageConfig,
+                   device, threads: int | None) -> dict[str, float]:
+    """Unwrap, polarimetric fit and chromophores of one frame into ``frames/NNNN``; seconds per step."""
+    from polarface.inverse.polarimetric.dynamic import fit_dynamic_frame
+    from polarface.pipeline.biophysical import run_biophysical_stage
+    from polarface.texture import UnwrapConfig, unwrap_capture
+
+    timings: dict[str, float] = {}
+    frame_folder = folder.frame(frame)
+    static_maps, static_mask, static_config = static
+    if not frame_folder.stage_complete("polarimetric"):
+        started = time.perf_counter()
+        frame_folder.root.mkdir(parents=True, exist_ok=True)
+        frame_folder.write_mesh(mesh)
+        resolution = static_mask.shape
+        unwrap = unwrap_capture(
+            store, mesh, np.stack([alignment] * len(frames)), frame_folder.unwrap_path,
+            UnwrapConfig(texture_resolution=int(resolution[0]), holdout_every=0,
+                         excluded_frames=tuple(f for f in frames if f != frame)),
+            progress=False,
+        )
+        timings["unwrap_s"] = time.perf_counter() - started
+        started = time.perf_counter()
+        fit = fit_dynamic_frame(unwrap, static_maps, static_mask, config.fit, static_config=static_config,
+                                device=device, threads=threads)
+        geometry = unwrap.geometry()
+        sizes = 0.5 * (geometry.texel_size_u + geometry.texel_size_v)
+        frame_folder.write_result_header(folder.channel_names(), list(resolution),
+                                         float(np.median(sizes[geometry.mask])))
+        frame_folder.write_polarimetric_maps(fit.maps, fit.mask, {"view_count": fit.view_count})
+        timings["polarimetric_s"] = time.perf_counter() - started
+        frame_folder.record_stage("polarimetric", {
+            "texels": int(fit.mask.sum()), "samples": fit.sample_count,
+            "final_loss": fit.loss_curve[-1] if fit.loss_curve else None,
+            "throughput_texel_view_iterations_per_s": fit.throughput,
+            "timings": {**fit.timings, **timings},
+        })
+    if config.biophysical and not frame_folder.stage_complete("biophysical"):
+        started = time.perf_counter()
+        summary = run_biophysical_stage(frame_folder, device=device, progress=False)
+        frame_folder.record_stage("biophysical", summary)
+        timings["biophysical_s"] = time.perf_counter() - started
+    return timings
+
+
+def reconstruct_dynamic(
+    result_dir: str | Path,
+    capture: str | Path,
+    config: DynamicStageConfig = DynamicStageConfig(),
+    *,
+    frames: str | Sequence[int] | None = None,
+    device: str = "auto",
+    threads: int | None = 1,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run the dynamic stage (module docstring) into the static RESULT ``result_dir``; returns the record
+    stored as ``result.json``'s ``stages.dynamic``.
+
+    Args:
+        capture: the dynamic capture store (or a simulation folder: ``SIM/dynamic``).
+        frames: the frames whose maps are fitted (``"0-4,7"`` or indices; None: all). Stereo and tracking
+            always cover the whole sequence (a frame is tracked through the ones before it).
+
+    Raises:
+        ValueError: RESULT holds no static result, the capture's rig differs from the static one, the
+            selection names unknown frames, the first frame cannot be aligned, or RESULT/tracking was
+            written with another capture or configuration (nothing is written in the first three cases).
+    """
+    from polarface.device import resolve_device
+    from polarface.results.fingerprint import capture_identity
+
+    started = time.perf_counter()
+    folder = ResultFolder(result_dir)
+    _check_static_result(folder)
+    store = open_dynamic_capture(resolve_dynamic_capture(capture), folder.read_rig(), folder.rig_path, frames)
+    records = {record.index: record for record in store.frames}
+    all_frames = sorted(records)
+    if not all_frames:
+        raise ValueError(f"dynamic capture '{store.root}' has no complete frame")
+    selected = parse_frame_selection(frames, all_frames)
+    target = resolve_device(device)
+    header = {"format": "polarface-tracking", "version": 1, "capture": capture_identity(store.root),
+              "config": config.to_json()}
+    tracking = _TrackingFolder(folder.tracking_dir, header)
+    tracking.root.mkdir(parents=True, exist_ok=True)
+    tracking.save()
+    geometry_s = _stereo_pass(store, tracking, all_frames, config.geometry, progress)
+    reference = folder.read_mesh()
+    alignment = _align_reference(folder, reference, tracking, all_frames[0], config)
+    tracked, tracking_s = _track(store, tracking, reference.transformed(alignment), all_frames,
+                                 config.tracking, progress)
+    failed: dict[int, str] = {int(f): str(r) for f, r in tracked.failed.items()}
+    static = _static_inputs(folder)
+    to_model = invert_rigid(alignment)
+    per_frame: dict[str, dict[str, float]] = {}
+    previous = folder.stage_record("dynamic").get("timings", {}).get("frames", {})
+    for frame in tqdm(selected, desc="dynamic: frames", unit="frame", disable=not progress):
+        if frame in failed:
+            continue
+        frame_folder = folder.frame(frame)
+        if _frame_done(frame_folder, config):
+            if str(frame) in previous:
+                per_frame[str(frame)] = previous[str(frame)]
+            continue
+        tick = time.perf_counter()
+        row = list(tracked.frames).index(frame)
+        vertices = tracked.vertices[row] @ to_model[:3, :3].T + to_model[:3, 3]
+        try:
+            timings = _process_frame(store, folder, frame, all_frames, reference.with_vertices(vertices),
+                                     alignment, static, config, target, threads)
+        except (ValueError, FileNotFoundError, RuntimeError) as exc:
+            failed[frame] = " ".join(str(exc).split()) or type(exc).__name__
+            LOGGER.warning("dynamic frame %d failed: %s", frame, failed[frame])
+            continue
+        timings["total_s"] = time.perf_counter() - tick
+        frame_folder.update_result({"frame": frame, "timestamp_s": float(records[frame].timestamp)})
+        per_frame[str(frame)] = timings
+    completed = [f for f in selected if f not in failed and _frame_done(folder.frame(f), config)]
+    shared_s = (geometry_s + tracking_s) / len(all_frames)
+    totals = [v.get("total_s", 0.0) for k, v in per_frame.items() if int(k) in completed]
+    record = {
+        "capture": str(store.root),
+        "frames": all_frames,
+        "selected": selected,
+        "completed": completed,
+        "failed_frames": {str(f): r for f, r in sorted(failed.items())},
+        "anchors": [int(a) for a in tracked.anchors],
+        "timestamps_s": {str(f): float(records[f].timestamp) for f in all_frames},
+        "alignment": np.asarray(alignment).tolist(),
+        "timings": {"geometry_s": geometry_s, "tracking_s": tracking_s, "frames": per_frame,
+                    "stage_s": time.perf_counter() - started},
+        "seconds_per_frame": shared_s + (float(np.mean(totals)) if totals else 0.0),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "config": config.to_json(),
+    }
+    folder.record_stage("dynamic", record)
+    return folder.stage_record("dynamic")
