@@ -1,6 +1,6 @@
 """``polarface evaluate RESULT --gt SIM_DIR``: JSON metrics of a reconstruction against ground truth.
 
-The metric groups (``polarimetric``, ``rerender``, ``biophysical``, ``geometry``) are
+The metric groups (``polarimetric``, ``rerender``, ``biophysical``, ``geometry``, ``dynamic``) are
 :data:`polarface.pipeline.METRIC_GROUPS` (definitions in :mod:`polarface.pipeline.evaluate`).
 ``--figures DIR`` also writes the figures (the geometry error heat map ``DIR/geometry_error_mm.png``).
 """

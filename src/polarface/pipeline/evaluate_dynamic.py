@@ -41,7 +41,8 @@ Definitions (:class:`DynamicEvaluationConfig` holds the constants):
 * ``c_h_out_patch_abs_error``: per frame, median ``|C_h_out - C_h_out_gt|`` over the patch texels.
 * ``recovery_time_constant_s``: ``c(t) = a - b exp(-t / tau)`` fitted (least squares, ``tau > 0``,
   :func:`fit_recovery_time_constant`) to the patch's mean C_h_out per evaluated frame against its
-  timestamp (``stages.dynamic.timestamps_s``, else the dynamic capture's ``manifest.json``), for the
+  timestamp (``stages.dynamic.timestamps_s``, else the dynamic capture's ``manifest.json``), over one
+  texel set for all frames (the patch texels inside every evaluated frame's mask), for the
   ground truth (``ground_truth``; the simulator's tau is 2 s / 3 = 0.667 s) and the reconstruction
   (``reconstructed``); None with fewer than ``min_fit_frames`` (3) frames or when the fit fails. The
   mean, not the median: every texel recovers as ``cs (1 - 0.8 w exp(-t / tau))`` with the same tau,
@@ -380,8 +381,8 @@ def _frame_values(inputs: _DynamicInputs, frame_index: int, truth: _TruthOnResul
         "mask": frame.read_mask(),
         "rho_s": frame.read_scalar_map("rho_s").astype(np.float64),
         "c_h_out_abs_error": _median(np.abs(c_h_out - c_h_out_gt)[patch]),
-        "c_h_out_patch": _mean(c_h_out[patch]),
-        "c_h_out_gt_patch": _mean(c_h_out_gt[patch]),
+        "c_h_out": c_h_out,
+        "c_h_out_gt": c_h_out_gt,
         "c_m_patch": _median(frame.read_scalar_map("c_m").astype(np.float64)[patch]),
         "rho_relative_error": _median(relative),
         "normal_deg": _median(np.degrees(np.arccos(cosine))),
@@ -432,14 +433,16 @@ def dynamic_metrics(result_dir: str | Path, gt_dir: str | Path,
     shape = inputs.result.frame(inputs.frames[0]).read_mask().shape
     truth = _truth_on_result(inputs, shape, config)
     frames = [_frame_values(inputs, t, truth, rest, names) for t in inputs.frames]
+    # the recovery curves average one texel set over all frames: the patch texels in every frame's mask
+    common = truth.patch & truth.valid & np.logical_and.reduce([f["mask"] for f in frames])
     seconds = inputs.record.get("seconds_per_frame")
     return {
         "frames": len(inputs.frames),
         "tracking_mm": _tracking(inputs, rest, config),
         "c_h_out_patch_abs_error": [f["c_h_out_abs_error"] for f in frames],
         "recovery_time_constant_s": {
-            "ground_truth": _fit(inputs.timestamps_s, [f["c_h_out_gt_patch"] for f in frames], config),
-            "reconstructed": _fit(inputs.timestamps_s, [f["c_h_out_patch"] for f in frames], config),
+            name: _fit(inputs.timestamps_s, [_mean(f[key][common]) for f in frames], config)
+            for name, key in (("ground_truth", "c_h_out_gt"), ("reconstructed", "c_h_out"))
         },
         "c_m_patch_drift_max": _drift([f["c_m_patch"] for f in frames]),
         "rho_sss_bar_median_relative_error": [f["rho_relative_error"] for f in frames],

@@ -14,7 +14,7 @@ constrains eta and is left out) and the regulariser (:func:`dynamic_regularisers
 the patch; superscript 0 = the static maps)
 
     L_reg~ = 0.001 sum (H^t - H^0)^2 + 500 sum (Laplacian (H^t - H^0))^2
-             + 0.01 sum (rho_s^t - rho_s^0)^2 + 0.01 sum (rho_ss^t - rho_ss^0)^2
+             + 1.0 sum (rho_s^t - rho_s^0)^2 + 1.0 sum (rho_ss^t - rho_ss^0)^2   (paper: 0.01 each)
              + 0.01 sum_texel W^t sum_c (rho_sss_bar^t - rho_sss_bar^0)^2,
     W^t = |mean_c rho_sss_bar^0 - mean_c rho_sss_bar^t|   (per texel, mean over the 6 channels).
 
@@ -92,7 +92,13 @@ class DynamicWeights:
         sss, s, phi: weights of the data terms ``L_sss, L_s, L_phi``.
         h_temporal: weight of ``sum (H^t - H^0)^2`` (mm^2); h_laplacian: of
             ``sum (Laplacian (H^t - H^0))^2`` (mm^2, per texel step).
-        rho_s_temporal, rho_ss_temporal: of ``sum (rho^t - rho^0)^2`` of the two lobe albedos.
+        rho_s_temporal, rho_ss_temporal: of ``sum (rho^t - rho^0)^2`` of the two lobe albedos. Paper:
+            0.01 each; default 1.0 (a weight's effect depends on the loss normalisation, here
+            observations divided by their mean ``I_sss`` and summed over samples). Measured on the
+            demo preset through the whole pipeline (stereo geometry, tracked meshes): at 0.01 the
+            lobe albedos follow each frame's noise, rho_s changes by 3.3 % (median) from frame to
+            frame where the truth is constant (target 2 %); at 1.0 by 0.3 % (frame 5: rho_s median
+            relative error against the truth 37.4 % vs 38.8 % at 0.01, i.e. no accuracy lost).
         rho_sss_bar_temporal: of ``sum W^t sum_c (rho_sss_bar^t - rho_sss_bar^0)^2`` (module docstring).
     """
 
@@ -101,8 +107,8 @@ class DynamicWeights:
     phi: float = 0.2
     h_temporal: float = 0.001
     h_laplacian: float = 500.0
-    rho_s_temporal: float = 0.01
-    rho_ss_temporal: float = 0.01
+    rho_s_temporal: float = 1.0
+    rho_ss_temporal: float = 1.0
     rho_sss_bar_temporal: float = 0.01
 
     def __post_init__(self) -> None:
