@@ -10,9 +10,9 @@ Files written under ``RESULT/previews`` (the report lives at ``RESULT/report.htm
 * ``dynamic_subsurface_srgb.gif``: the biophysical stage's per-frame ``subsurface_srgb`` preview
   (``frames/NNNN/previews``), when every shown frame has one;
 * ``dynamic_chromophores.png``: the medians of C_h_out, C_h_in, C_m and beta_m against time over the
-  whole face (texels in every shown frame's mask) and over the region that changes most: the texels
-  whose ``max_t |C_h_out(t) - C_h_out_ref|`` exceeds its 95th percentile over the face, largest
-  8-connected component (``C_h_out_ref``: the static ``maps/c_h_out.exr``, else the first frame's).
+  whole face (texels in every shown frame's mask) and over the region that changes most consistently
+  (:func:`changing_region`: the temporal standard deviation of the smoothed per-frame C_h_out above
+  its 95th percentile over the face, largest 8-connected component).
 
 The animations play at :data:`FRAMES_PER_SECOND` and loop (GIF, ``loop=0``); each frame is labelled with
 its index and timestamp. Only frames whose folder holds ``maps/mask.png`` are shown; the frame table
@@ -182,34 +182,34 @@ def _animations(folder: ResultFolder, frames: _Frames) -> list[tuple[str, str]]:
 
 
 # ---- chromophores over time ----------------------------------------------------------------------
-def changing_region(c_h_out: np.ndarray, reference: np.ndarray, mask: np.ndarray,
-                    percentile: float = REGION_PERCENTILE) -> np.ndarray:
-    """``(Ht, Wt)`` bool: the texels of ``mask`` whose ``max_t |c_h_out[t] - reference|`` exceeds its
-    ``percentile`` over ``mask``, largest 8-connected component (empty when nothing changes).
+def changing_region(c_h_out: np.ndarray, mask: np.ndarray, percentile: float = REGION_PERCENTILE,
+                    sigma_texels: float = 3.0) -> np.ndarray:
+    """``(Ht, Wt)`` bool: the texels of ``mask`` where C_h_out varies most over the sequence: the
+    temporal standard deviation of the per-frame maps smoothed over ``sigma_texels`` (a Gaussian over
+    the mask), above its ``percentile`` over ``mask``; the largest 8-connected component (empty when
+    nothing changes). Smoothing keeps single-texel outliers of the per-frame fits from being picked
+    instead of a region whose blood changes (a pressed patch refilling), and a variation over time, not
+    a difference from the static result, keeps a constant offset between the static and the per-frame
+    fits from being picked.
 
     Args:
-        c_h_out: ``(F, Ht, Wt)`` per-frame outer haemoglobin; reference: ``(Ht, Wt)`` (volume fractions).
+        c_h_out: ``(F, Ht, Wt)`` per-frame outer haemoglobin (volume fractions).
         mask: ``(Ht, Wt)`` bool texels considered.
     """
     from scipy import ndimage
 
-    change = np.abs(np.asarray(c_h_out, np.float64) - np.asarray(reference, np.float64)[None]).max(axis=0)
-    if not mask.any():
+    if not mask.any() or len(c_h_out) < 2:
         return np.zeros_like(mask)
+    weight = np.maximum(ndimage.gaussian_filter(mask.astype(np.float64), sigma_texels), 1e-6)
+    smooth = np.stack([ndimage.gaussian_filter(np.where(mask, frame, 0.0), sigma_texels) / weight
+                       for frame in np.asarray(c_h_out, np.float64)])
+    change = smooth.std(axis=0)
     above = mask & (change > np.percentile(change[mask], percentile))
     labels, count = ndimage.label(above, structure=np.ones((3, 3), bool))
     if count == 0:
         return above
     sizes = ndimage.sum(above, labels, index=np.arange(1, count + 1))
     return labels == 1 + int(np.argmax(sizes))
-
-
-def _reference_c_h_out(folder: ResultFolder, frames: _Frames) -> tuple[np.ndarray, str]:
-    if folder.has_map("c_h_out"):
-        static = folder.read_scalar_map("c_h_out").astype(np.float64)
-        if static.shape == frames.masks.shape[1:]:
-            return static, "the static map"
-    return frames.maps["c_h_out"][0], f"frame {frames.indices[0]}"
 
 
 def _write_chromophore_plot(path: Path, frames: _Frames, region: np.ndarray, face: np.ndarray) -> None:
@@ -241,15 +241,14 @@ def _chromophore_plot(folder: ResultFolder, frames: _Frames, section: Section) -
     if "c_h_out" not in frames.maps:
         return
     face = frames.masks.all(axis=0)
-    reference, source = _reference_c_h_out(folder, frames)
-    region = changing_region(frames.maps["c_h_out"], reference, face)
+    region = changing_region(frames.maps["c_h_out"], face)
     path = folder.preview_path("dynamic_chromophores")
     _write_chromophore_plot(path, frames, region, face)
     section.plot(
         "previews/dynamic_chromophores.png",
         f"Chromophore medians over time: whole face ({int(face.sum())} texels in every frame's mask) and the "
-        f"changing region ({int(region.sum())} texels: max over frames of |C_h,out - C_h,out of {source}| "
-        f"above its {REGION_PERCENTILE:g}th percentile, largest connected component)",
+        f"changing region ({int(region.sum())} texels: the temporal standard deviation of C_h,out, smoothed "
+        f"over 3 texels, above its {REGION_PERCENTILE:g}th percentile; largest connected component)",
     )
 
 

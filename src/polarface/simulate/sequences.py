@@ -84,8 +84,11 @@ def static_poses(scene: SimulationScene) -> np.ndarray:
 
 
 def pressed_patch(scene: SimulationScene) -> np.ndarray:
-    """``(Ht, Wt)`` weight of the pressed forehead patch (Gaussian, sigma 10 mm, 15 mm above the brows)."""
-    centre = scene.asset.landmark_position("forehead") + np.array([0.0, -15.0, 0.0])
+    """``(Ht, Wt)`` weight of the pressed forehead patch (Gaussian, sigma 10 mm, 15 mm below the
+    ``forehead`` landmark and 28 mm to its side: the forehead's centre faces the cameras and the
+    near-coaxial LEDs, and its specular highlight saturates the co-polarized pixels there, which the
+    reconstruction cannot use; a patch on it would be measured on its rim only)."""
+    centre = scene.asset.landmark_position("forehead") + np.array([28.0, -15.0, 0.0])
     distance2 = ((np.where(scene.raster.mask[..., None], scene.raster.position, 0.0) - centre) ** 2).sum(-1)
     return np.where(scene.raster.mask, np.exp(-0.5 * distance2 / 10.0**2), 0.0)
 
