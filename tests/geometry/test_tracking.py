@@ -211,7 +211,9 @@ def test_tiny_head_stays_put_under_changing_skin_colour(tiny_dynamic):
         return TrackingFrame(index, {c: image(index, c) for c in rig_cameras}, meshes[index])
 
     cameras = {c: camera.pinhole() for c, camera in rig_cameras.items()}
-    tracked = track_mesh(meshes[0], cameras, load, [0, 1])
+    # the surfaces here are the exact ground truth, so the surface term may be stiffer than the default
+    # (tuned for ~0.3 mm noisy stereo surfaces): it fixes the depth of the coarse tiny-preset pixels
+    tracked = track_mesh(meshes[0], cameras, load, [0, 1], TrackingConfig(surface_weight=0.1))
     errors = np.linalg.norm(tracked.vertices[1] - meshes[1].vertices, axis=1)
     seen = tracked.confidence[1] > 0
     assert tracked.failed == {} and seen.mean() > 0.3

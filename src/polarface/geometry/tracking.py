@@ -18,35 +18,42 @@ One propagation ``a -> b`` (source positions known):
    ray to the camera centre on the source mesh).
 3. Forward flow ``a -> b`` moves its pixel; the backward flow ``b -> a`` must bring it back within
    ``forward_backward_px`` (reliability ``r = facing (1 - e_fb / forward_backward_px)``).
-4. The moved pixel's ray is intersected with the target frame's surface. The rig's camera pairs have
-   60 to 600 mm baselines at ~1 m, so a ray-ray triangulation has a depth error of ~1 to 7 mm per pixel
-   of flow error, while the stereo surface is good to a few tenths of a mm: the surface fixes the
-   depth and the flow only the tangential position. Per vertex the cameras' surface points are
-   averaged with weights ``r``; cameras farther than ``consensus_mm`` from the weighted median are
-   dropped (a flow that slipped onto an occluder). Confidence ``1 - prod(1 - r_c)``.
+4. Per vertex the cameras' flowed rays are triangulated (weighted least squares, weights ``r`` times a
+   per-camera precision ``(flow_noise_floor_px / median forward-backward error)^2``, which discounts
+   cameras with noisier flow) with a weak term pulling the point along the target stereo surface's
+   normal to the rays' mean surface hit (``surface_weight``; it only keeps a vertex seen by one camera
+   determined). Rays whose surface hit lies farther than ``consensus_mm`` from the median hit are
+   dropped (a flow that slipped onto an occluder). Confidence ``1 - prod(1 - r_c)``. The stereo
+   surfaces are not trusted more: their error (~0.3 mm along the normal, with noisy normals) moved the
+   points along the surface whenever it was used to fix the depth (module measurements below).
 5. The merged estimates give displacements from ``frames[0]`` for the tracked vertices; untracked
    vertices get a harmonic interpolation of the displacement over the (seam-welded) mesh graph and
-   confidence 0; ``smoothing_iterations`` of neighbour averaging remove flow noise, and the tracked
-   vertices are snapped back to the surface (closest point, Open3D).
+   confidence 0; ``smoothing_iterations`` of neighbour averaging remove flow noise; with
+   ``snap_to_surface`` the tracked vertices are first moved to the surface (closest point, Open3D).
 
 Anchors: the similarity of frame ``t`` to ``frames[0]`` is the normalised cross-correlation of the
 normalised images sampled at the pixels of the vertices visible at ``frames[0]`` (mean over cameras);
 ``t`` is an anchor when it is at least ``anchor_similarity`` and its direct tracking succeeds.
 
-Measured on the demo simulation's 10 dynamic frames (ground-truth frame-0 mesh as reference,
-ground-truth meshes + 0.3 mm independent per-vertex normal noise as surfaces, all ten cameras: the two
-polarimetric ``i_sss`` images and the eight stereo images), error over the 3924 vertices visible at
-frame 0, frames 1..9, default configuration:
+Measured on the demo simulation's 10 dynamic frames with the real pipeline inputs (reference = the
+mesh reconstructed from the static capture's stereo, aligned by ICP to frame 0; surfaces = each
+frame's own stereo Poisson mesh; all ten cameras: the two polarimetric ``i_sss`` images and the eight
+stereo images), error against the ground truth of the tracked vertices near the face, frames 0..9,
+default configuration (anchors chosen: 0-5 and 9):
 
-- anchors (chosen: 0-5 and 9): median 0.138 0.138 0.130 0.161 0.159 0.164 0.183 0.190 0.121 mm,
-  90th percentile 0.41 0.46 0.42 0.48 0.47 0.55 1.43 1.06 0.40 mm; last frame 0.88x the first;
-- pure chaining (``anchor_similarity=None``): median 0.138 0.139 0.142 0.183 0.181 0.189 0.203 0.214
-  0.187 mm, 90th percentile of the last frame 0.75 mm; last frame 1.36x the first.
+- median 0.311 0.352 0.364 0.361 0.373 0.377 0.427 0.530 0.526 0.380 mm, 90th percentile 1.35 1.18
+  1.33 1.36 1.41 1.41 1.49 2.42 2.56 1.52 mm; last frame 1.08x the first tracked frame.
+- frame 0 is the reference's own error (0.32 mm median, 1.12 mm 90th percentile over the vertices
+  tracked later): a floor, the stereo surfaces' errors being systematic (the per-frame surfaces are
+  0.33-0.35 mm off and averaging them with the reference lowers the median by 0.01 mm only).
+- the previous settings (rays' surface term 0.1, snap to the surface, 5 variational iterations, 1 px
+  forward-backward) gave 0.43-0.45 mm on frames 1-5 and 9 and 0.62/0.59 mm on the jaw frames 7/8:
+  a single propagation from frame 0 to the same-shaped frame 9 moved points 0.14 mm along the surface
+  with the surface term 0.1 and 0.04 mm without it.
 
-The error floor is the surface noise (with noise-free surfaces the medians are below 0.02 mm); the
-largest errors are on the opening jaw (frame 7, 10 to 20 mm of motion between frames: median 1.0 mm
-over the 683 vertices moving more than 1 mm). About 3 s per frame on 2 CPU cores (40 DIS flows of
-612 x 512 images).
+The largest errors are on the opening jaw (frames 6-8, chained; 10 to 20 mm of motion between frames,
+flow failures of several mm on the lips and chin). About 6 s per frame on 2 CPU cores (40 DIS flows of
+612 x 512 images, 20 variational iterations).
 
 Units: mm, pixels; rig world (OpenCV cameras).
 """
@@ -90,8 +97,11 @@ class TrackingConfig:
     """Settings of :func:`track_mesh` (defaults measured on the demo simulation, module docstring).
 
     ``flow_finest_scale`` 0 instead of the presets' 1 halved the flow error on the plane test and the
-    jaw error on the demo; ``smoothing_iterations`` 2 halves the effect of the surface noise (6 lowers
-    the static median a further 25 % but doubles the jaw error); ``anchor_similarity`` 0.9: on the demo
+    jaw error on the demo; ``variational_iterations`` 20 instead of 5 and ``forward_backward_px`` 0.5
+    instead of 1 lowered the demo's jaw-frame medians by 0.04 mm and 90th percentiles by 0.5 mm;
+    ``surface_weight`` 0.001 instead of 0.1 and no snap lowered the other frames' medians by 0.07 mm
+    (module docstring); ``smoothing_iterations`` 2 lowers the jaw's 90th percentile (0.2 mm) at a
+    0.01 mm higher median; ``anchor_similarity`` 0.9: on the demo
     sequence the NCC with frame 0 is 0.996 for the returning neutral frame, 0.90 to 0.97 for the brow
     raise and smile (tracked directly from frame 0 without loss) and 0.84 to 0.89 for the open jaw
     (chained).
@@ -110,29 +120,37 @@ class TrackingConfig:
         anchor_similarity: NCC with ``frames[0]`` above which a frame is an anchor, in [-1, 1]; None
             disables anchors (pure frame-to-frame chaining).
         smoothing_iterations: neighbour-averaging passes over the displacement field.
+        surface_weight: stiffness of the target surface along its normal relative to the rays' total
+            weight, > 0 (a floor that keeps a vertex seen by one camera determined; larger values pull
+            the points onto the noisy stereo surface along its noisy normals, which slips them).
+        flow_noise_floor_px: a camera's rays are weighted by ``(floor / max(floor, m))^2`` with ``m`` its
+            median forward-backward error, pixels (down-weights cameras with noisier flow).
+        snap_to_surface: move the tracked vertices to the closest point of the target surface.
         min_tracked_fraction: a frame is failed when fewer than this fraction of the vertices visible
             at ``frames[0]`` are tracked.
     """
 
     flow_preset: str = "medium"
     flow_finest_scale: int = 0
-    variational_iterations: int = 5
+    variational_iterations: int = 20
     normalisation_sigma_px: float = 6.0
-    forward_backward_px: float = 1.0
+    forward_backward_px: float = 0.5
     min_facing: float = 0.2
     image_margin_px: float = 4.0
     consensus_mm: float = 1.0
     anchor_similarity: float | None = 0.9
     smoothing_iterations: int = 2
-    surface_weight: float = 0.1
-    snap_to_surface: bool = True
+    surface_weight: float = 0.001
+    flow_noise_floor_px: float = 0.01
+    snap_to_surface: bool = False
     min_tracked_fraction: float = 0.3
 
     def __post_init__(self) -> None:
         if self.flow_preset not in _DIS_PRESETS:
             raise ValueError(
                 f"field 'flow_preset' must be one of {sorted(_DIS_PRESETS)}; got {self.flow_preset!r}")
-        positive = ("normalisation_sigma_px", "forward_backward_px", "consensus_mm")
+        positive = ("normalisation_sigma_px", "forward_backward_px", "consensus_mm", "flow_noise_floor_px",
+                    "surface_weight")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"field '{name}' must be > 0; got {getattr(self, name)}")
@@ -296,7 +314,7 @@ def _visibility(mesh: TriangleMesh, cameras: Mapping[str, PinholeCamera], camera
 
 
 def _merge_cameras(points: np.ndarray, normals: np.ndarray, centres: np.ndarray, directions: np.ndarray,
-                   weights: np.ndarray, consensus_mm: float, surface_weight: float
+                   weights: np.ndarray, precision: np.ndarray, consensus_mm: float, surface_weight: float
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Per vertex, the point on the target surface that the cameras' flowed rays agree on.
 
@@ -323,6 +341,8 @@ def _merge_cameras(points: np.ndarray, normals: np.ndarray, centres: np.ndarray,
         centre = np.nanmedian(masked, axis=0)
     distance = np.linalg.norm(np.nan_to_num(points) - np.nan_to_num(centre)[None], axis=-1)
     kept = np.where(valid & (distance <= consensus_mm), weights, 0.0)
+    quality = 1.0 - np.prod(1.0 - np.clip(kept, 0.0, 1.0), axis=0)
+    kept = kept * precision[:, None]
     total = kept.sum(axis=0)
     merged = np.full(centre.shape, np.nan)
     has = total > 0
@@ -343,7 +363,6 @@ def _merge_cameras(points: np.ndarray, normals: np.ndarray, centres: np.ndarray,
     lhs += stiffness[:, None, None] * normal[:, :, None] * normal[:, None, :]
     rhs += stiffness[:, None] * normal * np.einsum("mk,mk->m", normal, surface_point)[:, None]
     merged[has] = np.linalg.solve(lhs, rhs[..., None])[..., 0]
-    quality = 1.0 - np.prod(1.0 - np.clip(kept, 0.0, 1.0), axis=0)
     return merged, quality
 
 
@@ -373,6 +392,7 @@ class _Propagator:
         normals = np.full((len(camera_ids), count, 3), np.nan)
         directions = np.zeros((len(camera_ids), count, 3))
         weights = np.zeros((len(camera_ids), count))
+        precision = np.ones(len(camera_ids))
         threshold = self.config.forward_backward_px
         for k, camera_id in enumerate(camera_ids):
             pixels, facing = visibility[camera_id]
@@ -392,6 +412,8 @@ class _Propagator:
             keep = reliability > 0
             if not keep.any():
                 continue
+            noise = max(float(np.median(error[keep])), self.config.flow_noise_floor_px)
+            precision[k] = (self.config.flow_noise_floor_px / noise) ** 2
             origins, ray_directions = camera.pixel_rays(moved[keep])
             hits = target_caster.first_hits(origins, ray_directions)
             index = seen[keep][hits.hit]
@@ -400,8 +422,8 @@ class _Propagator:
             directions[k, index] = ray_directions[hits.hit]
             weights[k, index] = reliability[keep][hits.hit]
         centres = np.stack([self.cameras[c].center for c in camera_ids]) if camera_ids else np.zeros((0, 3))
-        return _merge_cameras(points, normals, centres, directions, weights, self.config.consensus_mm,
-                              self.config.surface_weight)
+        return _merge_cameras(points, normals, centres, directions, weights, precision,
+                              self.config.consensus_mm, self.config.surface_weight)
 
 
 # ---- regularisation --------------------------------------------------------------------------------
