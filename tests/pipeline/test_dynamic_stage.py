@@ -50,7 +50,8 @@ def _patch(sim):
     """``(H, W)`` bool texels of the pressed patch (weight > 0.5) and the ground truth's c_h_out per frame:
     frame 0 has c_h_out = static * (1 - 0.8 w) (simulate/sequences.py)."""
     static = read_exr(sim / "ground_truth" / "maps" / "c_h_out.exr")["Y"]
-    frames = [read_exr(sim / "ground_truth" / "dynamic" / "maps" / f"{f:06d}_c_h_out.exr")["Y"] for f in (0, 1)]
+    maps = sim / "ground_truth" / "dynamic" / "maps"
+    frames = [read_exr(maps / f"{f:06d}_c_h_out.exr")["Y"] for f in (0, 1)]
     weight = np.where(static > 0, (1.0 - frames[0] / np.where(static > 0, static, 1.0)) / 0.8, 0.0)
     return weight > 0.5, frames
 

@@ -66,7 +66,7 @@ from polarface.inverse.polarimetric.fit import PolarimetricFit, _coverage, _patc
 from polarface.inverse.polarimetric.fused import fused_data_loss, pack_parameters
 from polarface.inverse.polarimetric.losses import LossWeights, data_losses, laplacian_penalty
 from polarface.inverse.polarimetric.model import render_samples
-from polarface.inverse.polarimetric.optimise import learning_rate_schedule
+from polarface.inverse.polarimetric.optimise import optimise_patch
 from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
 from polarface.texture import UnwrapStore
 
@@ -309,26 +309,6 @@ class _FrameState:
     work: float = 0.0
 
 
-def _optimise(
-    problem: DynamicPatchProblem, raw: dict[str, torch.Tensor], config: PolarimetricConfig, curve: list[float]
-) -> dict[str, torch.Tensor]:
-    """The optimiser loop on one patch (leaves: :data:`DYNAMIC_VARIABLES`); returns detached raw variables."""
-    leaves = {k: raw[k].detach().clone().requires_grad_(True) for k in DYNAMIC_VARIABLES}
-    optimizer_type = torch.optim.Adam if config.optimizer == "adam" else torch.optim.RMSprop
-    optimizer = optimizer_type(list(leaves.values()), lr=config.lr)
-    for step, lr in enumerate(learning_rate_schedule(config)):
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        optimizer.zero_grad(set_to_none=True)
-        total, _ = problem.loss(leaves)
-        total.backward()
-        optimizer.step()
-        if len(curve) <= step:
-            curve.append(0.0)
-        curve[step] += float(total.detach())
-    return {k: v.detach() for k, v in leaves.items()}
-
-
 def _fit_patch(
     unwrap: UnwrapStore,
     rows: slice,
@@ -365,7 +345,8 @@ def _fit_patch(
         weights,
     )
     tick = time.perf_counter()
-    result = _optimise(patch, {k: tensor(state.start[k]) for k in DYNAMIC_VARIABLES}, config, state.curve)
+    start = {k: tensor(state.start[k]) for k in DYNAMIC_VARIABLES}
+    result = optimise_patch(patch, start, config, state.curve, fused_steps=False, variables=DYNAMIC_VARIABLES)
     state.optimise_s += time.perf_counter() - tick
     state.samples += batch.count
     state.work += batch.count * int(config.iterations)

@@ -8,6 +8,7 @@ With fused samples on the CPU and RMSprop, the whole step runs in numba
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 
@@ -47,18 +48,22 @@ def optimise_patch(
     curve: list[float] | None = None,
     *,
     fused_steps: bool = True,
+    variables: Sequence[str] | None = None,
 ) -> dict[str, torch.Tensor]:
     """Run the optimiser on one patch; returns detached raw variables.
 
     With fused samples on the CPU and RMSprop, the whole step runs in numba
     (:func:`polarface.inverse.polarimetric.step.optimise_patch_fused`, the same mathematics without the
-    torch glue); otherwise torch autograd drives ``problem.loss``.
+    torch glue); otherwise torch autograd drives ``problem.loss``. ``variables`` (default: every key of
+    ``raw``) names the optimised raw variables: only they are passed to ``problem.loss`` and returned
+    (the per-frame fit's problem holds its fixed maps itself).
     """
     learning_rates = learning_rate_schedule(config)
     on_cpu = all(v.device.type == "cpu" for v in raw.values())
-    if problem.fused is not None and config.optimizer == "rmsprop" and on_cpu and fused_steps:
+    if fused_steps and problem.fused is not None and config.optimizer == "rmsprop" and on_cpu:
         return optimise_patch_fused(problem, raw, config, learning_rates, curve)
-    leaves = {k: v.detach().clone().requires_grad_(True) for k, v in raw.items()}
+    names = list(raw) if variables is None else list(variables)
+    leaves = {k: raw[k].detach().clone().requires_grad_(True) for k in names}
     optimizer = _optimizer(list(leaves.values()), config)
     for step, lr in enumerate(learning_rates):
         for group in optimizer.param_groups:
