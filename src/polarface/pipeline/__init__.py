@@ -1,10 +1,12 @@
 """Orchestration over folders: the reconstruct stages and checkpoints, the biophysical stage's files,
-the geometry stage (stereo -> meshes, poses, atlas), the evaluation against ground truth,
+the geometry stage (stereo -> meshes, poses, atlas), the dynamic stage (tracking, per-frame maps), the
+evaluation against ground truth,
  the description of a folder (``info``), the demo jobs, the skin
 fit of a spectra file and the IOR of a sphere capture. Commands call one function of here."""
 
 from polarface.pipeline.biophysical import load_stage_inputs, run_biophysical_stage
 from polarface.pipeline.demo import reconstruct_summary_line, run_demo_pipeline, run_sphere_demo
+from polarface.pipeline.dynamic import DynamicStageConfig, reconstruct_dynamic
 from polarface.pipeline.evaluate import (
     METRIC_GROUPS,
     biophysical_metrics,
@@ -15,6 +17,7 @@ from polarface.pipeline.evaluate import (
     write_figures,
 )
 from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
+from polarface.pipeline.evaluate_dynamic import dynamic_metrics
 from polarface.pipeline.evaluate_geometry import (
     GeometryEvaluationConfig,
     geometry_metrics,
@@ -54,6 +57,7 @@ __all__ = [
     "GEOMETRY_JSON",
     "METRIC_GROUPS",
     "STAGES",
+    "DynamicStageConfig",
     "GeometryConfig",
     "GeometryEvaluationConfig",
     "ReconstructContext",
@@ -62,6 +66,7 @@ __all__ = [
     "SpectraFitOptions",
     "biophysical_metrics",
     "check_stereo_pairs",
+    "dynamic_metrics",
     "estimate_ior_from_folder",
     "evaluate",
     "evaluate_biophysical",
@@ -76,6 +81,7 @@ __all__ = [
     "read_analyzer_image",
     "read_reflectance_csv",
     "reconstruct",
+    "reconstruct_dynamic",
     "reconstruct_geometry",
     "reconstruct_summary_line",
     "rerender_metrics",
