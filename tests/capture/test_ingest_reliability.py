@@ -163,6 +163,20 @@ def test_sigkill_then_resume_gives_the_same_store(tmp_path):
     assert _tree(killed) == _tree(tmp_path / "straight")
 
 
+def test_resume_removes_a_chunk_left_half_written_by_zarr(tmp_path):
+    """zarr writes a chunk as ``<key>.<uuid>.partial`` and renames it: a process killed in between
+    leaves the ``.partial`` behind, which a resumed ingest removes."""
+    raw_dir = _raw_dir(tmp_path, frames=range(2))
+    _run(raw_dir, tmp_path / "straight")
+    expected = _tree(tmp_path / "straight")
+    chunk = next(p for p in sorted((tmp_path / "straight" / "derived.zarr").rglob("c/*")) if p.is_dir())
+    stale = chunk / "0.1234abcd.partial"
+    stale.write_bytes(b"half a chunk")
+    _run(raw_dir, tmp_path / "straight")
+    assert not stale.exists()
+    assert _tree(tmp_path / "straight") == expected
+
+
 @pytest.mark.parametrize(
     ("timestamps", "message"),
     [

@@ -181,6 +181,15 @@ def test_bad_inputs_are_named(tiny, tmp_path, capsys):
     with pytest.raises(ValueError, match="'--frames'"):
         reconstruct_dynamic(result, sim, frames="0,7", progress=False)
     assert not (result / "tracking").exists()  # nothing written before the inputs are checked
+    # the one-command form checks the dynamic capture before the static stages write anything
+    fresh = tmp_path / "fresh"
+    assert main(["reconstruct", str(sim), "--dynamic", str(capture), "--out", str(fresh), "--quiet"]) == 2
+    assert "cameras[pol_upper].K" in capsys.readouterr().err and not fresh.exists()
+    assert main(["reconstruct", str(sim), "--dynamic", str(sim), "--frames", "0,7", "--out", str(fresh),
+                 "--quiet"]) == 2
+    assert "'--frames'" in capsys.readouterr().err and not fresh.exists()
+    assert main(["reconstruct", str(sim), "--frames", "0", "--out", str(fresh), "--quiet"]) == 2
+    assert "pass '--dynamic' too" in capsys.readouterr().err
 
 
 def test_frame_selection():

@@ -70,9 +70,16 @@ def _digest(raw: np.ndarray) -> str:
 
 
 def _remove_stale_temporaries(root: Path) -> None:
-    """Delete ``.tmp-*`` files that an interrupted atomic write left (nothing ever reads them)."""
+    """Delete the temporaries an interrupted atomic write left (nothing ever reads them): our ``.tmp-*``
+    files and zarr's ``<chunk>.<uuid>.partial`` files under ``derived.zarr`` (zarr writes a chunk there
+    and renames it; a process killed in between leaves it behind)."""
     for pattern in (".tmp-*", "raw/*/.tmp-*", "frames/.tmp-*"):
         for path in root.glob(pattern):
+            if path.is_file():
+                path.unlink(missing_ok=True)
+    derived = root / "derived.zarr"
+    if derived.is_dir():
+        for path in derived.rglob("*.partial"):
             if path.is_file():
                 path.unlink(missing_ok=True)
 
