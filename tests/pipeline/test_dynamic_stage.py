@@ -97,6 +97,8 @@ def test_outputs_and_records(sequence):
     np.testing.assert_array_equal(mesh.faces, reference.faces)
     np.testing.assert_array_equal(mesh.uv, reference.uv)
     assert (result / "tracking" / "stereo" / "000001.ply").is_file()
+    render = read_exr(result / "frames" / "0001" / "render" / "srgb_linear.exr")
+    assert set(render) == {"R", "G", "B"} and float(render["G"].max()) > 0  # the frame, rendered
 
 
 def test_resume_after_an_interruption_mid_sequence_gives_identical_maps(tiny, sequence, tmp_path,

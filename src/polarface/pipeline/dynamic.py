@@ -12,24 +12,27 @@ mesh ``mesh.obj`` with its atlas, ``maps/``, ``rig.json``) and a capture of the 
       tracked.npz          the reference mesh's vertices tracked through the sequence
                            (:func:`polarface.geometry.tracking.save_tracked`)
     RESULT/frames/NNNN/    one RESULT-like folder per frame: mesh.obj (the tracked mesh, model frame),
+                           render/srgb_linear.exr (the frame rendered at the first polarimetric camera),
                            unwrap.zarr, maps/ (all polarimetric maps and the chromophores), previews/,
-                           result.json (its stages: polarimetric, biophysical)
+                           result.json (its stages: polarimetric, biophysical, render)
     RESULT/result.json     stages.dynamic: frames, completed, failed_frames, anchors, timestamps_s,
                            alignment, timings, seconds_per_frame
 
 Steps: (1) per frame, stereo of the rig's pairs fused and meshed (:func:`polarface.pipeline.geometry.
 frame_geometry`); (2) the reference mesh is aligned rigidly to the first frame's stereo surface
-(:func:`polarface.geometry.registration.register_pair`, from the identity: the static model frame is
-the rig world of the static reference frame and the subject sits in the same rig); (3) its vertices are
+(:func:`polarface.geometry.registration.register_pair`, from the identity — the static model frame
+of stereo geometry is the rig world of the static reference frame — and from the static poses); (3) its
+vertices are
 tracked through the sequence (:func:`polarface.geometry.tracking.track_mesh`); (4) per selected frame:
 the tracked mesh is unwrapped (texel geometry of that frame, same atlas), the polarimetric maps are fitted
 with eta and both roughnesses fixed from the static result
 (:func:`polarface.inverse.polarimetric.dynamic.fit_dynamic_frame`), then the chromophores
-(:func:`polarface.pipeline.biophysical.run_biophysical_stage`). Steps 1-3 are over the whole sequence;
-step 4's frames are independent. Every step resumes: stereo meshes, the alignment, the tracking and
-each frame's stages are kept once written, and a folder written with another capture or configuration
-is refused. A frame that fails (no stereo surface, tracking lost, nothing visible) is recorded with its
-reason and skipped; the others go on.
+(:func:`polarface.pipeline.biophysical.run_biophysical_stage`) and a render of the frame at the first
+polarimetric camera (``frames/NNNN/render/srgb_linear.exr``, for the report's animation). Steps 1-3
+are over the whole sequence; step 4's frames are independent. Every step resumes: stereo meshes, the
+alignment, the tracking and each frame's stages are kept once written, and a folder written with
+another capture or configuration is refused. A frame that fails (no stereo surface, tracking lost,
+nothing visible) is recorded with its reason and skipped; the others go on.
 """
 
 from __future__ import annotations
@@ -355,14 +358,30 @@ def _static_inputs(folder: ResultFolder) -> tuple[dict[str, np.ndarray], np.ndar
 
 
 def _frame_done(frame_folder: ResultFolder, config: DynamicStageConfig) -> bool:
-    last = "biophysical" if config.biophysical else "polarimetric"
+    last = "render" if config.biophysical else "polarimetric"
     return frame_folder.stage_complete(last)
+
+
+def _render_frame(frame_folder: ResultFolder, alignment: np.ndarray) -> None:
+    """Render the frame's maps on its tracked mesh at the first polarimetric camera, unpolarized
+    (``I0 + I90``), as linear RGB: ``frames/NNNN/render/srgb_linear.exr`` (the layout of ``polarface
+    render``; the report animates these with one exposure)."""
+    from polarface.io import write_exr
+    from polarface.render import linear_rgb_from_channels, render_result_view
+    from polarface.results import ResultAppearance
+
+    appearance = ResultAppearance.load(frame_folder)
+    view = render_result_view(appearance, None, alignment)
+    rgb = linear_rgb_from_channels(view.images["i0"] + view.images["i90"], appearance.rig)
+    write_exr(frame_folder.root / "render" / "srgb_linear.exr", np.where(view.mask[..., None], rgb, 0.0)
+              .astype(np.float32), ["R", "G", "B"])
 
 
 def _process_frame(store: CaptureStore, folder: ResultFolder, frame: int, frames: list[int],
                    mesh: TriangleMesh, alignment: np.ndarray, static: tuple, config: DynamicStageConfig,
                    device, threads: int | None) -> dict[str, float]:
-    """Unwrap, polarimetric fit and chromophores of one frame into ``frames/NNNN``; seconds per step."""
+    """Unwrap, polarimetric fit, chromophores and a render of one frame into ``frames/NNNN``; seconds per
+    step."""
     from polarface.inverse.polarimetric.dynamic import fit_dynamic_frame
     from polarface.pipeline.biophysical import run_biophysical_stage
     from polarface.texture import UnwrapConfig, unwrap_capture
@@ -402,6 +421,11 @@ def _process_frame(store: CaptureStore, folder: ResultFolder, frame: int, frames
         summary = run_biophysical_stage(frame_folder, device=device, progress=False)
         frame_folder.record_stage("biophysical", summary)
         timings["biophysical_s"] = time.perf_counter() - started
+    if config.biophysical and not frame_folder.stage_complete("render"):
+        started = time.perf_counter()
+        _render_frame(frame_folder, alignment)
+        timings["render_s"] = time.perf_counter() - started
+        frame_folder.record_stage("render", {"timings": {"render_s": timings["render_s"]}})
     return timings
 
 

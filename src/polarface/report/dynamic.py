@@ -7,6 +7,8 @@ Files written under ``RESULT/previews`` (the report lives at ``RESULT/report.htm
   masked values of every frame) and sRGB-encoded, so that a change of colour is a change of albedo;
 * ``dynamic_c_h_out.gif``: the outer haemoglobin on one colour scale for all frames (the 1st..99th
   percentile of every frame's masked values, stated in the caption);
+* ``dynamic_render.gif``: the frames rendered by the dynamic stage (``frames/NNNN/render/srgb_linear.exr``:
+  tracked mesh and the frame's maps at the first polarimetric camera), one exposure for all frames;
 * ``dynamic_subsurface_srgb.gif``: the biophysical stage's per-frame ``subsurface_srgb`` preview
   (``frames/NNNN/previews``), when every shown frame has one;
 * ``dynamic_chromophores.png``: the medians of C_h_out, C_h_in, C_m and beta_m against time over the
@@ -29,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from polarface.io import atomic_path
+from polarface.render.colour import encode_srgb
 from polarface.report.html import HtmlPage, Section
 from polarface.results import CHROMOPHORE_MAPS, CHROMOPHORE_PREVIEWS, RHO_SSS_BAR, ResultFolder
 
@@ -124,17 +127,12 @@ def write_animation(path: str | Path, images: np.ndarray, labels: list[str] | No
     return Path(path)
 
 
-def _srgb_encode(linear: np.ndarray) -> np.ndarray:
-    clipped = np.clip(linear, 0.0, 1.0)
-    return np.where(clipped <= 0.0031308, 12.92 * clipped, 1.055 * np.power(clipped, 1.0 / 2.4) - 0.055)
-
-
 def _rho_images(frames: _Frames) -> np.ndarray:
     rho = frames.maps[RHO_SSS_BAR]
     upper = rho[..., :3] if rho.shape[-1] >= 3 else np.repeat(rho[..., :1], 3, -1)
     inside = upper[frames.masks]
     scale = max(float(np.percentile(inside, 99.5)) if inside.size else 1.0, 1e-6)
-    return np.where(frames.masks[..., None], _srgb_encode(upper / scale), 0.0)
+    return np.where(frames.masks[..., None], encode_srgb(upper / scale), 0.0)
 
 
 def _colour_mapped(values: np.ndarray, masks: np.ndarray, cmap: str) -> tuple[np.ndarray, float, float]:
@@ -160,6 +158,24 @@ def _subsurface_images(folder: ResultFolder, frames: _Frames) -> np.ndarray | No
     return np.stack([i[..., :3] for i in images]).astype(np.float64) / scale
 
 
+def _render_images(folder: ResultFolder, frames: _Frames) -> np.ndarray | None:
+    """The frames' renders (``frames/NNNN/render/srgb_linear.exr`` of the dynamic stage) with one exposure
+    (the 99th percentile of every frame's lit pixels at 0.85), sRGB-encoded; None unless every shown frame
+    has one of the same size."""
+    from polarface.io import read_exr
+
+    paths = [folder.frame(t).root / "render" / "srgb_linear.exr" for t in frames.indices]
+    if not paths or not all(p.is_file() for p in paths):
+        return None
+    images = [np.stack([read_exr(p)[c] for c in ("R", "G", "B")], axis=-1) for p in paths]
+    if len({i.shape for i in images}) != 1:
+        return None
+    stack = np.stack(images).astype(np.float64)
+    lit = stack[stack.sum(-1) > 0]
+    exposure = 0.85 / max(float(np.percentile(lit, 99)), 1e-12) if lit.size else 1.0
+    return encode_srgb(stack * exposure)
+
+
 def _animations(folder: ResultFolder, frames: _Frames) -> list[tuple[str, str]]:
     """Write the animations of the maps present; returns their grid items (path, caption)."""
     labels = [_label(t, s) for t, s in zip(frames.indices, frames.times_s, strict=True)]
@@ -172,6 +188,11 @@ def _animations(folder: ResultFolder, frames: _Frames) -> list[tuple[str, str]]:
         mapped, low, high = _colour_mapped(frames.maps["c_h_out"], frames.masks, cmap)
         images.append(("dynamic_c_h_out.gif", mapped,
                        f"C_h,out per frame ({cmap} colour scale {low:.4g} .. {high:.4g} for all frames)"))
+    rendered = _render_images(folder, frames)
+    if rendered is not None:
+        images.append(("dynamic_render.gif", rendered,
+                       "The reconstruction rendered per frame at the first polarimetric camera (tracked "
+                       "mesh, the frame's maps, unpolarized: I0 + I90; sRGB, one exposure for all frames)"))
     subsurface = _subsurface_images(folder, frames)
     if subsurface is not None:
         images.append(("dynamic_subsurface_srgb.gif", subsurface,
