@@ -62,7 +62,14 @@ from polarface.inverse.polarimetric.config import (
     raw_from_maps,
 )
 from polarface.inverse.polarimetric.engines import PolarimetricEngine, resolve_engine
-from polarface.inverse.polarimetric.fit import PolarimetricFit, _coverage, _patch_side
+from polarface.inverse.polarimetric.fit import (
+    PolarimetricFit,
+    _coverage,
+    _patch_side,
+    _to_maps,
+    haloed_slices,
+    torch_fit_settings,
+)
 from polarface.inverse.polarimetric.fused import fused_data_loss, pack_parameters
 from polarface.inverse.polarimetric.losses import LossWeights, data_losses, laplacian_penalty
 from polarface.inverse.polarimetric.model import render_samples
@@ -323,10 +330,7 @@ def _fit_patch(
 ) -> None:
     """Fit one patch (interior ``rows x cols`` plus a halo) and write its interior into ``state.start``."""
     dtype = torch.float32
-    height, width = unwrap.resolution
-    r0, r1 = max(rows.start - config.halo, 0), min(rows.stop + config.halo, height)
-    c0, c1 = max(cols.start - config.halo, 0), min(cols.stop + config.halo, width)
-    hrows, hcols = slice(r0, r1), slice(c0, c1)
+    hrows, hcols, interior = haloed_slices(rows, cols, config.halo, unwrap.resolution)
     built = build_patch_samples(
         unwrap, hrows, hcols, fitting, unwrap.views, dtype=dtype, device=device, fused=engine.fused_samples
     )
@@ -350,7 +354,6 @@ def _fit_patch(
     state.optimise_s += time.perf_counter() - tick
     state.samples += batch.count
     state.work += batch.count * int(config.iterations)
-    interior = (slice(rows.start - r0, rows.stop - r0), slice(cols.start - c0, cols.stop - c0))
     for name, value in result.items():
         state.start[name][rows, cols] = value[interior].cpu().numpy()
 
@@ -398,8 +401,6 @@ def fit_dynamic_frame(
     """
     config = config or DynamicConfig()
     chosen = resolve_engine(engine, device)
-    if threads is not None and int(threads) < 1:
-        raise ValueError(f"argument 'threads' must be >= 1; got {threads}")
     if not unwrap.complete:
         raise ValueError(f"argument 'unwrap': store '{unwrap.path}' is incomplete; rerun the unwrapping")
     mask = np.asarray(static_mask)
@@ -410,19 +411,11 @@ def fit_dynamic_frame(
     static = _checked_maps(static_maps, "static_maps", unwrap.resolution, mask)
     start = static if start_maps is None else _checked_maps(start_maps, "start_maps", unwrap.resolution, mask)
     optimiser_config = config.optimiser_config(static_config or PolarimetricConfig())
-    previous_threads = torch.get_num_threads()
-    flushing = torch.set_flush_denormal(True)  # RMSprop's running averages reach denormals (fit.py)
-    if threads is not None:
-        torch.set_num_threads(int(threads))
-    try:
+    with torch_fit_settings(threads):
         torch.manual_seed(config.seed)
         fit = _fit_frame(
             unwrap, static, start, optimiser_config, config.weights, torch.device(device), chosen, progress
         )
-    finally:
-        torch.set_num_threads(previous_threads)
-        if flushing:
-            torch.set_flush_denormal(False)
     fit.mask &= mask
     for name in _FIXED:
         fit.maps[name] = np.array(static_maps[name], dtype=np.float32)
@@ -452,12 +445,7 @@ def _fit_frame(
     for rows, cols in tqdm(patches, desc="dynamic fit", unit="patch", disable=not progress):
         _fit_patch(unwrap, rows, cols, fitting, engine, config, weights, scale, device, state)
     mask_seen, view_count = _coverage(unwrap, config)
-    with torch.no_grad():
-        maps = maps_from_raw(
-            {k: torch.from_numpy(v.astype(np.float64)) for k, v in state.start.items()}, config
-        )
-    out = {k: v.numpy().astype(np.float32) for k, v in maps.items()}
-    out = {k: v if k == "rho_sss_bar" else v[..., 0] for k, v in out.items()}
+    out = _to_maps(state.start, config)
     throughput = state.work / state.optimise_s if state.optimise_s > 0 else 0.0
     timings = {"fit_s": time.perf_counter() - started, "optimise_s": state.optimise_s}
     return PolarimetricFit(

@@ -30,11 +30,12 @@ Checkpoints after every patch allow an interrupted run to resume to identical ma
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -126,14 +127,7 @@ def fit_polarimetric(
     """
     device = torch.device(device)
     chosen = resolve_engine(engine, device)
-    previous_threads = torch.get_num_threads()
-    # RMSprop's running averages of tiny gradients reach denormal floats, whose arithmetic is ~20x slower
-    flushing = torch.set_flush_denormal(True)
-    if threads is not None:
-        if int(threads) < 1:
-            raise ValueError(f"argument 'threads' must be >= 1; got {threads}")
-        torch.set_num_threads(int(threads))
-    try:
+    with torch_fit_settings(threads):
         return _fit(
             unwrap,
             config or PolarimetricConfig(),
@@ -144,10 +138,40 @@ def fit_polarimetric(
             on_patch,
             chosen,
         )
+
+
+@contextlib.contextmanager
+def torch_fit_settings(threads: int | None) -> Iterator[None]:
+    """Torch settings of a fit, restored afterwards: ``threads`` intra-op threads (None: unchanged) and
+    denormals flushed to zero (RMSprop's running averages of tiny gradients reach denormal floats, whose
+    arithmetic is ~20x slower).
+
+    Raises:
+        ValueError: ``threads < 1``.
+    """
+    if threads is not None and int(threads) < 1:
+        raise ValueError(f"argument 'threads' must be >= 1; got {threads}")
+    previous_threads = torch.get_num_threads()
+    flushing = torch.set_flush_denormal(True)
+    if threads is not None:
+        torch.set_num_threads(int(threads))
+    try:
+        yield
     finally:
         torch.set_num_threads(previous_threads)
         if flushing:
             torch.set_flush_denormal(False)
+
+
+def haloed_slices(rows: slice, cols: slice, halo: int, resolution: tuple[int, int]
+                  ) -> tuple[slice, slice, tuple[slice, slice]]:
+    """A patch's region with its halo (clipped to the texture ``resolution``) and, within that region,
+    the interior ``rows x cols``: ``(halo rows, halo cols, (interior rows, interior cols))``."""
+    height, width = resolution
+    r0, r1 = max(rows.start - halo, 0), min(rows.stop + halo, height)
+    c0, c1 = max(cols.start - halo, 0), min(cols.stop + halo, width)
+    interior = (slice(rows.start - r0, rows.stop - r0), slice(cols.start - c0, cols.stop - c0))
+    return slice(r0, r1), slice(c0, c1), interior
 
 
 @dataclasses.dataclass
@@ -223,11 +247,7 @@ def _fit_patch(
     started, the optimiser, the optional lobe refinement (``views``: the store's view list); writes the
     interior back into ``state`` and adds to ``tally``."""
     dtype = torch.float32
-    halo = config.halo
-    height, width = unwrap.resolution
-    r0, r1 = max(rows.start - halo, 0), min(rows.stop + halo, height)
-    c0, c1 = max(cols.start - halo, 0), min(cols.stop + halo, width)
-    hrows, hcols = slice(r0, r1), slice(c0, c1)
+    hrows, hcols, (ir, ic) = haloed_slices(rows, cols, config.halo, unwrap.resolution)
     built = build_patch_samples(
         unwrap, hrows, hcols, fitting, views, dtype=dtype, device=device, fused=engine.fused_samples
     )
@@ -261,8 +281,6 @@ def _fit_patch(
         reference = None
     tally.work += sample_count * int(config.iterations)
     tally.samples += sample_count
-    ir = slice(rows.start - r0, rows.stop - r0)
-    ic = slice(cols.start - c0, cols.stop - c0)
     for k, v in result.items():
         state.raw[k][rows, cols] = v[ir, ic].cpu().numpy()
         # halo texels not yet fitted keep their refined initial albedos (better start for neighbours)
