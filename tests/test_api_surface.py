@@ -46,7 +46,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "height_gradients", "invert_rigid", "load_head_asset", "load_mesh", "load_point_cloud",
         "load_poses", "load_tracked", "look_at", "match_stereo_pair", "normals_from_height_gradients",
         "normals_from_heights", "pick_landmark", "poisson_mesh", "rasterize_uv", "rectify_pair",
-        "register_sequence", "reposition", "rigid_transform", "rotation_from_euler",
+        "register_sequence", "reposition", "rigid_transform", "rotation_from_euler", "sample_surface",
         "sample_texture", "save_obj", "save_ply", "save_point_cloud", "save_poses", "save_tracked",
         "smooth_falloff", "srgb_to_linear", "static_sequence_poses", "texel_uv", "texels_to_world",
         "track_mesh", "undistort_normalized", "vertex_normals",

@@ -29,6 +29,7 @@ __all__ = [
     "face_areas",
     "face_normals",
     "load_mesh",
+    "sample_surface",
     "save_obj",
     "save_ply",
     "vertex_normals",
@@ -48,6 +49,22 @@ def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     corners = vertices[faces]
     cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     return 0.5 * np.linalg.norm(cross, axis=1)
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, seed: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points drawn uniformly by area on the triangles (deterministic for ``seed``):
+    ``(points (count, 3), face index (count,) int64)``."""
+    corners = vertices[faces]
+    area = face_areas(vertices, faces)
+    rng = np.random.default_rng(seed)
+    chosen = rng.choice(len(faces), size=count, p=area / area.sum())
+    a, b = rng.random(count), rng.random(count)
+    flip = a + b > 1.0
+    a, b = np.where(flip, 1.0 - a, a), np.where(flip, 1.0 - b, b)
+    tri = corners[chosen]
+    points = tri[:, 0] + a[:, None] * (tri[:, 1] - tri[:, 0]) + b[:, None] * (tri[:, 2] - tri[:, 0])
+    return points, chosen.astype(np.int64)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

@@ -18,14 +18,14 @@ mesh ``mesh.obj`` with its atlas, ``maps/``, ``rig.json``) and a capture of the 
     RESULT/result.json     stages.dynamic: frames, completed, failed_frames, anchors, timestamps_s,
                            alignment, timings, seconds_per_frame
 
-Steps: (1) per frame, stereo of the rig's pairs fused and meshed (:func:`polarface.pipeline.geometry.
-frame_geometry`); (2) the reference mesh is aligned rigidly to the first frame's stereo surface
+Steps 1-3 are the sequence geometry (:mod:`polarface.pipeline.dynamic_geometry`): (1) per frame,
+stereo of the rig's pairs fused and meshed (:func:`polarface.pipeline.geometry.frame_geometry`); (2)
+the reference mesh is aligned rigidly to the first frame's stereo surface
 (:func:`polarface.geometry.registration.register_pair`, from the identity — the static model frame
-of stereo geometry is the rig world of the static reference frame — and from the static poses); (3) its
-vertices are
-tracked through the sequence (:func:`polarface.geometry.tracking.track_mesh`); (4) per selected frame:
-the tracked mesh is unwrapped (texel geometry of that frame, same atlas), the polarimetric maps are fitted
-with eta and both roughnesses fixed from the static result
+of stereo geometry is the rig world of the static reference frame — and from the static poses); (3)
+its vertices are tracked through the sequence (:func:`polarface.geometry.tracking.track_mesh`); (4)
+per selected frame: the tracked mesh is unwrapped (texel geometry of that frame, same atlas), the
+polarimetric maps are fitted with eta and both roughnesses fixed from the static result
 (:func:`polarface.inverse.polarimetric.dynamic.fit_dynamic_frame`), then the chromophores
 (:func:`polarface.pipeline.biophysical.run_biophysical_stage`) and a render of the frame at the first
 polarimetric camera (``frames/NNNN/render/srgb_linear.exr``, for the report's animation). Steps 1-3
@@ -49,25 +49,17 @@ import numpy as np
 from tqdm import tqdm
 
 from polarface.capture.store import CaptureStore
-from polarface.geometry.mesh import TriangleMesh, load_mesh, save_ply
-from polarface.geometry.point_cloud import PointCloud
+from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.poses import invert_rigid
-from polarface.geometry.registration import RegistrationConfig, register_pair
-from polarface.geometry.tracking import (
-    TrackedSequence,
-    TrackingConfig,
-    TrackingFrame,
-    load_tracked,
-    save_tracked,
-    track_mesh,
-)
+from polarface.geometry.registration import RegistrationConfig
+from polarface.geometry.tracking import TrackingConfig
 from polarface.inverse.polarimetric.dynamic import DynamicConfig
-from polarface.io import json_values, read_json_object, write_json_atomic
-from polarface.pipeline.geometry import GeometryConfig, check_stereo_pairs, frame_geometry
+from polarface.io import json_values
+from polarface.pipeline.dynamic_geometry import TrackingFolder, align_reference, stereo_pass, track_sequence
+from polarface.pipeline.geometry import GeometryConfig, check_stereo_pairs
 from polarface.results import ResultFolder
 
 __all__ = [
-    "TRACKING_JSON",
     "DynamicStageConfig",
     "open_dynamic_capture",
     "parse_frame_selection",
@@ -76,9 +68,6 @@ __all__ = [
 ]
 
 LOGGER = logging.getLogger(__name__)
-#: The tracking summary in ``RESULT/tracking``.
-TRACKING_JSON = "tracking.json"
-_TRACKED_NPZ = "tracked.npz"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,153 +179,6 @@ def open_dynamic_capture(capture: Path, rig, rig_path: Path,
     check_stereo_pairs(store)
     parse_frame_selection(frames, [record.index for record in store.frames])
     return store
-
-
-class _TrackingFolder:
-    """``RESULT/tracking``: the summary (written after every step) and its files."""
-
-    def __init__(self, root: Path, header: dict[str, Any]) -> None:
-        self.root = root
-        self.summary: dict[str, Any] = {**header, "frames": {}}
-        path = root / TRACKING_JSON
-        if path.is_file():
-            previous = read_json_object(path)
-            for key in ("capture", "config"):
-                if previous.get(key) != header[key]:
-                    raise ValueError(
-                        f"'{path}' was written for another dynamic {key} (recorded "
-                        f"{_short(previous.get(key))}); rerun into a new RESULT folder or with the same "
-                        "capture and options"
-                    )
-            self.summary = {**previous, **header}
-
-    def stereo_path(self, frame: int) -> Path:
-        return self.root / "stereo" / f"{frame:06d}.ply"
-
-    def save(self) -> None:
-        write_json_atomic(self.root / TRACKING_JSON, self.summary)
-
-
-def _short(value: Any) -> str:
-    if isinstance(value, dict) and "sha256" in value:
-        return f"sha256 {str(value['sha256'])[:12]}"
-    return "another configuration"
-
-
-def _stereo_pass(store: CaptureStore, tracking: _TrackingFolder, frames: list[int], config: GeometryConfig,
-                 progress: bool) -> float:
-    """Each frame's stereo mesh into ``tracking/stereo`` (frames already done are skipped); seconds."""
-    started = time.perf_counter()
-    entries = tracking.summary["frames"]
-    for frame in tqdm(frames, desc="dynamic: stereo", unit="frame", disable=not progress):
-        if str(frame) in entries:
-            continue
-        result = frame_geometry(store, frame, config)
-        entry: dict[str, Any] = {"points": len(result.cloud), "seconds": result.seconds}
-        if result.mesh is None:
-            entry["error"] = result.error
-        else:
-            save_ply(tracking.stereo_path(frame), result.mesh)
-            entry["mesh_vertices"] = result.mesh.vertex_count
-        entries[str(frame)] = entry
-        tracking.save()
-    return time.perf_counter() - started
-
-
-def _surface_cloud(mesh: TriangleMesh, spacing_mm: float = 0.7, seed: int = 0) -> PointCloud:
-    """Points sampled on ``mesh`` about ``spacing_mm`` apart (area-weighted, deterministic) with the face
-    normals: a mesh's vertices can be centimetres apart (a decimated reference), too sparse for the
-    correspondence distances of the alignment."""
-    areas = mesh.face_areas()
-    count = int(np.clip(areas.sum() / spacing_mm**2, 1000, 400_000))
-    rng = np.random.default_rng(seed)
-    faces = rng.choice(len(areas), size=count, p=areas / areas.sum())
-    weights = rng.dirichlet(np.ones(3), size=count)
-    points = np.einsum("nk,nkc->nc", weights, mesh.vertices[mesh.faces[faces]])
-    return PointCloud.from_arrays(points, mesh.face_normals()[faces])
-
-
-def _start_poses(folder: ResultFolder, count: int = 12) -> list[np.ndarray]:
-    """Starts of the alignment: the identity (stereo geometry's model frame is the rig world of the static
-    reference frame) and up to ``count`` of the static frames' model -> rig-world poses, evenly spread
-    (a given mesh has its own model frame; the subject sits in the dynamic capture as in one of them)."""
-    from polarface.geometry.poses import load_poses
-
-    path = Path(str(folder.stage_record("prepare").get("poses") or ""))
-    if not path.is_file():
-        return [np.eye(4)]
-    poses = load_poses(path)
-    rows = np.unique(np.linspace(0, len(poses) - 1, min(count, len(poses))).round().astype(int))
-    return [np.eye(4), *(poses[row] for row in rows)]
-
-
-def _align_reference(folder: ResultFolder, reference: TriangleMesh, tracking: _TrackingFolder, first: int,
-                     config: DynamicStageConfig) -> np.ndarray:
-    """The rigid transform static model frame -> the dynamic capture's rig world (recorded once): the ICP
-    with the best fitness among the starts of :func:`_start_poses`."""
-    recorded = tracking.summary.get("alignment")
-    if recorded is not None:
-        return np.asarray(recorded["transform"], dtype=np.float64)
-    path = tracking.stereo_path(first)
-    if not path.is_file():
-        reason = tracking.summary["frames"].get(str(first), {}).get("error", "no stereo mesh")
-        raise ValueError(
-            f"the first dynamic frame {first} has no stereo surface ({reason}): the reference mesh cannot "
-            "be placed in the dynamic capture"
-        )
-    source, target = _surface_cloud(reference), _surface_cloud(load_mesh(path))
-    trials = [register_pair(source, target, start, config.alignment) for start in _start_poses(folder)]
-    aligned = max(trials, key=lambda trial: (round(trial.target_fitness, 3), -trial.rmse_mm))
-    if aligned.target_fitness < config.min_alignment_fitness:
-        raise ValueError(
-            f"the reference mesh does not fit the first dynamic frame {first}'s stereo surface (ICP: "
-            f"{100 * aligned.target_fitness:.0f} % of the frame's surface explained, fewer than "
-            f"{100 * config.min_alignment_fitness:.0f} %): is it the same subject and rig?"
-        )
-    tracking.summary["alignment"] = {
-        "frame": first, "transform": aligned.transform.tolist(), "fitness": aligned.target_fitness,
-        "rmse_mm": aligned.rmse_mm,
-    }
-    tracking.save()
-    return aligned.transform
-
-
-def _tracking_images(store: CaptureStore, frame: int) -> dict[str, np.ndarray]:
-    """``camera id -> (H, W)`` float32 image of a frame: the polarimetric cameras' subsurface image
-    ``I_sss`` (cross-polarized: no specular highlights) and the stereo cameras' black-corrected raw,
-    averaged over colour channels."""
-    images = {}
-    for camera in store.rig.cameras:
-        if camera.role == "polarimetric":
-            image = store.observation("i_sss", frame, camera.id)
-        else:
-            image = store.read_raw(frame, camera.id).astype(np.float32) - camera.black_level
-        image = image.mean(axis=-1) if image.ndim == 3 else image
-        images[camera.id] = np.clip(image, 0.0, None).astype(np.float32)
-    return images
-
-
-def _track(store: CaptureStore, tracking: _TrackingFolder, reference: TriangleMesh, frames: list[int],
-           config: TrackingConfig, progress: bool) -> tuple[TrackedSequence, float]:
-    path = tracking.root / _TRACKED_NPZ
-    if path.is_file():
-        tracked = load_tracked(path)
-        if list(tracked.frames) == frames and tracked.vertices.shape[1] == reference.vertex_count:
-            return tracked, float(tracking.summary.get("tracking_s", 0.0))
-    started = time.perf_counter()
-
-    def load_frame(frame: int) -> TrackingFrame:
-        surface_path = tracking.stereo_path(frame)
-        surface = load_mesh(surface_path) if surface_path.is_file() else None
-        return TrackingFrame(frame, _tracking_images(store, frame), surface)
-
-    cameras = {camera.id: camera.pinhole() for camera in store.rig.cameras}
-    tracked = track_mesh(reference, cameras, load_frame, frames, config, progress=progress)
-    save_tracked(path, tracked)
-    seconds = time.perf_counter() - started
-    tracking.summary.update({"tracking": tracked.to_json(), "tracking_s": seconds})
-    tracking.save()
-    return tracked, seconds
 
 
 def _static_inputs(folder: ResultFolder) -> tuple[dict[str, np.ndarray], np.ndarray, Any]:
@@ -467,14 +309,15 @@ def reconstruct_dynamic(
     target = resolve_device(device)
     header = {"format": "polarface-tracking", "version": 1, "capture": capture_identity(store.root),
               "config": config.to_json()}
-    tracking = _TrackingFolder(folder.tracking_dir, header)
+    tracking = TrackingFolder(folder.tracking_dir, header)
     tracking.root.mkdir(parents=True, exist_ok=True)
     tracking.save()
-    geometry_s = _stereo_pass(store, tracking, all_frames, config.geometry, progress)
+    geometry_s = stereo_pass(store, tracking, all_frames, config.geometry, progress)
     reference = folder.read_mesh()
-    alignment = _align_reference(folder, reference, tracking, all_frames[0], config)
-    tracked, tracking_s = _track(store, tracking, reference.transformed(alignment), all_frames,
-                                 config.tracking, progress)
+    alignment = align_reference(folder, reference, tracking, all_frames[0], config.alignment,
+                                config.min_alignment_fitness)
+    tracked, tracking_s = track_sequence(store, tracking, reference.transformed(alignment), all_frames,
+                                         config.tracking, progress)
     failed: dict[int, str] = {int(f): str(r) for f, r in tracked.failed.items()}
     static = _static_inputs(folder)
     to_model = invert_rigid(alignment)

@@ -79,7 +79,7 @@ from polarface.pipeline.evaluate_geometry import (
     closest_surface_points,
     texel_correspondence,
 )
-from polarface.results import RHO_SSS_BAR, ResultFolder
+from polarface.results import RHO_SSS_BAR, ResultFolder, layout
 
 __all__ = [
     "DYNAMIC_METRIC_KEYS",
@@ -96,8 +96,6 @@ DYNAMIC_METRIC_KEYS = (
     "frames", "tracking_mm", "c_h_out_patch_abs_error", "recovery_time_constant_s", "c_m_patch_drift_max",
     "rho_sss_bar_median_relative_error", "normal_median_deg", "rho_s_flicker_median", "seconds_per_frame",
 )
-#: The tracking file of a RESULT (relative to its root).
-TRACKED_NPZ = Path("tracking") / "tracked.npz"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -290,7 +288,7 @@ def _truth_frame_mesh(truth_root: Path, rest, frame: int):
 
 # ---- tracking ------------------------------------------------------------------------------------
 def _tracking(inputs: _DynamicInputs, rest, config: DynamicEvaluationConfig) -> dict[str, Any]:
-    path = inputs.result.root / TRACKED_NPZ
+    path = inputs.result.tracking_dir / layout.TRACKED_NPZ
     if not path.is_file():
         raise FileNotFoundError(f"tracking file '{path}' does not exist")
     with np.load(path) as data:

@@ -70,7 +70,7 @@ from typing import Any
 import numpy as np
 
 from polarface.geometry import load_mesh, load_poses, rasterize_uv, sample_texture
-from polarface.geometry.mesh import TriangleMesh
+from polarface.geometry.mesh import TriangleMesh, sample_surface
 from polarface.geometry.poses import invert_rigid
 from polarface.results import ResultFolder
 
@@ -446,20 +446,6 @@ def _read_triangles(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
-def _surface_samples(vertices: np.ndarray, faces: np.ndarray, count: int, seed: int) -> np.ndarray:
-    """``(count, 3)`` points drawn uniformly by area on the triangles."""
-    corners = vertices[faces]
-    edges = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    area = 0.5 * np.linalg.norm(edges, axis=1)
-    rng = np.random.default_rng(seed)
-    chosen = rng.choice(len(faces), size=count, p=area / area.sum())
-    a, b = rng.random(count), rng.random(count)
-    flip = a + b > 1.0
-    a, b = np.where(flip, 1.0 - a, a), np.where(flip, 1.0 - b, b)
-    tri = corners[chosen]
-    return tri[:, 0] + a[:, None] * (tri[:, 1] - tri[:, 0]) + b[:, None] * (tri[:, 2] - tri[:, 0])
-
-
 def _read_geometry_summary(geometry: Path) -> tuple[int, dict[int, str]]:
     path = geometry / "geometry.json"
     if not path.is_file():
@@ -482,7 +468,7 @@ def _accuracy(geometry: Path, truth: TriangleMesh, truth_poses: np.ndarray, fram
     distances = []
     for k in frames:
         vertices, faces = _read_triangles(geometry / "frames" / f"{k:06d}.ply")
-        samples = _surface_samples(vertices, faces, config.samples_per_frame, config.seed + k)
+        samples, _ = sample_surface(vertices, faces, config.samples_per_frame, config.seed + k)
         to_model = invert_rigid(truth_poses[k])
         local = samples @ to_model[:3, :3].T + to_model[:3, 3]
         distances.append(closest_surface_points(truth.vertices, truth.faces, local).distance)

@@ -24,7 +24,9 @@ __all__ = [
     "RESULT_FORMAT",
     "RESULT_VERSION",
     "RHO_SSS_BAR",
+    "TRACKED_NPZ",
     "TRACKING_DIR",
+    "TRACKING_JSON",
     "DiagnosticMap",
     "default_channel_names",
 ]
@@ -42,6 +44,9 @@ GEOMETRY_DIR = "geometry"
 EXPORTS_DIR = "exports"
 #: The dynamic stage's geometry: per-frame stereo meshes and the tracked reference mesh.
 TRACKING_DIR = "tracking"
+#: Files under ``tracking/``: the summary and the tracked vertices (``polarface.geometry.tracking``).
+TRACKING_JSON = "tracking.json"
+TRACKED_NPZ = "tracked.npz"
 
 #: Files under the RESULT root.
 RESULT_JSON = "result.json"
