@@ -37,14 +37,8 @@ from polarface.pipeline.ior import (
     read_analyzer_image,
     validate_ior,
 )
-from polarface.pipeline.reconstruct import (
-    STAGES,
-    ReconstructContext,
-    ReconstructInputs,
-    reconstruct,
-    resolve_reconstruct_inputs,
-    run_stages,
-)
+from polarface.pipeline.reconstruct import STAGES, ReconstructContext, reconstruct, run_stages
+from polarface.pipeline.reconstruct_inputs import ReconstructInputs, resolve_reconstruct_inputs
 from polarface.pipeline.skin_fit import (
     SkinFitSummary,
     SpectraFitOptions,

@@ -57,7 +57,8 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
     """Simulate, reconstruct and evaluate; each step announced as the equivalent command line."""
     from polarface.io import write_json_atomic
     from polarface.pipeline.evaluate import evaluate
-    from polarface.pipeline.reconstruct import reconstruct, resolve_reconstruct_inputs
+    from polarface.pipeline.reconstruct import reconstruct
+    from polarface.pipeline.reconstruct_inputs import resolve_reconstruct_inputs
     from polarface.simulate.pipeline import SimulationConfig, simulate
 
     sim, result = out / "sim", out / "result"

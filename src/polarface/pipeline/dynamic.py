@@ -57,6 +57,7 @@ from polarface.inverse.polarimetric.dynamic import DynamicConfig
 from polarface.io import json_values
 from polarface.pipeline.dynamic_geometry import TrackingFolder, align_reference, stereo_pass, track_sequence
 from polarface.pipeline.geometry import GeometryConfig, check_stereo_pairs
+from polarface.pipeline.reconstruct_inputs import check_capture_manifest
 from polarface.results import ResultFolder
 
 __all__ = [
@@ -165,8 +166,6 @@ def open_dynamic_capture(capture: Path, rig, rig_path: Path,
     Raises:
         ValueError: naming the rig files and the differing fields, or the bad selection.
     """
-    from polarface.pipeline.reconstruct import check_capture_manifest
-
     store = CaptureStore.open(capture)
     check_capture_manifest(store)
     differences = store.rig.geometry_differences(rig)
