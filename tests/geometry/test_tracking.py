@@ -124,6 +124,20 @@ def test_plane_with_known_smooth_deformation_is_tracked():
     assert tracked.confidence.dtype == np.float32
 
 
+def test_snapping_puts_the_tracked_vertices_on_the_surface():
+    """``snap_to_surface``: the tracked vertices are moved to the closest point of the frame's surface (the
+    plane, whose depth ``truth`` keeps) before the smoothing, and still follow the deformation."""
+    amplitudes = [0.0, 1.0, 2.0]
+    reference, cameras, load, truth = _plane_sequence(amplitudes)
+    lifted = dataclasses.replace(reference, vertices=reference.vertices + np.array([0.0, 0.0, 0.3]))
+    tracked = track_mesh(lifted, cameras, load, range(3), TrackingConfig(snap_to_surface=True))
+    seen = tracked.confidence[2] > 0
+    assert seen.mean() > 0.9
+    # the reference started 0.3 mm off the plane; snapped and smoothed, the tracked vertices lie on it
+    assert np.abs(tracked.vertices[2][seen, 2] - truth(2)[seen, 2]).max() < 0.01
+    assert np.median(np.linalg.norm(tracked.vertices[2][seen, :2] - truth(2)[seen, :2], axis=1)) < 0.1 * MM_PER_PX
+
+
 def test_anchor_frames_bound_the_drift_of_chaining():
     """The texture moves away and comes back (last frame = first) under per-frame image noise: chaining
     accumulates the flow noise, the anchor scheme tracks the returning frames directly from frame 0."""

@@ -11,8 +11,8 @@ import pytest
 
 from polarface.cli import main
 from polarface.geometry import StereoConfig, load_mesh, load_poses, rasterize_uv
+from polarface.geometry.raycast import closest_surface_points
 from polarface.pipeline import GeometryConfig, reconstruct, reconstruct_geometry, resolve_reconstruct_inputs
-from polarface.pipeline.evaluate_geometry import closest_surface_points
 from polarface.simulate import SimulationConfig, simulate
 from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
 

@@ -73,7 +73,7 @@ import scipy.sparse.linalg
 
 from polarface.geometry.camera import PinholeCamera
 from polarface.geometry.mesh import TriangleMesh
-from polarface.geometry.raycast import RayCaster
+from polarface.geometry.raycast import RayCaster, closest_surface_points
 from polarface.io import atomic_path
 
 __all__ = [
@@ -475,39 +475,13 @@ class _MeshGraph:
         return values
 
 
-class _SurfaceQuery:
-    """Closest points on a triangle mesh (Open3D ``RaycastingScene``, float32 about the centroid)."""
-
-    def __init__(self, surface: TriangleMesh):
-        import open3d as o3d
-
-        self._o3d = o3d
-        self.centre = surface.vertices.mean(axis=0)
-        self.vertices = surface.vertices
-        self.faces = surface.faces
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor((surface.vertices - self.centre).astype(np.float32)),
-                                 o3d.core.Tensor(surface.faces.astype(np.uint32)))
-
-    def closest(self, points: np.ndarray) -> np.ndarray:
-        """``(M, 3)`` closest surface points (mm) of ``points`` ``(M, 3)`` (float64 from barycentrics)."""
-        if len(points) == 0:
-            return np.zeros((0, 3))
-        answer = self.scene.compute_closest_points(
-            self._o3d.core.Tensor((points - self.centre).astype(np.float32)))
-        face = answer["primitive_ids"].numpy().astype(np.int64)
-        uv = answer["primitive_uvs"].numpy().astype(np.float64)
-        barycentric = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-        return np.einsum("mk,mkc->mc", barycentric, self.vertices[self.faces[face]])
-
-
 def _regularise(estimate: np.ndarray, tracked: np.ndarray, rest: np.ndarray, graph: _MeshGraph,
-                surface: _SurfaceQuery, config: TrackingConfig) -> np.ndarray:
+                surface: TriangleMesh, config: TrackingConfig) -> np.ndarray:
     """Tracked vertices snapped to the surface, the displacement from ``rest`` harmonically filled
     over the untracked vertices, then smoothed (averages out the surface's noise): ``(N, 3)`` mm."""
     snapped = np.nan_to_num(estimate)
     if config.snap_to_surface:
-        snapped[tracked] = surface.closest(snapped[tracked])
+        snapped[tracked] = closest_surface_points(surface.vertices, surface.faces, snapped[tracked]).point
     displacement = np.where(tracked[:, None], snapped - rest, 0.0)
     node_weight = graph.to_nodes(tracked.astype(np.float64)[:, None])[:, 0]
     node_values = graph.to_nodes(displacement) / np.maximum(node_weight, 1e-12)[:, None]
@@ -640,7 +614,7 @@ def track_mesh(
             failed[index] = (f"frame {index}: {reason} ({100 * fraction:.0f} % of the vertices visible "
                              f"at frame {indices[0]} tracked)")
             continue
-        vertices[i] = _regularise(estimate, tracked, rest, graph, _SurfaceQuery(frame.surface), config)
+        vertices[i] = _regularise(estimate, tracked, rest, graph, frame.surface, config)
         confidence[i] = np.clip(quality, 0.0, 1.0)
         last_good = (frame, vertices[i].copy())
         if is_anchor:

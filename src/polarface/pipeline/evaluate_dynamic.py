@@ -73,10 +73,10 @@ from typing import Any
 import numpy as np
 
 from polarface.geometry import load_mesh, rasterize_uv
+from polarface.geometry.raycast import closest_surface_points
 from polarface.io import read_json_object
 from polarface.pipeline.evaluate_geometry import (
     TexelCorrespondence,
-    closest_surface_points,
     texel_correspondence,
 )
 from polarface.results import RHO_SSS_BAR, ResultFolder, layout

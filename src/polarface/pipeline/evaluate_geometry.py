@@ -72,6 +72,7 @@ import numpy as np
 from polarface.geometry import load_mesh, load_poses, rasterize_uv, sample_texture
 from polarface.geometry.mesh import TriangleMesh, sample_surface
 from polarface.geometry.poses import invert_rigid
+from polarface.geometry.raycast import closest_surface_points
 from polarface.results import ResultFolder
 
 __all__ = [
@@ -79,7 +80,6 @@ __all__ = [
     "GEOMETRY_ERROR_PNG",
     "GeometryEvaluationConfig",
     "TexelCorrespondence",
-    "closest_surface_points",
     "geometry_metrics",
     "model_alignment",
     "texel_correspondence",
@@ -212,42 +212,6 @@ def _same_mesh(a: TriangleMesh, b: TriangleMesh, tolerance_mm: float) -> bool:
 
 
 # ---- closest points ------------------------------------------------------------------------------
-@dataclasses.dataclass(frozen=True, eq=False)
-class ClosestPoints:
-    """Closest points of query points on a triangle surface.
-
-    Attributes:
-        distance: ``(N,)`` float64 unsigned distance, mm.
-        face: ``(N,)`` int64 triangle index.
-        barycentric: ``(N, 3)`` float64 weights of the triangle's three vertices.
-    """
-
-    distance: np.ndarray
-    face: np.ndarray
-    barycentric: np.ndarray
-
-
-def closest_surface_points(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> ClosestPoints:
-    """Closest points of ``points`` ``(N, 3)`` mm on the triangles ``faces`` ``(F, 3)`` of ``vertices``
-    ``(V, 3)`` mm (Open3D ``RaycastingScene``, float32 about the vertices' centroid: ~1e-5 mm)."""
-    import open3d as o3d
-
-    vertices = np.asarray(vertices, np.float64)
-    points = np.asarray(points, np.float64).reshape(-1, 3)
-    centre = vertices.mean(axis=0)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor((vertices - centre).astype(np.float32)),
-                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
-    if len(points) == 0:
-        return ClosestPoints(np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3)))
-    answer = scene.compute_closest_points(o3d.core.Tensor((points - centre).astype(np.float32)))
-    face = answer["primitive_ids"].numpy().astype(np.int64)
-    uv = answer["primitive_uvs"].numpy().astype(np.float64)  # point = (1-u-v) v0 + u v1 + v v2
-    barycentric = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-    closest = np.einsum("nk,nkc->nc", barycentric, vertices[faces[face]])
-    return ClosestPoints(np.linalg.norm(points - closest, axis=1), face, barycentric)
-
-
 # ---- correspondence ------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True, eq=False)
 class TexelCorrespondence:
