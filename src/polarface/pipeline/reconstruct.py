@@ -116,16 +116,6 @@ def _load_geometry(ctx: ReconstructContext):
     return store, mesh, poses
 
 
-def _check_dynamic_capture(ctx: ReconstructContext) -> None:
-    """The dynamic capture is finished, of the static capture's rig, and ``ctx.frames`` names its frames
-    (checked before anything is written)."""
-    from polarface.capture.store import CaptureStore
-    from polarface.pipeline.dynamic import open_dynamic_capture
-
-    static = CaptureStore.open(ctx.capture)
-    open_dynamic_capture(ctx.dynamic, static.rig, static.root / "rig.json", ctx.frames)
-
-
 def stage_geometry(ctx: ReconstructContext) -> dict[str, Any]:
     """Reconstruct the mesh and poses from the capture's stereo pairs into ``RESULT/geometry``
     (:func:`polarface.pipeline.geometry.reconstruct_geometry`); skipped when the geometry is given."""
@@ -414,9 +404,11 @@ def reconstruct(
         from polarface.inverse.polarimetric import PolarimetricConfig
 
         PolarimetricConfig(**options)
-        _open_capture(ctx) if stereo else _load_geometry(ctx)
-        if ctx.dynamic is not None:
-            _check_dynamic_capture(ctx)
+        store = _open_capture(ctx) if stereo else _load_geometry(ctx)[0]
+        if ctx.dynamic is not None:  # finished, of the static capture's rig, frames known
+            from polarface.pipeline.dynamic import open_dynamic_capture
+
+            open_dynamic_capture(ctx.dynamic, store.rig, store.root / "rig.json", ctx.frames)
         out.mkdir(parents=True, exist_ok=True)
         return run_stages(ctx)
     except (ValueError, FileNotFoundError):
