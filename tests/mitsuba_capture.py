@@ -1,4 +1,4 @@
-"""Static captures whose radiance comes from Mitsuba 3, not from polarface's renderer (docs/mitsuba_captures.md).
+"""Static captures whose radiance comes from Mitsuba 3 instead of polarface (docs/mitsuba_captures.md).
 
 The simulator and the inverse stage share polarface's optics; a capture rendered by an independent
 renderer protects against a mistake they would share. Per pixel of each polarimetric camera of the
@@ -76,6 +76,8 @@ class MitsubaCaptureConfig:
         preset: simulator preset (:mod:`polarface.simulate.presets`) giving the rig's image size, the
             texture resolution of the truth maps and the static poses.
         frames: number of static frames rendered (the first ``frames`` of the preset's sweep; None: all).
+        texture_resolution: side of the truth maps' atlas in texels (None: the preset's); the
+            reconstruction must use the same one for ``polarface evaluate``'s texel-by-texel metrics.
         eta: constant refractive index (dimensionless, in ``ETA_RANGE``).
         alpha_s: constant GGX roughness of the specular lobe (dimensionless, > 0).
         albedo_scale: multiplies the simulator's six-channel ``rho_sss_bar`` (result clipped to [0, 1]).
@@ -85,12 +87,16 @@ class MitsubaCaptureConfig:
         skin_type: simulator skin type ``I``..``VI`` (chooses the truth maps).
         noise: shot and read noise on the raw frames (False: quantisation only).
         seed: seed of the raw noise.
+        renderer: ``mitsuba``, or ``polarface`` for a control capture of the identical scene whose radiance
+            comes from polarface's image formation at the same hit points (``polarface_reference_views``,
+            ``local``): recovery differences between the two isolate the renderer.
         exposure_fill: the 99.5th percentile of frame 0's co-polarized image of the first polarimetric
             camera is exposed at this fraction of the full well.
     """
 
     preset: str = "tiny"
     frames: int | None = None
+    texture_resolution: int | None = None
     eta: float = 1.44
     alpha_s: float = 0.35
     albedo_scale: float = 1.0
@@ -100,9 +106,12 @@ class MitsubaCaptureConfig:
     noise: bool = False
     seed: int = 0
     exposure_fill: float = 0.8
+    renderer: str = "mitsuba"
 
     def __post_init__(self) -> None:
         get_preset(self.preset)
+        if self.renderer not in ("mitsuba", "polarface"):
+            raise ValueError(f"argument 'renderer' must be 'mitsuba' or 'polarface'; got {self.renderer!r}")
         get_skin_type(self.skin_type)
         if not ETA_RANGE[0] <= self.eta <= ETA_RANGE[1]:
             raise ValueError(f"argument 'eta' must lie in {ETA_RANGE}; got {self.eta}")
@@ -113,6 +122,10 @@ class MitsubaCaptureConfig:
                 raise ValueError(f"argument '{name}' must lie in [0, 10); got {getattr(self, name)}")
         if self.frames is not None and not 1 <= self.frames <= get_preset(self.preset).static_frames:
             raise ValueError(f"argument 'frames' must lie in [1, preset frames]; got {self.frames}")
+        if self.texture_resolution is not None and not 8 <= self.texture_resolution <= 4096:
+            raise ValueError(
+                f"argument 'texture_resolution' must lie in [8, 4096]; got {self.texture_resolution}"
+            )
         if not 0.0 < self.exposure_fill <= 1.0:
             raise ValueError(f"argument 'exposure_fill' must lie in (0, 1]; got {self.exposure_fill}")
 
@@ -122,7 +135,9 @@ def family_a(preset: str = "tiny", **changes) -> MitsubaCaptureConfig:
     return MitsubaCaptureConfig(preset=preset, **changes)
 
 
-def family_b(eta: float, alpha_s: float, albedo_scale: float, preset: str = "tiny", **changes) -> MitsubaCaptureConfig:
+def family_b(
+    eta: float, alpha_s: float, albedo_scale: float, preset: str = "tiny", **changes
+) -> MitsubaCaptureConfig:
     """Family B: family A with the constant ``eta`` and ``alpha_s`` and the albedo scale chosen."""
     return MitsubaCaptureConfig(preset=preset, eta=eta, alpha_s=alpha_s, albedo_scale=albedo_scale, **changes)
 
@@ -158,8 +173,9 @@ class MitsubaScene:
         preset = get_preset(config.preset)
         rig = paper_rig(width=preset.width, height=preset.height)
         calibration = rig.spectral.to_calibration()
-        asset = load_head_asset(texture_resolution=preset.texture_resolution)
-        raster = rasterize_uv(asset.mesh, preset.texture_resolution)
+        resolution = config.texture_resolution or preset.texture_resolution
+        asset = load_head_asset(texture_resolution=resolution)
+        raster = rasterize_uv(asset.mesh, resolution)
         landmarks = {name: asset.landmark_position(name) for name in asset.landmarks}
         truth = build_appearance_maps(
             albedo_linear=asset.albedo,
@@ -253,13 +269,11 @@ def _cast(mi, scene, camera, lights: np.ndarray) -> _Hits:
 
 def _textures_at(scene: MitsubaScene, normal_map: np.ndarray, uv: np.ndarray) -> dict[str, np.ndarray]:
     """Bilinear reads of the truth maps and the posed shading-normal map at ``uv`` ``(N, 2)``."""
-    names = ("rho_s", "rho_sss_bar")
     stack = np.concatenate(
         [scene.maps["rho_s"][..., None], scene.maps["rho_sss_bar"], normal_map.astype(np.float32)], axis=-1
     )
     filled = torch.from_numpy(fill_empty_texels(stack, scene.mask))
     sampled = sample_texture(filled, torch.from_numpy(uv.astype(np.float32))).double().numpy()
-    del names
     return {"rho_s": sampled[:, 0], "rho_sss_bar": sampled[:, 1:7], "normal": sampled[:, 7:10]}
 
 
@@ -292,7 +306,9 @@ def _light_stokes(mi, rig: Rig) -> np.ndarray:
 
 def _light_intensities(rig: Rig) -> np.ndarray:
     """``(K, 6)`` radiant intensity of each module per spectral channel."""
-    return np.stack([np.broadcast_to(np.asarray(light.radiant_intensity, float), (6,)) for light in rig.lights])
+    return np.stack(
+        [np.broadcast_to(np.asarray(light.radiant_intensity, float), (6,)) for light in rig.lights]
+    )
 
 
 def _local(frame, vector: np.ndarray, mi):
@@ -325,13 +341,17 @@ def _lobe_stokes(mi, hits: _Hits, normal: np.ndarray, camera, lights: np.ndarray
         wo_local = _local(frame, w_o[n], mi)
         si.wi = wo_local  # Mitsuba: si.wi points to the sensor
         to_ours = np.array(
-            mi.mueller.rotate_stokes_basis(wo_local, mi.mueller.stokes_basis(wo_local), _local(frame, x_out[n], mi))
+            mi.mueller.rotate_stokes_basis(
+                wo_local, mi.mueller.stokes_basis(wo_local), _local(frame, x_out[n], mi)
+            )
         )
         for k in active:
             wi_local = _local(frame, w_i[n, k], mi)
             back = -wi_local  # propagation direction of the incident light
             to_mitsuba = np.array(
-                mi.mueller.rotate_stokes_basis(back, _local(frame, x_in[n, k], mi), mi.mueller.stokes_basis(back))
+                mi.mueller.rotate_stokes_basis(
+                    back, _local(frame, x_in[n, k], mi), mi.mueller.stokes_basis(back)
+                )
             )
             s_in = to_mitsuba @ light_stokes[k]
             for lobe, bsdf in enumerate(bsdfs):
@@ -401,6 +421,8 @@ def render_frame_views(scene: MitsubaScene, pose: np.ndarray, mesh_path: Path) -
     to ``mesh_path`` (PLY, rig world, mm) and loaded by Mitsuba from there."""
     mesh_world = scene.mesh.transformed(pose)
     save_ply(mesh_path, mesh_world)
+    if scene.config.renderer == "polarface":
+        return polarface_reference_views(scene, pose)["local"]
     mi_scene = mitsuba_scene_of(mesh_path)
     posed = reposition(scene.raster, mesh_world)
     normal_map = shading_normals(posed, scene.maps["displacement_mm"])
@@ -417,7 +439,9 @@ def _with_exposure(rig: Rig, exposure: float) -> Rig:
     return Rig.model_validate(data)
 
 
-def _raws(rig: Rig, views: dict[str, dict], config: MitsubaCaptureConfig, index: int) -> dict[str, np.ndarray]:
+def _raws(
+    rig: Rig, views: dict[str, dict], config: MitsubaCaptureConfig, index: int
+) -> dict[str, np.ndarray]:
     """Mosaicked, quantised (optionally noisy) raw frames of the polarimetric cameras."""
     noise = SensorNoise(exposure=float(rig.cameras[0].exposure))
     raws = {}
@@ -432,7 +456,10 @@ def _raws(rig: Rig, views: dict[str, dict], config: MitsubaCaptureConfig, index:
 def _write_ground_truth(root: Path, scene: MitsubaScene) -> None:
     for name, values in scene.maps.items():
         if name == "rho_sss_bar":
-            write_exr(root / "maps" / "rho_sss_bar.exr", {n: values[..., i] for i, n in enumerate(scene.channel_names)})
+            write_exr(
+                root / "maps" / "rho_sss_bar.exr",
+                {n: values[..., i] for i, n in enumerate(scene.channel_names)},
+            )
         else:
             write_exr(root / "maps" / f"{name}.exr", {"Y": values})
     write_png(root / "maps" / "mask.png", scene.mask.astype(np.uint8) * 255)
@@ -520,7 +547,9 @@ def polarface_reference_views(scene: MitsubaScene, pose: np.ndarray) -> dict[str
         caster, posed, normal_map, scene.maps["eta"], lights, unit_intensity, cameras[0].pinhole().up_vector
     )
     parameters = {k: scene.maps[k] for k in ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss")}
-    textured = FrameTextures.build(parameters, normal_map, scene.maps["rho_sss_bar"] * flux[..., None], scene.mask)
+    textured = FrameTextures.build(
+        parameters, normal_map, scene.maps["rho_sss_bar"] * flux[..., None], scene.mask
+    )
     albedo = FrameTextures.build(parameters, normal_map, scene.maps["rho_sss_bar"], scene.mask)
     out: dict[str, dict] = {"texture": {}, "local": {}}
     for camera in cameras:
@@ -533,16 +562,29 @@ def polarface_reference_views(scene: MitsubaScene, pose: np.ndarray) -> dict[str
         position = torch.from_numpy(fragments.position)
         centre = torch.from_numpy(pinhole.center)
         material = fragment_material(
-            albedo, torch.from_numpy(fragments.uv), torch.from_numpy(fragments.geometric_normal), position, centre,
+            albedo,
+            torch.from_numpy(fragments.uv),
+            torch.from_numpy(fragments.geometric_normal),
+            position,
+            centre,
             channels,
         )
         visible = caster.shadow_rays(fragments.position, fragments.geometric_normal, lights)
         images = {name: np.zeros((pinhole.height * pinhole.width, 3), np.float32) for name in ANALYZER_ANGLES}
         for k in range(len(lights)):
             rendered = render_polarimetric(
-                material.normal, position, centre, torch.from_numpy(pinhole.up_vector), lights[k : k + 1],
-                torch.full((1, 1), unit_intensity, dtype=torch.float64), material.eta, material.alpha_s,
-                material.alpha_ss, material.rho_s, material.rho_ss, material.exitance,
+                material.normal,
+                position,
+                centre,
+                torch.from_numpy(pinhole.up_vector),
+                lights[k : k + 1],
+                torch.full((1, 1), unit_intensity, dtype=torch.float64),
+                material.eta,
+                material.alpha_s,
+                material.alpha_ss,
+                material.rho_s,
+                material.rho_ss,
+                material.exitance,
             )
             lit = visible[:, k : k + 1]
             for name in ANALYZER_ANGLES:
@@ -551,6 +593,56 @@ def polarface_reference_views(scene: MitsubaScene, pose: np.ndarray) -> dict[str
         mask[fragments.pixel] = True
         shape = (pinhole.height, pinhole.width)
         out["local"][camera.id] = {
-            **{k: v.reshape(*shape, 3) for k, v in images.items()}, "mask": mask.reshape(shape)
+            **{k: v.reshape(*shape, 3) for k, v in images.items()},
+            "mask": mask.reshape(shape),
         }
     return out
+
+
+def compare_views(mitsuba_views: dict, reference_views: dict) -> dict[str, float]:
+    """Relative differences of Mitsuba's analyzer images to a reference, over the pixels both hit.
+
+    Returns:
+        ``relative_l2``: ``||a - b|| / ||b||`` over all four analyzer images and cameras;
+        ``median_relative``: median of ``|a - b| / max(|b|, 1e-3 p99(b))``;
+        ``fraction_above_1e-3``: fraction of pixel-channel values whose relative difference exceeds 1e-3;
+        ``mask_mismatch``: pixels hit in one render only.
+    """
+    differences, norms, relative, mismatch = [], [], [], 0
+    for camera_id, ours in mitsuba_views.items():
+        reference = reference_views[camera_id]
+        both = ours["mask"] & reference["mask"]
+        mismatch += int((ours["mask"] ^ reference["mask"]).sum())
+        floor = 1e-3 * float(np.percentile(reference["i0"][both], 99))
+        for name in ANALYZER_ANGLES:
+            a, b = ours[name][both].astype(np.float64), reference[name][both].astype(np.float64)
+            differences.append(a - b)
+            norms.append(b)
+            relative.append(np.abs(a - b) / np.maximum(np.abs(b), floor))
+    relative_all = np.concatenate([r.ravel() for r in relative])
+    return {
+        "relative_l2": float(
+            np.sqrt(sum((d**2).sum() for d in differences) / sum((b**2).sum() for b in norms))
+        ),
+        "median_relative": float(np.median(relative_all)),
+        "fraction_above_1e-3": float((relative_all > 1e-3).mean()),
+        "mask_mismatch": mismatch,
+    }
+
+
+def validate_against_polarface(config: MitsubaCaptureConfig, frame: int = 0) -> dict:
+    """Frame ``frame``'s noise-free Mitsuba images against polarface's two reference renders
+    (:func:`polarface_reference_views`, :func:`compare_views`); also returns the render time."""
+    import tempfile
+
+    scene = MitsubaScene.build(config)
+    with tempfile.TemporaryDirectory() as folder:
+        started = time.perf_counter()
+        views = render_frame_views(scene, scene.poses[frame], Path(folder) / "mesh.ply")
+        render_s = time.perf_counter() - started
+    references = polarface_reference_views(scene, scene.poses[frame])
+    return {
+        "render_s": render_s,
+        "local": compare_views(views, references["local"]),
+        "texture": compare_views(views, references["texture"]),
+    }
