@@ -13,7 +13,8 @@ paper's 1.15-2.4), alpha_s and an albedo scale chosen here. Then::
         --poses DIR/ground_truth/static/poses.json --out RESULT
     polarface evaluate RESULT --gt DIR
 
-The generator lives in ``tests/mitsuba_capture.py`` (the recovery test imports it); see
+The generator lives in ``tests/mitsuba_capture.py`` and ``tests/mitsuba_reference.py`` (the recovery
+test imports them); see
 ``docs/mitsuba_captures.md``. Rendering takes about 4 s per camera view at the ``tiny`` image size
 (256 x 212) and about 25 s at ``demo`` size (612 x 512) on one core.
 """
@@ -21,21 +22,20 @@ The generator lives in ``tests/mitsuba_capture.py`` (the recovery test imports i
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import sys
 from pathlib import Path
 
-GENERATOR = Path(__file__).resolve().parents[1] / "tests" / "mitsuba_capture.py"
+TESTS = Path(__file__).resolve().parents[1] / "tests"
 
 
 def _generator():
-    """The generator module, loaded from ``tests/`` by path (it is not part of the package)."""
-    spec = importlib.util.spec_from_file_location("polarface_mitsuba_capture", GENERATOR)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve their module by name
-    spec.loader.exec_module(module)
-    return module
+    """The generator modules in ``tests/`` (they are not part of the package)."""
+    sys.path.insert(0, str(TESTS))
+    import mitsuba_capture
+    import mitsuba_reference
+
+    return mitsuba_capture, mitsuba_reference
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -57,14 +57,14 @@ def main(argv: list[str] | None = None) -> int:
         "--validate", action="store_true", help="print frame 0's difference to polarface's renderer and exit"
     )
     args = parser.parse_args(argv)
-    generator = _generator()
+    generator, reference = _generator()
     common = {"preset": args.preset, "frames": args.frames, "noise": args.noise, "seed": args.seed}
     if args.family == "A":
         config = generator.family_a(**common)
     else:
         config = generator.family_b(args.eta, args.alpha_s, args.albedo_scale, **common)
     if args.validate:
-        print(json.dumps(generator.validate_against_polarface(config), indent=2))
+        print(json.dumps(reference.validate_against_polarface(config), indent=2))
         return 0
     if args.out is None:
         parser.error("--out is required unless --validate")

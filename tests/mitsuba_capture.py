@@ -75,7 +75,10 @@ class MitsubaCaptureConfig:
     Attributes:
         preset: simulator preset (:mod:`polarface.simulate.presets`) giving the rig's image size, the
             texture resolution of the truth maps and the static poses.
-        frames: number of static frames rendered (the first ``frames`` of the preset's sweep; None: all).
+        frames: number of static frames rendered (the first ``frames`` of the sweep; None: all).
+        sweep_frames, yaw_range_deg: frame count and yaw range (+-, degrees) of the static sweep (None:
+            the preset's): the tiny preset's +-12 deg sees the face nearly frontally, where the DoP
+            constrains eta weakly (docs/mitsuba_captures.md).
         texture_resolution: side of the truth maps' atlas in texels (None: the preset's); the
             reconstruction must use the same one for ``polarface evaluate``'s texel-by-texel metrics.
         eta: constant refractive index (dimensionless, in ``ETA_RANGE``).
@@ -96,6 +99,8 @@ class MitsubaCaptureConfig:
 
     preset: str = "tiny"
     frames: int | None = None
+    sweep_frames: int | None = None
+    yaw_range_deg: float | None = None
     texture_resolution: int | None = None
     eta: float = 1.44
     alpha_s: float = 0.35
@@ -120,8 +125,13 @@ class MitsubaCaptureConfig:
         for name in ("albedo_scale", "rho_s_scale"):
             if not 0.0 <= getattr(self, name) < 10.0:
                 raise ValueError(f"argument '{name}' must lie in [0, 10); got {getattr(self, name)}")
-        if self.frames is not None and not 1 <= self.frames <= get_preset(self.preset).static_frames:
-            raise ValueError(f"argument 'frames' must lie in [1, preset frames]; got {self.frames}")
+        if self.sweep_frames is not None and not 2 <= self.sweep_frames <= 1000:
+            raise ValueError(f"argument 'sweep_frames' must lie in [2, 1000]; got {self.sweep_frames}")
+        if self.yaw_range_deg is not None and not 0.0 <= self.yaw_range_deg <= 90.0:
+            raise ValueError(f"argument 'yaw_range_deg' must lie in [0, 90]; got {self.yaw_range_deg}")
+        sweep = self.sweep_frames or get_preset(self.preset).static_frames
+        if self.frames is not None and not 1 <= self.frames <= sweep:
+            raise ValueError(f"argument 'frames' must lie in [1, sweep frames]; got {self.frames}")
         if self.texture_resolution is not None and not 8 <= self.texture_resolution <= 4096:
             raise ValueError(
                 f"argument 'texture_resolution' must lie in [8, 4096]; got {self.texture_resolution}"
@@ -200,15 +210,17 @@ class MitsubaScene:
             "rho_sss_bar": np.clip(config.albedo_scale * truth.rho_sss_bar, 0.0, 1.0) * inside[..., None],
         }
         maps = {k: np.asarray(v, np.float32) for k, v in maps.items()}
+        sweep = config.sweep_frames or preset.static_frames
+        yaw_range = preset.yaw_range_deg if config.yaw_range_deg is None else config.yaw_range_deg
         sequence = StaticSequenceConfig(
-            frame_count=preset.static_frames,
-            yaw_range=math.radians(preset.yaw_range_deg),
+            frame_count=sweep,
+            yaw_range=math.radians(yaw_range),
             pitch_amplitude=math.radians(preset.pitch_range_deg / 2.0),
             pivot=tuple(float(v) for v in asset.neck_pivot),
         )
         placement = head_placement()
         poses = np.stack([placement @ pose for pose in static_sequence_poses(sequence)])
-        poses = poses[: config.frames or preset.static_frames]
+        poses = poses[: config.frames or sweep]
         names = tuple(calibration.channel_names)
         return cls(config, rig, asset.mesh, raster, maps, mask, poses, names)
 
@@ -422,6 +434,8 @@ def render_frame_views(scene: MitsubaScene, pose: np.ndarray, mesh_path: Path) -
     mesh_world = scene.mesh.transformed(pose)
     save_ply(mesh_path, mesh_world)
     if scene.config.renderer == "polarface":
+        from mitsuba_reference import polarface_reference_views
+
         return polarface_reference_views(scene, pose)["local"]
     mi_scene = mitsuba_scene_of(mesh_path)
     posed = reposition(scene.raster, mesh_world)
@@ -515,134 +529,3 @@ def write_mitsuba_capture(out: str | Path, config: MitsubaCaptureConfig, *, prog
     }
     write_json_atomic(out / "mitsuba_capture.json", summary)
     return summary
-
-
-def polarface_reference_views(scene: MitsubaScene, pose: np.ndarray) -> dict[str, dict[str, dict]]:
-    """polarface's own noise-free renders of the same frame, for validating the Mitsuba path.
-
-    Returns ``{"texture": views, "local": views}``, each ``camera id -> {"i0".."i135": (H, W, 3),
-    "mask": (H, W)}``:
-
-    * ``texture``: the simulator's ``--no-blur`` path (:func:`polarface.render.renderer.render_view`:
-      the entering flux is computed per texel, ``E = rho_sss_bar Phi`` is read bilinearly at each
-      pixel's UV);
-    * ``local``: the same image formation evaluated at each pixel's own hit point
-      (:func:`polarface.optics.render_polarimetric` per LED times its shadow ray), which is what the
-      Mitsuba path computes.
-    """
-    from polarface.geometry.raycast import RayCaster
-    from polarface.optics import render_polarimetric
-    from polarface.render.fragments import cast_fragments
-    from polarface.render.renderer import render_view, rig_lighting
-    from polarface.render.shading import FrameTextures, fragment_material
-    from polarface.render.subsurface import entering_flux
-
-    mesh_world = scene.mesh.transformed(pose)
-    caster = RayCaster(mesh_world)
-    posed = reposition(scene.raster, mesh_world)
-    normal_map = shading_normals(posed, scene.maps["displacement_mm"])
-    lights, unit_intensity = rig_lighting(scene.rig)
-    cameras = scene.rig.polarimetric_cameras()
-    flux = entering_flux(
-        caster, posed, normal_map, scene.maps["eta"], lights, unit_intensity, cameras[0].pinhole().up_vector
-    )
-    parameters = {k: scene.maps[k] for k in ("eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss")}
-    textured = FrameTextures.build(
-        parameters, normal_map, scene.maps["rho_sss_bar"] * flux[..., None], scene.mask
-    )
-    albedo = FrameTextures.build(parameters, normal_map, scene.maps["rho_sss_bar"], scene.mask)
-    out: dict[str, dict] = {"texture": {}, "local": {}}
-    for camera in cameras:
-        pinhole = camera.pinhole()
-        channels = tuple(camera.colour_channels[c] for c in ("R", "G", "B"))
-        view = render_view(caster, mesh_world, pinhole, textured, lights, unit_intensity, channels)
-        out["texture"][camera.id] = {**view.images, "mask": view.mask}
-        origins, directions = pinhole.pixel_rays()
-        fragments = cast_fragments(caster, mesh_world, origins.reshape(-1, 3), directions.reshape(-1, 3))
-        position = torch.from_numpy(fragments.position)
-        centre = torch.from_numpy(pinhole.center)
-        material = fragment_material(
-            albedo,
-            torch.from_numpy(fragments.uv),
-            torch.from_numpy(fragments.geometric_normal),
-            position,
-            centre,
-            channels,
-        )
-        visible = caster.shadow_rays(fragments.position, fragments.geometric_normal, lights)
-        images = {name: np.zeros((pinhole.height * pinhole.width, 3), np.float32) for name in ANALYZER_ANGLES}
-        for k in range(len(lights)):
-            rendered = render_polarimetric(
-                material.normal,
-                position,
-                centre,
-                torch.from_numpy(pinhole.up_vector),
-                lights[k : k + 1],
-                torch.full((1, 1), unit_intensity, dtype=torch.float64),
-                material.eta,
-                material.alpha_s,
-                material.alpha_ss,
-                material.rho_s,
-                material.rho_ss,
-                material.exitance,
-            )
-            lit = visible[:, k : k + 1]
-            for name in ANALYZER_ANGLES:
-                images[name][fragments.pixel] += lit * getattr(rendered, name).numpy()
-        mask = np.zeros(pinhole.height * pinhole.width, bool)
-        mask[fragments.pixel] = True
-        shape = (pinhole.height, pinhole.width)
-        out["local"][camera.id] = {
-            **{k: v.reshape(*shape, 3) for k, v in images.items()},
-            "mask": mask.reshape(shape),
-        }
-    return out
-
-
-def compare_views(mitsuba_views: dict, reference_views: dict) -> dict[str, float]:
-    """Relative differences of Mitsuba's analyzer images to a reference, over the pixels both hit.
-
-    Returns:
-        ``relative_l2``: ``||a - b|| / ||b||`` over all four analyzer images and cameras;
-        ``median_relative``: median of ``|a - b| / max(|b|, 1e-3 p99(b))``;
-        ``fraction_above_1e-3``: fraction of pixel-channel values whose relative difference exceeds 1e-3;
-        ``mask_mismatch``: pixels hit in one render only.
-    """
-    differences, norms, relative, mismatch = [], [], [], 0
-    for camera_id, ours in mitsuba_views.items():
-        reference = reference_views[camera_id]
-        both = ours["mask"] & reference["mask"]
-        mismatch += int((ours["mask"] ^ reference["mask"]).sum())
-        floor = 1e-3 * float(np.percentile(reference["i0"][both], 99))
-        for name in ANALYZER_ANGLES:
-            a, b = ours[name][both].astype(np.float64), reference[name][both].astype(np.float64)
-            differences.append(a - b)
-            norms.append(b)
-            relative.append(np.abs(a - b) / np.maximum(np.abs(b), floor))
-    relative_all = np.concatenate([r.ravel() for r in relative])
-    return {
-        "relative_l2": float(
-            np.sqrt(sum((d**2).sum() for d in differences) / sum((b**2).sum() for b in norms))
-        ),
-        "median_relative": float(np.median(relative_all)),
-        "fraction_above_1e-3": float((relative_all > 1e-3).mean()),
-        "mask_mismatch": mismatch,
-    }
-
-
-def validate_against_polarface(config: MitsubaCaptureConfig, frame: int = 0) -> dict:
-    """Frame ``frame``'s noise-free Mitsuba images against polarface's two reference renders
-    (:func:`polarface_reference_views`, :func:`compare_views`); also returns the render time."""
-    import tempfile
-
-    scene = MitsubaScene.build(config)
-    with tempfile.TemporaryDirectory() as folder:
-        started = time.perf_counter()
-        views = render_frame_views(scene, scene.poses[frame], Path(folder) / "mesh.ply")
-        render_s = time.perf_counter() - started
-    references = polarface_reference_views(scene, scene.poses[frame])
-    return {
-        "render_s": render_s,
-        "local": compare_views(views, references["local"]),
-        "texture": compare_views(views, references["texture"]),
-    }

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import types
@@ -14,7 +15,7 @@ from polarface.capture.rig import paper_rig
 from polarface.capture.store import CaptureStore
 from polarface.geometry.poses import check_rigid, load_poses
 from polarface.io import read_exr
-from polarface.simulate.pipeline import SimulationConfig, _raw_frames, simulate
+from polarface.simulate.pipeline import SimulationConfig, SimulationScene, _raw_frames, simulate
 from polarface.simulate.presets import SKIN_TYPES, get_preset, get_skin_type
 
 
@@ -28,11 +29,22 @@ def test_config_errors():
     for seed in (-1, 1.5, True):  # numpy's default_rng rejects a negative seed only after rendering began
         with pytest.raises(ValueError, match="argument 'seed'"):
             SimulationConfig(seed=seed)
+    for frames in (1, 2.5, True, "24"):
+        with pytest.raises(ValueError, match="argument 'static_frames'"):
+            SimulationConfig(static_frames=frames)
     assert get_preset("demo").static_frames == 24
     assert [SKIN_TYPES[k].c_m for k in ("I", "II", "III", "IV")] == sorted(
         SKIN_TYPES[k].c_m for k in ("I", "II", "III", "IV")
     )
     assert get_skin_type("iv").name == "IV"
+
+
+def test_static_frames_resample_the_preset_sweep():
+    """``static_frames`` replaces the preset's frame count and keeps its yaw and pitch ranges."""
+    scene = SimulationScene.build(SimulationConfig(preset="tiny", static_frames=7, sequences=("static",)))
+    preset = get_preset("tiny")
+    assert scene.preset.static_frames == 7
+    assert dataclasses.replace(scene.preset, static_frames=preset.static_frames) == preset
 
 
 def _fake_frame(rig):

@@ -58,10 +58,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="UV atlas side in texels (default: the simulation's, else 512)",
     )
     parser.add_argument(
-        "--iterations", type=int, default=None, help="optimiser steps per patch (default 150)"
+        "--iterations", type=int, default=None, help="optimiser iterations per patch (default 400)"
     )
     parser.add_argument("--lr", type=float, default=None, help="learning rate (default 0.03)")
-    parser.add_argument("--optimizer", choices=("rmsprop", "adam"), default=None)
+    parser.add_argument(
+        "--optimizer",
+        choices=("lbfgs", "rmsprop", "adam"),
+        default=None,
+        help="lbfgs (default; converges the lobes and eta) or the paper's rmsprop (then --iterations 150)",
+    )
+    parser.add_argument(
+        "--lobes",
+        choices=("two", "one"),
+        default=None,
+        help="specular + single-scattering lobes (default two) or one (rho_ss = 0); see docs",
+    )
     parser.add_argument(
         "--refine-lobes",
         type=int,
@@ -130,6 +141,7 @@ def _reconstruct(args: argparse.Namespace, out: Path) -> dict:
             ("lr", args.lr),
             ("optimizer", args.optimizer),
             ("refine_lobes_iterations", args.refine_lobes),
+            ("lobes", args.lobes),
         )
         if v is not None
     }

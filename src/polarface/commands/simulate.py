@@ -28,6 +28,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sequences", default="static,dynamic", help="comma list of static,dynamic")
     parser.add_argument("--no-noise", action="store_true", help="noise-free raw (quantisation only)")
     parser.add_argument("--no-blur", action="store_true", help="local subsurface model (no diffusion blur)")
+    parser.add_argument(
+        "--static-frames",
+        type=int,
+        default=None,
+        help="static (revolving chair) frames, same sweep (default: the preset's)",
+    )
     add_force_argument(parser)
 
 
@@ -42,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
         noise=not args.no_noise,
         subsurface_blur=not args.no_blur,
         sequences=tuple(s.strip() for s in args.sequences.split(",") if s.strip()),
+        static_frames=args.static_frames,
     )
     owned = json_manifest("simulation.json")
     with output_folder(args.out, NAME, force=args.force, owned=owned) as out:

@@ -72,6 +72,9 @@ class SimulationConfig:
         sequences: which sequences to render (``static``, ``dynamic``).
         exposure_fill: the exposure puts the 99.5th percentile of the first frame's co-polarized image
             at this fraction of the full well (fixed for the whole capture).
+        static_frames: frames of the static sequence (None: the preset's); the yaw and pitch sweeps
+            keep their ranges, so more frames sample them more densely (view-count studies,
+            docs/reconstruct.md).
     """
 
     preset: str = "demo"
@@ -82,6 +85,7 @@ class SimulationConfig:
     texel_stretch: bool = False
     sequences: tuple[str, ...] = ("static", "dynamic")
     exposure_fill: float = 0.8
+    static_frames: int | None = None
 
     def __post_init__(self) -> None:
         """Check every field before any work (ValueError naming the argument)."""
@@ -94,6 +98,12 @@ class SimulationConfig:
             raise ValueError(
                 f"argument 'sequences' must be a non-empty subset of static/dynamic; got {self.sequences}"
             )
+        if self.static_frames is not None and (
+            isinstance(self.static_frames, bool)
+            or not isinstance(self.static_frames, int | np.integer)
+            or self.static_frames < 2
+        ):
+            raise ValueError(f"argument 'static_frames' must be an integer >= 2; got {self.static_frames!r}")
         if not 0 < self.exposure_fill <= 1:  # NaN fails too
             raise ValueError(f"argument 'exposure_fill' must lie in (0, 1]; got {self.exposure_fill}")
 
@@ -119,6 +129,8 @@ class SimulationScene:
     @classmethod
     def build(cls, config: SimulationConfig) -> SimulationScene:
         preset = get_preset(config.preset)
+        if config.static_frames is not None:
+            preset = dataclasses.replace(preset, static_frames=int(config.static_frames))
         rig = _with_stereo_resolution(
             paper_rig(width=preset.width, height=preset.height), preset.stereo_width, preset.stereo_height
         )

@@ -16,7 +16,14 @@ import torch
 from polarface.inverse.polarimetric.losses import LossWeights
 from polarface.optics.pbssrdf import SURFACE_PARAMETER_NAMES
 
-__all__ = ["PARAMETER_NAMES", "PolarimetricConfig", "initial_raw", "maps_from_raw", "raw_from_maps"]
+__all__ = [
+    "NO_LOBE_RAW",
+    "PARAMETER_NAMES",
+    "PolarimetricConfig",
+    "initial_raw",
+    "maps_from_raw",
+    "raw_from_maps",
+]
 
 #: Output maps (``rho_sss_bar`` has 6 channels, the others one).
 PARAMETER_NAMES = (*SURFACE_PARAMETER_NAMES, "rho_sss_bar", "displacement_mm")
@@ -29,9 +36,11 @@ class PolarimetricConfig:
 
     Attributes:
         weights: :class:`LossWeights`.
-        optimizer: ``rmsprop`` (paper) or ``adam``; lr: learning rate on the raw variables;
-        iterations: optimiser steps per patch; lr_final_fraction: cosine decay to this fraction of lr;
-        warmup: linear learning-rate warm-up steps.
+        optimizer: ``lbfgs`` (default: converges the lobe maps and with them eta,
+            :mod:`polarface.inverse.polarimetric.optimise`), ``rmsprop`` (the paper's; 150 iterations
+            were the earlier default) or ``adam``; iterations: optimiser iterations per patch;
+            lr: learning rate on the raw variables, lr_final_fraction: cosine decay to this fraction of
+            lr, warmup: linear learning-rate warm-up steps (rmsprop and adam only).
         patch: largest patch side (texels); halo: halo width (texels, >= 2 for the 5x5 window);
         sample_budget: most samples (texel x view) held per patch.
         eta_range, alpha_range: reparameterisation ranges; rho_max: largest lobe albedo;
@@ -51,16 +60,20 @@ class PolarimetricConfig:
         seed: torch seed (deterministic runs).
         refine_lobes_iterations: Levenberg-Marquardt iterations on the four lobe maps after each
             patch's optimisation (:func:`polarface.inverse.polarimetric.refine.refine_patch_lobes`; 0,
-            the default, disables it). It lowers the loss and the alpha_s error but not the rho_s error,
-            and it doubles the optimisation time: with noisy observations the objective's own minimum is
-            off along the lobes' valley (measurements: docs/reconstruct.md).
+            the default, disables it). After the default L-BFGS it moves along the lobes' degenerate
+            direction (two lobes of similar width sharing the energy) and worsens eta; kept for
+            experiments (docs/reconstruct.md, "Two lobes or one").
         refine_lobes_damping: its initial Marquardt damping (relative to the Gauss-Newton diagonal).
+        lobes: ``two`` (the paper's specular + single-scattering lobes) or ``one`` (rho_ss fixed at 0,
+            alpha_ss unused: for materials without the second lobe, or when the split does not matter;
+            with the rig's noise and a few dozen views the data do not determine the split, so this
+            is a modelling choice: docs/reconstruct.md, "Two lobes or one").
     """
 
     weights: LossWeights = dataclasses.field(default_factory=LossWeights)
-    optimizer: str = "rmsprop"
+    optimizer: str = "lbfgs"
     lr: float = 0.03
-    iterations: int = 150
+    iterations: int = 400
     lr_final_fraction: float = 0.1
     warmup: int = 20
     patch: int = 64
@@ -80,10 +93,19 @@ class PolarimetricConfig:
     seed: int = 0
     refine_lobes_iterations: int = 0
     refine_lobes_damping: float = 1e-3
+    lobes: str = "two"
+
+    @property
+    def frozen_variables(self) -> tuple[str, ...]:
+        """Raw variables the optimiser leaves at their initial values (``lobes == "one"``: the second
+        lobe's, with rho_ss ~ 1e-13)."""
+        return ("alpha_ss", "rho_ss") if self.lobes == "one" else ()
 
     def __post_init__(self) -> None:
-        if self.optimizer not in ("rmsprop", "adam"):
-            raise ValueError(f"argument 'optimizer' must be 'rmsprop' or 'adam'; got {self.optimizer!r}")
+        if self.optimizer not in ("lbfgs", "rmsprop", "adam"):
+            raise ValueError(
+                f"argument 'optimizer' must be 'lbfgs', 'rmsprop' or 'adam'; got {self.optimizer!r}"
+            )
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"argument 'lr' must be > 0; got {self.lr}")
         if int(self.iterations) < 1:
@@ -120,8 +142,16 @@ class PolarimetricConfig:
             )
         if not (self.refine_lobes_damping > 0 and math.isfinite(self.refine_lobes_damping)):
             raise ValueError(f"argument 'refine_lobes_damping' must be > 0; got {self.refine_lobes_damping}")
+        if self.lobes not in ("two", "one"):
+            raise ValueError(f"argument 'lobes' must be 'two' or 'one'; got {self.lobes!r}")
+        if self.lobes == "one" and int(self.refine_lobes_iterations) > 0:
+            raise ValueError("argument 'refine_lobes_iterations' must be 0 with lobes='one'")
         if not self.h_scale_mm > 0:
             raise ValueError(f"argument 'h_scale_mm' must be > 0; got {self.h_scale_mm}")
+
+
+#: Raw rho_ss of an absent second lobe (rho_ss = rho_max sigmoid(-30) ~ 2e-13).
+NO_LOBE_RAW = -30.0
 
 
 def _logit(p: np.ndarray | float) -> np.ndarray:
@@ -174,4 +204,7 @@ def initial_raw(resolution: tuple[int, int], config: PolarimetricConfig) -> dict
         "rho_sss_bar": 0.4 * np.ones((height, width, 6)),
         "displacement_mm": 0.0 * ones,
     }
-    return {k: v.astype(np.float32) for k, v in raw_from_maps(maps, config).items()}
+    raw = {k: v.astype(np.float32) for k, v in raw_from_maps(maps, config).items()}
+    if config.lobes == "one":
+        raw["rho_ss"][:] = NO_LOBE_RAW
+    return raw

@@ -4,7 +4,8 @@
 
 * ``fused``: the numba kernel with analytic gradients (:mod:`polarface.inverse.polarimetric.kernel`),
   on compact per-texel samples (:class:`~polarface.inverse.polarimetric.fused.FusedSamples`); CPU only;
-  with RMSprop the whole optimiser step runs in numba (:mod:`polarface.inverse.polarimetric.step`).
+  the whole objective and its gradient run in numba (:mod:`polarface.inverse.polarimetric.step`), and
+  RMSprop's update too.
 * ``torch``: the vectorised torch autograd reference (:mod:`polarface.inverse.polarimetric.model`,
   :mod:`polarface.inverse.polarimetric.losses`); any device.
 

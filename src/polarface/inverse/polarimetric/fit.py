@@ -1,8 +1,9 @@
 """Patch-based optimisation of the static polarimetric maps (paper Sec. 5.2, Eq. p-inverse-main-loss).
 
 Unknowns per texel: eta, alpha_s, alpha_ss, rho_s, rho_ss, rho_sss_bar (6 channels) and the
-displacement H (mm). They are optimised jointly with RMSprop (paper: RMSprop, lr 1e-3) on
-reparameterised variables that keep them in physical ranges:
+displacement H (mm). They are optimised jointly, by L-BFGS by default (the paper's RMSprop, lr 1e-3,
+is an option; :mod:`polarface.inverse.polarimetric.optimise` says why), on reparameterised variables
+that keep them in physical ranges:
 
 * ``eta = eta_lo + (eta_hi - eta_lo) sigmoid(z)`` (default 1.05..2.5: reaches the paper's 1.15-2.4
   validation range);
@@ -23,7 +24,8 @@ albedos and lighting), rho_sss_bar by linear least squares on I_sss, and (alpha_
 alpha_s with rho_s in closed form on the I_s residual. Optionally (``config.refine_lobes_iterations``,
 default 0) Levenberg-Marquardt iterations on the four lobe maps
 (:mod:`polarface.inverse.polarimetric.refine`) follow each patch's optimisation: they move the
-patch-wide alpha_s mode that RMSprop leaves where the start put it. Deterministic for a seed (the
+patch-wide alpha_s mode that RMSprop leaves where the start put it (L-BFGS moves it itself).
+Deterministic for a seed (the
 order of patches is fixed; nothing is random except an optional sample shuffle seeded by ``seed``).
 Checkpoints after every patch allow an interrupted run to resume to identical maps.
 """

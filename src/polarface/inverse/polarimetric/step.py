@@ -1,16 +1,19 @@
 """Whole optimiser steps of one patch on the CPU, without torch (the fused engine's hot loop).
 
-An RMSprop step of :func:`polarface.inverse.polarimetric.fit.optimise_patch` is: raw variables ->
+An evaluation of the objective of :func:`polarface.inverse.polarimetric.optimise.optimise_patch` is:
+raw variables ->
 maps (:func:`~polarface.inverse.polarimetric.config.maps_from_raw`) -> normals from H
 (:class:`~polarface.geometry.heights.HeightNormals`) -> data loss (the fused kernel,
 :mod:`polarface.inverse.polarimetric.kernel`) + regularisers (H^2, (Laplacian H)^2, 5x5 smoothness of
-eta, alpha_s, alpha_ss; :mod:`polarface.inverse.polarimetric.losses`) -> gradient -> RMSprop update.
+eta, alpha_s, alpha_ss; :mod:`polarface.inverse.polarimetric.losses`) -> gradient (then, for RMSprop,
+the update).
 Once the data loss ran in the kernel, the rest — about a hundred small torch operations and their
 autograd graph — cost a quarter of a step. Here the same mathematics runs in two numba functions around
 the kernel: :func:`_forward` (reparameterisation and normals, packed for the kernel) and
-:func:`_backward` (regularisers and their gradient, the chain rule back to the raw variables, and
-torch's RMSprop update with its defaults ``alpha = 0.99, eps = 1e-8``). Tests compare the trajectory
-with the torch implementation.
+:func:`_backward` (regularisers and their gradient, the chain rule back to the raw variables).
+:class:`FusedObjective` is that loss and gradient on the packed raw variables (what L-BFGS calls);
+:func:`optimise_patch_fused` adds torch's RMSprop update (defaults ``alpha = 0.99, eps = 1e-8``) in
+numba. Tests compare the loss, gradient and RMSprop trajectory with the torch implementation.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from polarface.inverse.polarimetric.config import PARAMETER_NAMES, PolarimetricC
 from polarface.inverse.polarimetric.fused import fused_loss_and_grad
 from polarface.inverse.polarimetric.losses import laplacian_support
 
-__all__ = ["RAW_LAYOUT", "optimise_patch_fused"]
+__all__ = ["RAW_LAYOUT", "FusedObjective", "optimise_patch_fused", "pack_raw", "unpack_raw"]
 
 #: Channels of the packed raw array ``(h, w, 12)``.
 RAW_LAYOUT = PARAMETER_NAMES
@@ -130,10 +133,11 @@ def _smoothness(values, mask, count, weight, grad):
 
 @numba.njit(**_JIT)
 def _backward(
-    raw, square_avg, params, data_grad, data_loss, height, unit, mask, count, lap_valid, reg_weights,
-    ranges, inv_texels, stencil_u, stencil_v, per_dh_dv, per_dh_du, lr,
+    raw, grad_out, params, data_grad, data_loss, height, unit, mask, count, lap_valid, reg_weights,
+    ranges, inv_texels, stencil_u, stencil_v, per_dh_dv, per_dh_du,
 ):  # fmt: skip
-    """Regularisers, gradient w.r.t. ``raw`` and the RMSprop update (in place); returns the total loss."""
+    """Regularisers and the gradient of the total loss w.r.t. ``raw`` (written into ``grad_out``, the
+    shape of ``raw``); returns the total loss."""
     e_lo, e_hi, a_lo, a_hi, rho_max, h_scale = ranges
     w_ht, w_hl, w_eta, w_as, w_ass = reg_weights
     rows, cols = raw.shape[0], raw.shape[1]
@@ -188,8 +192,7 @@ def _backward(
                 g_h[i + 1, j] += stencil_v[0, i, j] * g_dv
             if i > 0:
                 g_h[i - 1, j] += stencil_v[2, i, j] * g_dv
-    # chain rule to the raw variables (every term carries the loss's 1 / texel_count) and RMSprop
-    grad = np.empty(12)
+    # chain rule to the raw variables (every term carries the loss's 1 / texel_count)
     for i in range(rows):
         for j in range(cols):
             t = i * cols + j
@@ -202,6 +205,7 @@ def _backward(
             g_alpha_s = (
                 data_grad[t, 4] * inv_texels + g_maps[1, i, j] * inv_texels + g_alpha_ss * (1.0 - s_ass)
             )
+            grad = grad_out[i, j]
             grad[0] = g_eta * (e_hi - e_lo) * s_eta * (1.0 - s_eta)
             grad[1] = g_alpha_s * (a_hi - a_lo) * s_as * (1.0 - s_as)
             grad[2] = g_alpha_ss * (a_hi - alpha_s) * s_ass * (1.0 - s_ass)
@@ -212,20 +216,94 @@ def _backward(
                 s = _sigmoid(raw[i, j, 5 + c])
                 grad[5 + c] = data_grad[t, 8 + c] * inv_texels * s * (1.0 - s)
             grad[11] = g_h[i, j] * inv_texels * h_scale
-            for q in range(12):
-                avg = _RMS_ALPHA * square_avg[i, j, q] + (1.0 - _RMS_ALPHA) * grad[q] * grad[q]
-                square_avg[i, j, q] = avg
-                raw[i, j, q] -= lr * grad[q] / (math.sqrt(avg) + _RMS_EPS)
     return total * inv_texels
 
 
-def _pack(raw: dict[str, torch.Tensor]) -> np.ndarray:
+@numba.njit(**_JIT)
+def _rmsprop_update(raw, square_avg, grad, lr):
+    """torch's RMSprop step (defaults ``alpha = 0.99, eps = 1e-8``) on ``raw`` in place."""
+    flat_raw, flat_avg, flat_grad = raw.reshape(-1), square_avg.reshape(-1), grad.reshape(-1)
+    for q in range(flat_raw.shape[0]):
+        g = flat_grad[q]
+        avg = _RMS_ALPHA * flat_avg[q] + (1.0 - _RMS_ALPHA) * g * g
+        flat_avg[q] = avg
+        flat_raw[q] -= lr * g / (math.sqrt(avg) + _RMS_EPS)
+
+
+class FusedObjective:
+    """The total loss of one patch (``PatchProblem.loss``: data terms through the fused kernel plus the
+    regularisers) and its gradient with respect to the packed raw variables, without torch.
+
+    Args:
+        problem: a :class:`~polarface.inverse.polarimetric.problem.PatchProblem` with fused samples.
+        config: ``PolarimetricConfig`` (ranges and weights).
+        dtype: float type of the kernel (``float32`` for the fit, ``float64`` for checks).
+    """
+
+    def __init__(self, problem, config: PolarimetricConfig, dtype: np.dtype) -> None:
+        samples = problem.fused
+        self.samples = samples if samples.observed.dtype == dtype else samples.astype(dtype)
+        operator = problem.height_normals()
+        numpy = lambda x: np.ascontiguousarray(x.detach().cpu().numpy())  # noqa: E731
+        mask = numpy(problem.mask).astype(bool)
+        rows, cols = mask.shape
+        count = np.zeros((rows, cols))
+        padded = np.pad(mask.astype(np.float64), 2)
+        for a in range(5):
+            for b in range(5):
+                count += padded[a : a + rows, b : b + cols]
+        lap_valid = np.zeros_like(mask)
+        if min(rows, cols) >= 3:
+            lap_valid[1:-1, 1:-1] = laplacian_support(mask)
+        self.stencils = (numpy(operator.weights_u), numpy(operator.weights_v))
+        self.per_dh = (numpy(operator.per_dh_dv), numpy(operator.per_dh_du))
+        self.constant = numpy(operator.constant)
+        self.base_normal = numpy(operator.normal)
+        self.keep_base = numpy(operator.keep_base[..., 0])
+        self.mask, self.count, self.lap_valid = mask, count, lap_valid
+        w = config.weights
+        self.ranges = (*config.eta_range, *config.alpha_range, config.rho_max, config.h_scale_mm)
+        self.reg_weights = (w.h_temporal, w.h_laplacian, w.eta, w.alpha_s, w.alpha_ss)
+        self.data_weights = (w.sss, w.s, w.phi, w.psi)
+        self.inv_texels = 1.0 / max(problem.texel_count, 1)
+        self.scale = problem.scale
+        self.params = np.empty((rows * cols, 14), dtype=dtype)
+        self.frozen_channels = _channels_of(config.frozen_variables)
+
+    def __call__(self, packed: np.ndarray, grad_out: np.ndarray) -> float:
+        """Total loss at ``packed`` (``(h, w, 12)`` raw variables, :data:`RAW_LAYOUT`); its gradient is
+        written into ``grad_out`` (same shape)."""
+        stencil_u, stencil_v = self.stencils
+        per_dh_dv, per_dh_du = self.per_dh
+        height, unit = _forward(
+            packed, self.ranges, stencil_u, stencil_v, self.constant, per_dh_dv, per_dh_du,
+            self.base_normal, self.keep_base, self.params,
+        )  # fmt: skip
+        loss, data_grad, _ = fused_loss_and_grad(self.samples, self.params, self.data_weights, self.scale)
+        total = _backward(
+            packed, grad_out, self.params, data_grad, float(loss.sum(dtype=np.float64)), height, unit,
+            self.mask, self.count, self.lap_valid, self.reg_weights, self.ranges, self.inv_texels,
+            stencil_u, stencil_v, per_dh_dv, per_dh_du,
+        )  # fmt: skip
+        grad_out[..., self.frozen_channels] = 0.0  # frozen variables do not move
+        return float(total)
+
+
+def _channels_of(names: Sequence[str]) -> list[int]:
+    """Channels of the packed raw array that hold the variables ``names``."""
+    starts = np.cumsum((0, *_CHANNELS))
+    return [c for i, name in enumerate(RAW_LAYOUT) if name in names for c in range(starts[i], starts[i + 1])]
+
+
+def pack_raw(raw: dict[str, torch.Tensor]) -> np.ndarray:
+    """``(h, w, 12)`` raw variables in :data:`RAW_LAYOUT` order (a new contiguous array)."""
     return np.ascontiguousarray(
         np.concatenate([raw[name].detach().cpu().numpy() for name in RAW_LAYOUT], axis=-1)
     )
 
 
-def _unpack(packed: np.ndarray, like: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def unpack_raw(packed: np.ndarray, like: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Inverse of :func:`pack_raw`: name -> tensor with the dtype and device of ``like[name]``."""
     out, start = {}, 0
     for name, width in zip(RAW_LAYOUT, _CHANNELS, strict=True):
         out[name] = torch.from_numpy(packed[..., start : start + width].copy()).to(like[name])
@@ -252,44 +330,16 @@ def optimise_patch_fused(
     Returns:
         The final raw variables (detached tensors like ``raw``).
     """
-    samples = problem.fused
-    operator = problem.height_normals()
     dtype = np.dtype(np.float32) if raw["eta"].dtype == torch.float32 else np.dtype(np.float64)
-    samples = samples if samples.observed.dtype == dtype else samples.astype(dtype)
-    numpy = lambda x: np.ascontiguousarray(x.detach().cpu().numpy())  # noqa: E731
-    mask = numpy(problem.mask).astype(bool)
-    rows, cols = mask.shape
-    count = np.zeros((rows, cols))
-    padded = np.pad(mask.astype(np.float64), 2)
-    for a in range(5):
-        for b in range(5):
-            count += padded[a : a + rows, b : b + cols]
-    lap_valid = np.zeros_like(mask)
-    if min(rows, cols) >= 3:
-        lap_valid[1:-1, 1:-1] = laplacian_support(mask)
-    stencil_u, stencil_v = numpy(operator.weights_u), numpy(operator.weights_v)
-    per_dh_dv, per_dh_du = numpy(operator.per_dh_dv), numpy(operator.per_dh_du)
-    geometry = (stencil_u, stencil_v, numpy(operator.constant), per_dh_dv, per_dh_du)
-    base_normal = numpy(operator.normal)
-    keep_base = numpy(operator.keep_base[..., 0])
-    w = config.weights
-    ranges = (*config.eta_range, *config.alpha_range, config.rho_max, config.h_scale_mm)
-    reg_weights = (w.h_temporal, w.h_laplacian, w.eta, w.alpha_s, w.alpha_ss)
-    data_weights = (w.sss, w.s, w.phi, w.psi)
-    inv_texels = 1.0 / max(problem.texel_count, 1)
-    packed = _pack(raw).astype(dtype)
+    objective = FusedObjective(problem, config, dtype)
+    packed = pack_raw(raw).astype(dtype)
     square_avg = np.zeros_like(packed)
-    params = np.empty((rows * cols, 14), dtype=dtype)
+    grad = np.zeros(packed.shape)
     for step, lr in enumerate(learning_rates):
-        height, unit = _forward(packed, ranges, *geometry, base_normal, keep_base, params)
-        loss, data_grad, _ = fused_loss_and_grad(samples, params, data_weights, problem.scale)
-        total = _backward(
-            packed, square_avg, params, data_grad, float(loss.sum(dtype=np.float64)), height, unit, mask,
-            count, lap_valid, reg_weights, ranges, inv_texels, stencil_u, stencil_v, per_dh_dv, per_dh_du,
-            float(lr),
-        )  # fmt: skip
+        total = objective(packed, grad)
+        _rmsprop_update(packed, square_avg, grad, float(lr))
         if curve is not None:
             if len(curve) <= step:
                 curve.append(0.0)
             curve[step] += float(total)
-    return _unpack(packed, raw)
+    return unpack_raw(packed, raw)
