@@ -63,8 +63,13 @@ def test_create_executor_checks_its_arguments():
         create_executor("dask")
     with pytest.raises(ValueError, match="'--ray-address' needs '--executor ray'"):
         create_executor("local", address="head:6379")
+    with pytest.raises(ValueError, match="'--gpus-per-unit' needs '--executor ray'"):
+        create_executor("local", gpus_per_unit=1)
     with pytest.raises(ValueError, match="'--workers' must be >= 1"):
         create_executor("ray", workers=0)
+    with pytest.raises(ValueError, match="'--gpus-per-unit' must be >= 0"):
+        create_executor("ray", gpus_per_unit=-1)
+    assert create_executor("ray", gpus_per_unit=1).describe()["gpus_per_unit"] == 1.0
 
 
 def test_an_unreachable_ray_address_is_refused_within_seconds():

@@ -38,8 +38,8 @@ def add_force_argument(parser: argparse.ArgumentParser, target: str = "the outpu
 
 
 def add_executor_arguments(parser: argparse.ArgumentParser, units: str = "units") -> None:
-    """``--executor local|ray``, ``--ray-address ADDR`` and ``--workers N``: how the command's ``units``
-    run (:mod:`polarface.executors`)."""
+    """``--executor local|ray``, ``--ray-address ADDR``, ``--workers N`` and ``--gpus-per-unit G``: how
+    the command's ``units`` run (:mod:`polarface.executors`)."""
     parser.add_argument(
         "--executor", choices=("local", "ray"), default="local",
         help=f"run the {units} in this process (local, default) or as Ray tasks (ray; needs "
@@ -54,6 +54,11 @@ def add_executor_arguments(parser: argparse.ArgumentParser, units: str = "units"
         "--workers", type=int, default=None,
         help=f"with --executor ray: {units} at once, and the CPUs of a local Ray instance (default: all)",
     )
+    parser.add_argument(
+        "--gpus-per-unit", type=float, default=None, metavar="G",
+        help="with --executor ray: GPUs reserved by each Ray task (default 0; 1 on GPU workers, with "
+        "--device auto)",
+    )
 
 
 def executor_from_args(args: argparse.Namespace):
@@ -61,4 +66,5 @@ def executor_from_args(args: argparse.Namespace):
     (:func:`polarface.executors.create_executor`)."""
     from polarface.executors import create_executor
 
-    return create_executor(args.executor, address=args.ray_address, workers=args.workers)
+    return create_executor(args.executor, address=args.ray_address, workers=args.workers,
+                           gpus_per_unit=args.gpus_per_unit)

@@ -33,23 +33,25 @@ __all__ = [
 EXECUTOR_NAMES = ("local", "ray")
 
 
-def create_executor(name: str = "local", *, address: str | None = None,
-                    workers: int | None = None) -> Executor:
+def create_executor(name: str = "local", *, address: str | None = None, workers: int | None = None,
+                    gpus_per_unit: float | None = None) -> Executor:
     """The executor called ``name`` (:data:`EXECUTOR_NAMES`), not started yet.
 
     Args:
         address: the Ray cluster's address (``ray`` only; None: a local Ray instance).
         workers: units in flight at once (``ray`` only).
+        gpus_per_unit: GPUs each unit reserves on the cluster (``ray`` only; None: 0).
 
     Raises:
-        ValueError: an unknown name, or ``address``/``workers`` with the local executor (naming the
-            arguments ``--executor``, ``--ray-address``, ``--workers``).
+        ValueError: an unknown name, or ``address``/``workers``/``gpus_per_unit`` with the local executor
+            (naming the arguments ``--executor``, ``--ray-address``, ``--workers``, ``--gpus-per-unit``).
     """
     if name not in EXECUTOR_NAMES:
         raise ValueError(f"argument '--executor' must be one of {', '.join(EXECUTOR_NAMES)}; got {name!r}")
     if name == "local":
-        for argument, value in (("--ray-address", address), ("--workers", workers)):
+        for argument, value in (("--ray-address", address), ("--workers", workers),
+                                ("--gpus-per-unit", gpus_per_unit)):
             if value is not None:
                 raise ValueError(f"argument '{argument}' needs '--executor ray'")
         return LocalExecutor()
-    return RayExecutor(address, workers)
+    return RayExecutor(address, workers, gpus_per_unit=gpus_per_unit or 0.0)

@@ -97,7 +97,7 @@ class RayExecutor:
         if int(max_retries) < 0:
             raise ValueError(f"argument 'max_retries' must be >= 0; got {max_retries}")
         if float(gpus_per_unit) < 0:
-            raise ValueError(f"argument 'gpus_per_unit' must be >= 0; got {gpus_per_unit}")
+            raise ValueError(f"argument '--gpus-per-unit' must be >= 0; got {gpus_per_unit}")
         self.address = address or None
         self.workers = None if workers is None else int(workers)
         self.max_retries = int(max_retries)
