@@ -33,6 +33,10 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "register_to_reference", "registration_map", "reprojection_rms", "scan_raw_directory",
         "simulate_raw", "stokes_pattern", "update_rig", "write_manifest", "write_stokes_images",
     ),
+    "polarface.executors": (
+        "EXECUTOR_NAMES", "Executor", "LocalExecutor", "RayExecutor", "ThreadSettings", "UNIT_FAILURES",
+        "UnitOutcome", "check_ray_address", "create_executor", "failure_reason", "run_unit",
+    ),
     "polarface.geometry": (
         "CylindricalAtlas", "CylindricalAtlasConfig", "EXPRESSIONS", "ExpressionConfig",
         "ExpressionRig", "HeadAsset", "HeightNormals", "PinholeCamera", "PointCloud",

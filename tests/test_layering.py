@@ -15,7 +15,7 @@ import polarface
 
 #: Layers from the bottom up; packages in one layer must not import each other.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("_validation", "device", "io"),  # base utilities
+    ("_validation", "device", "io", "executors"),  # base utilities
     ("optics",),  # physics: polarisation optics
     ("skin",),  # physics: skin model
     ("geometry",),  # data: meshes, camera, poses, ray casting, UV atlas

@@ -12,7 +12,7 @@ import argparse
 import dataclasses
 from typing import Any, TypeVar
 
-__all__ = ["add_force_argument", "options_from_args"]
+__all__ = ["add_executor_arguments", "add_force_argument", "executor_from_args", "options_from_args"]
 
 _Options = TypeVar("_Options")
 
@@ -35,3 +35,36 @@ def add_force_argument(parser: argparse.ArgumentParser, target: str = "the outpu
     parser.add_argument(
         "--force", action="store_true", help=f"replace {target} (swapped in once the run succeeds)"
     )
+
+
+def add_executor_arguments(parser: argparse.ArgumentParser, units: str = "units") -> None:
+    """``--executor local|ray``, ``--ray-address ADDR``, ``--workers N`` and ``--gpus-per-unit G``: how
+    the command's ``units`` run (:mod:`polarface.executors`)."""
+    parser.add_argument(
+        "--executor", choices=("local", "ray"), default="local",
+        help=f"run the {units} in this process (local, default) or as Ray tasks (ray; needs "
+        "'pip install polarface[cluster]')",
+    )
+    parser.add_argument(
+        "--ray-address", default=None, metavar="ADDR",
+        help="Ray cluster to use with --executor ray (HOST:PORT, ray://HOST:PORT or auto; default: start "
+        "a local Ray instance)",
+    )
+    parser.add_argument(
+        "--workers", type=int, default=None,
+        help=f"with --executor ray: {units} at once, and the CPUs of a local Ray instance (default: all)",
+    )
+    parser.add_argument(
+        "--gpus-per-unit", type=float, default=None, metavar="G",
+        help="with --executor ray: GPUs reserved by each Ray task (default 0; 1 on GPU workers, with "
+        "--device auto)",
+    )
+
+
+def executor_from_args(args: argparse.Namespace):
+    """The executor of :func:`add_executor_arguments`'s arguments, not started
+    (:func:`polarface.executors.create_executor`)."""
+    from polarface.executors import create_executor
+
+    return create_executor(args.executor, address=args.ray_address, workers=args.workers,
+                           gpus_per_unit=args.gpus_per_unit)

@@ -6,6 +6,8 @@ DYNAMIC is a capture store of the same rig (or a simulation folder: ``SIM/dynami
 ``RESULT/frames/NNNN`` and records ``stages.dynamic`` in ``result.json``; the report is rewritten with
 its section (animations of the per-frame maps, chromophores over time). Rerunning the command resumes:
 finished frames are kept. ``polarface reconstruct STATIC --dynamic DYNAMIC`` runs both in one command.
+``--executor ray [--ray-address ADDR] [--workers N]`` runs the frames as Ray tasks
+(:mod:`polarface.executors`); an unreachable address is refused before anything is written.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+
+from polarface.commands import add_executor_arguments, executor_from_args
 
 NAME = "dynamic"
 HELP = "reconstruct a dynamic capture frame by frame on a static RESULT (tracking, per-frame maps)"
@@ -27,6 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--device", default=None, help="cpu, cuda or auto (default: POLARFACE_DEVICE, auto)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads of the fits (default 1)")
+    add_executor_arguments(parser, "frames")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -39,10 +44,10 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.result.is_dir():
         raise FileNotFoundError(f"RESULT folder '{args.result}' does not exist")
-    with lock_output(args.result, NAME):
+    with executor_from_args(args) as executor, lock_output(args.result, NAME):
         record = reconstruct_dynamic(
             args.result, args.dynamic, frames=args.frames, device=args.device or "auto",
-            threads=args.threads, progress=not args.quiet,
+            threads=args.threads, progress=not args.quiet, executor=executor,
         )
         write_result_report(ResultFolder(args.result))
     summary = {k: record.get(k) for k in ("completed", "failed_frames", "anchors", "seconds_per_frame")}

@@ -28,7 +28,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from polarface.commands import add_force_argument
+from polarface.commands import add_executor_arguments, add_force_argument, executor_from_args
 
 NAME = "reconstruct"
 HELP = "static polarimetric inverse rendering of a capture into texture maps (RESULT folder)"
@@ -106,6 +106,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--frames", default=None, help="dynamic frames whose maps are fitted, e.g. '0-4,7' (default: all)"
     )
+    add_executor_arguments(parser, "dynamic frames")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run in RESULT")
     add_force_argument(parser, "RESULT")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -118,13 +119,13 @@ def run(args: argparse.Namespace) -> int:
 
     owned = json_manifest(RESULT_JSON, format=RESULT_FORMAT)
     folder = output_folder(args.out, NAME, resume=args.resume, force=args.force, owned=owned, marker=False)
-    with folder as out:
-        result = _reconstruct(args, out)
+    with executor_from_args(args) as executor, folder as out:
+        result = _reconstruct(args, out, executor)
     print(reconstruct_summary_line(Path(args.out), result))
     return 0
 
 
-def _reconstruct(args: argparse.Namespace, out: Path) -> dict:
+def _reconstruct(args: argparse.Namespace, out: Path, executor=None) -> dict:
     from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
 
     inputs = resolve_reconstruct_inputs(
@@ -156,4 +157,5 @@ def _reconstruct(args: argparse.Namespace, out: Path) -> dict:
         progress=not args.quiet,
         dynamic=args.dynamic,
         frames=args.frames,
+        executor=executor,
     )

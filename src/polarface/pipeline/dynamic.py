@@ -49,23 +49,26 @@ import numpy as np
 from tqdm import tqdm
 
 from polarface.capture.store import CaptureStore
+from polarface.executors import Executor, LocalExecutor, UnitOutcome
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.poses import invert_rigid
 from polarface.geometry.registration import RegistrationConfig
-from polarface.geometry.tracking import TrackingConfig
+from polarface.geometry.tracking import TrackingConfig, load_tracked
 from polarface.inverse.polarimetric.dynamic import DynamicConfig
 from polarface.io import json_values
 from polarface.pipeline.dynamic_geometry import TrackingFolder, align_reference, stereo_pass, track_sequence
 from polarface.pipeline.geometry import GeometryConfig, check_stereo_pairs
 from polarface.pipeline.reconstruct_inputs import check_capture_manifest
-from polarface.results import ResultFolder
+from polarface.results import ResultFolder, layout
 
 __all__ = [
     "DynamicStageConfig",
+    "FrameUnit",
     "open_dynamic_capture",
     "parse_frame_selection",
     "reconstruct_dynamic",
     "resolve_dynamic_capture",
+    "run_frame_unit",
 ]
 
 LOGGER = logging.getLogger(__name__)
@@ -270,6 +273,58 @@ def _process_frame(store: CaptureStore, folder: ResultFolder, frame: int, frames
     return timings
 
 
+@dataclasses.dataclass(frozen=True)
+class FrameUnit:
+    """One frame of step 4 (module docstring) as an executor unit: where its inputs are, not the inputs.
+
+    Attributes:
+        result_dir: the RESULT folder (static maps, reference mesh, ``tracking/tracked.npz``; the frame's
+            outputs go to ``frames/NNNN``).
+        capture: the dynamic capture store.
+        frame: the frame's index in the capture.
+        frames: every frame index of the capture, in order (the unwrap excludes all but ``frame``).
+        alignment: ``(4, 4)`` float64 rigid transform static model frame -> the dynamic capture's rig
+            world (mm; ``tracking.json``'s alignment).
+        config: the stage's options.
+        device: torch device spec, resolved where the unit runs (``polarface.device.resolve_device``).
+        threads: torch threads of the fit (None: unchanged).
+    """
+
+    result_dir: Path
+    capture: Path
+    frame: int
+    frames: tuple[int, ...]
+    alignment: np.ndarray
+    config: DynamicStageConfig
+    device: str
+    threads: int | None
+
+
+def run_frame_unit(unit: FrameUnit) -> dict[str, float]:
+    """Run one frame (:class:`FrameUnit`) from the files: the tracked mesh of the frame in the model frame,
+    then unwrap, fit, chromophores and render into ``frames/NNNN`` (steps already recorded complete are
+    skipped, so a rerun after a lost worker continues); seconds per step.
+
+    Raises:
+        ValueError, FileNotFoundError, RuntimeError: the frame cannot be reconstructed (reported by the
+            executor as the frame's failure).
+    """
+    from polarface.device import resolve_device
+
+    store = CaptureStore.open(unit.capture)
+    folder = ResultFolder(unit.result_dir)
+    tracked = load_tracked(folder.tracking_dir / layout.TRACKED_NPZ)
+    row = list(tracked.frames).index(unit.frame)
+    to_model = invert_rigid(unit.alignment)
+    vertices = tracked.vertices[row] @ to_model[:3, :3].T + to_model[:3, 3]
+    mesh = folder.read_mesh().with_vertices(vertices)
+    timings = _process_frame(store, folder, unit.frame, list(unit.frames), mesh, unit.alignment,
+                             _static_inputs(folder), unit.config, resolve_device(unit.device), unit.threads)
+    timestamp = next(record.timestamp for record in store.frames if record.index == unit.frame)
+    folder.frame(unit.frame).update_result({"frame": unit.frame, "timestamp_s": float(timestamp)})
+    return timings
+
+
 def reconstruct_dynamic(
     result_dir: str | Path,
     capture: str | Path,
@@ -279,6 +334,7 @@ def reconstruct_dynamic(
     device: str = "auto",
     threads: int | None = 1,
     progress: bool = True,
+    executor: Executor | None = None,
 ) -> dict[str, Any]:
     """Run the dynamic stage (module docstring) into the static RESULT ``result_dir``; returns the record
     stored as ``result.json``'s ``stages.dynamic``.
@@ -287,6 +343,9 @@ def reconstruct_dynamic(
         capture: the dynamic capture store (or a simulation folder: ``SIM/dynamic``).
         frames: the frames whose maps are fitted (``"0-4,7"`` or indices; None: all). Stereo and tracking
             always cover the whole sequence (a frame is tracked through the ones before it).
+        executor: runs the frames' step 4 (:class:`FrameUnit`, :func:`run_frame_unit`); None: in this
+            process, in order (:class:`polarface.executors.LocalExecutor`). It is started here, before
+            anything is written, and left open. A frame that fails is recorded with its reason.
 
     Raises:
         ValueError: RESULT holds no static result, the capture's rig differs from the static one, the
@@ -297,6 +356,7 @@ def reconstruct_dynamic(
     from polarface.results.fingerprint import capture_identity
 
     started = time.perf_counter()
+    executor = executor or LocalExecutor()
     folder = ResultFolder(result_dir)
     _check_static_result(folder)
     store = open_dynamic_capture(resolve_dynamic_capture(capture), folder.read_rig(), folder.rig_path, frames)
@@ -305,7 +365,8 @@ def reconstruct_dynamic(
     if not all_frames:
         raise ValueError(f"dynamic capture '{store.root}' has no complete frame")
     selected = parse_frame_selection(frames, all_frames)
-    target = resolve_device(device)
+    resolve_device(device)  # a bad device is refused before anything is written
+    executor.start()
     header = {"format": "polarface-tracking", "version": 1, "capture": capture_identity(store.root),
               "config": config.to_json()}
     tracking = TrackingFolder(folder.tracking_dir, header)
@@ -318,31 +379,33 @@ def reconstruct_dynamic(
     tracked, tracking_s = track_sequence(store, tracking, reference.transformed(alignment), all_frames,
                                          config.tracking, progress)
     failed: dict[int, str] = {int(f): str(r) for f, r in tracked.failed.items()}
-    static = _static_inputs(folder)
-    to_model = invert_rigid(alignment)
     per_frame: dict[str, dict[str, float]] = {}
-    previous = folder.stage_record("dynamic").get("timings", {}).get("frames", {})
-    for frame in tqdm(selected, desc="dynamic: frames", unit="frame", disable=not progress):
+    previous = folder.stage_record("dynamic")
+    placements = dict(previous.get("executor", {}).get("units", {}))
+    pending = []
+    for frame in selected:
         if frame in failed:
             continue
-        frame_folder = folder.frame(frame)
-        if _frame_done(frame_folder, config):
-            if str(frame) in previous:
-                per_frame[str(frame)] = previous[str(frame)]
+        if _frame_done(folder.frame(frame), config):
+            if str(frame) in previous.get("timings", {}).get("frames", {}):
+                per_frame[str(frame)] = previous["timings"]["frames"][str(frame)]
             continue
-        tick = time.perf_counter()
-        row = list(tracked.frames).index(frame)
-        vertices = tracked.vertices[row] @ to_model[:3, :3].T + to_model[:3, 3]
-        try:
-            timings = _process_frame(store, folder, frame, all_frames, reference.with_vertices(vertices),
-                                     alignment, static, config, target, threads)
-        except (ValueError, FileNotFoundError, RuntimeError) as exc:
-            failed[frame] = " ".join(str(exc).split()) or type(exc).__name__
-            LOGGER.warning("dynamic frame %d failed: %s", frame, failed[frame])
-            continue
-        timings["total_s"] = time.perf_counter() - tick
-        frame_folder.update_result({"frame": frame, "timestamp_s": float(records[frame].timestamp)})
-        per_frame[str(frame)] = timings
+        pending.append(FrameUnit(folder.root, store.root, frame, tuple(all_frames), alignment, config,
+                                 device, threads))
+    bar = tqdm(total=len(pending), desc="dynamic: frames", unit="frame", disable=not progress)
+
+    def done(outcome: UnitOutcome) -> None:
+        frame = outcome.unit.frame
+        placements[str(frame)] = outcome.placement()
+        if outcome.ok:
+            per_frame[str(frame)] = {**outcome.value, "total_s": outcome.seconds}
+        else:
+            failed[frame] = outcome.error
+            LOGGER.warning("dynamic frame %d failed: %s", frame, outcome.error)
+        bar.update(1)
+
+    executor.map_units(run_frame_unit, pending, on_done=done)
+    bar.close()
     completed = [f for f in selected if f not in failed and _frame_done(folder.frame(f), config)]
     shared_s = (geometry_s + tracking_s) / len(all_frames)
     totals = [v.get("total_s", 0.0) for k, v in per_frame.items() if int(k) in completed]
@@ -360,6 +423,7 @@ def reconstruct_dynamic(
         "seconds_per_frame": shared_s + (float(np.mean(totals)) if totals else 0.0),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "config": config.to_json(),
+        "executor": {**executor.describe(), "units": {k: placements[k] for k in sorted(placements, key=int)}},
     }
     folder.record_stage("dynamic", record)
     return folder.stage_record("dynamic")

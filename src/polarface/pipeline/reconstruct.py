@@ -61,7 +61,8 @@ LOGGER = logging.getLogger(__name__)
 
 @dataclasses.dataclass
 class ReconstructContext:
-    """What the stages share: inputs, options and the RESULT folder."""
+    """What the stages share: inputs, options and the RESULT folder; ``executor`` runs the dynamic stage's
+    frames (:class:`polarface.executors.Executor`; None: in this process)."""
 
     capture: Path
     out: Path
@@ -79,6 +80,7 @@ class ReconstructContext:
     stereo: bool = False
     dynamic: Path | None = None
     frames: str | None = None
+    executor: Any = None
 
     @property
     def folder(self) -> ResultFolder:
@@ -235,7 +237,7 @@ def stage_dynamic(ctx: ReconstructContext) -> dict[str, Any]:
     if ctx.dynamic is None:
         return {"skipped": "no dynamic capture (--dynamic)"}
     return reconstruct_dynamic(ctx.out, ctx.dynamic, frames=ctx.frames, device=ctx.device,
-                               threads=ctx.threads, progress=ctx.progress)
+                               threads=ctx.threads, progress=ctx.progress, executor=ctx.executor)
 
 
 def write_result_report(folder: ResultFolder) -> dict[str, Any]:
@@ -360,6 +362,7 @@ def reconstruct(
     progress: bool = True,
     dynamic: str | Path | None = None,
     frames: str | None = None,
+    executor: Any = None,
 ) -> dict[str, Any]:
     """Validate the inputs, then run :data:`STAGES` into ``out``; returns ``result.json``'s content.
 
@@ -370,6 +373,8 @@ def reconstruct(
         holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
         dynamic: a dynamic capture of the same rig (or a simulation folder) reconstructed frame by frame
             after the static stages; frames: its frames to fit (``"0-4,7"``; None: all).
+        executor: runs the dynamic frames (:class:`polarface.executors.Executor`, started before
+            anything is written; None: in this process, in order).
 
     Raises:
         ValueError, FileNotFoundError: bad input; a RESULT folder this call created is removed.
@@ -397,7 +402,7 @@ def reconstruct(
         ctx.dynamic = resolve_dynamic_capture(dynamic)
     elif frames is not None:
         raise ValueError("argument '--frames' selects frames of a dynamic capture: pass '--dynamic' too")
-    ctx.frames = frames
+    ctx.frames, ctx.executor = frames, executor
     created = not out.exists()
     try:
         # validate the inputs before anything is written
@@ -409,6 +414,8 @@ def reconstruct(
             from polarface.pipeline.dynamic import open_dynamic_capture
 
             open_dynamic_capture(ctx.dynamic, store.rig, store.root / "rig.json", ctx.frames)
+            if executor is not None:
+                executor.start()
         out.mkdir(parents=True, exist_ok=True)
         return run_stages(ctx)
     except (ValueError, FileNotFoundError):

@@ -1,0 +1,194 @@
+"""The executor interface: a long stage submits its independent units (frames, patches) through
+:meth:`Executor.map_units` and gets one :class:`UnitOutcome` per unit back.
+
+A unit is a small picklable value (a frame index, a frozen dataclass of paths and indices); the unit
+function reads its inputs from the stores and writes its outputs there itself, so only paths and small
+records travel between processes. A unit function must be a module-level function (workers import it
+by name) and must be safe to run twice: a unit whose worker dies is run again from the start.
+
+Failures of a unit for its own reason (a bad frame) are exceptions of the types in ``failures``: the
+unit's :class:`UnitOutcome` carries the reason and the other units go on. Any other exception stops the
+run and propagates (a bug, Ctrl-C). :class:`LocalExecutor` runs the units one after the other in this
+process, in order: exactly a plain loop. :class:`polarface.executors.ray_executor.RayExecutor` runs
+them as Ray tasks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import socket
+import time
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol, runtime_checkable
+
+__all__ = [
+    "UNIT_FAILURES",
+    "Executor",
+    "LocalExecutor",
+    "ThreadSettings",
+    "UnitOutcome",
+    "failure_reason",
+    "run_unit",
+]
+
+#: Exception types that mark a unit as failed for its own reason (reported; the other units go on).
+UNIT_FAILURES: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError, RuntimeError)
+
+
+@dataclasses.dataclass(frozen=True)
+class UnitOutcome:
+    """What became of one unit.
+
+    Attributes:
+        unit: the unit as submitted (e.g. a frame index).
+        value: the unit function's return value (a small record, e.g. seconds per step); None when the
+            unit failed.
+        error: one-line reason when the unit failed for its own reason (an exception of the executor's
+            ``failures``) or its worker died more often than the executor retries; None on success.
+        seconds: wall-clock seconds of the unit's last attempt on its worker (s).
+        host: host name of the machine that ran the last attempt ("" when unknown: the worker died).
+        pid: process id of the worker that ran the last attempt (-1 when unknown).
+        node_id: the Ray node id of that worker (None for the local executor).
+    """
+
+    unit: Any
+    value: Any = None
+    error: str | None = None
+    seconds: float = 0.0
+    host: str = ""
+    pid: int = -1
+    node_id: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        """True when the unit completed."""
+        return self.error is None
+
+    def placement(self) -> dict[str, Any]:
+        """Where and how long the unit ran, as JSON values (``seconds``, ``host``, ``pid``, ``node_id``,
+        and ``error`` for a failed unit)."""
+        record: dict[str, Any] = {"seconds": float(self.seconds), "host": self.host, "pid": int(self.pid),
+                                  "node_id": self.node_id}
+        if self.error is not None:
+            record["error"] = self.error
+        return record
+
+
+@dataclasses.dataclass(frozen=True)
+class ThreadSettings:
+    """Thread counts a worker process adopts before running a unit, so that its arithmetic matches the
+    process that submitted it (torch and numba reductions may depend on the thread count).
+
+    Attributes:
+        torch_threads: torch intra-op threads (``torch.set_num_threads``); None: unchanged.
+        numba_threads: numba threads (``numba.set_num_threads``, at most the worker's
+            ``NUMBA_NUM_THREADS``); None: unchanged.
+    """
+
+    torch_threads: int | None = None
+    numba_threads: int | None = None
+
+    @classmethod
+    def of_this_process(cls) -> ThreadSettings:
+        """The current process's torch and numba thread counts."""
+        import numba
+        import torch
+
+        return cls(torch.get_num_threads(), numba.get_num_threads())
+
+    def apply(self) -> None:
+        """Set this process's thread counts (numba's clipped to the threads it launched)."""
+        if self.torch_threads is not None:
+            import torch
+
+            torch.set_num_threads(int(self.torch_threads))
+        if self.numba_threads is not None:
+            import numba
+
+            numba.set_num_threads(max(1, min(int(self.numba_threads), numba.config.NUMBA_NUM_THREADS)))
+
+
+def failure_reason(exc: BaseException) -> str:
+    """``exc`` as one line (its type name when it has no message)."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def run_unit(fn: Callable[[Any], Any], unit: Any, failures: tuple[type[BaseException], ...],
+             settings: ThreadSettings | None = None, node_id: str | None = None) -> UnitOutcome:
+    """Run ``fn(unit)`` and describe the outcome; exceptions of ``failures`` become the unit's error, any
+    other propagates. ``settings`` are applied first (None: none); ``node_id`` is recorded."""
+    if settings is not None:
+        settings.apply()
+    started = time.perf_counter()
+    try:
+        value = fn(unit)
+    except failures as exc:
+        return UnitOutcome(unit, None, failure_reason(exc), time.perf_counter() - started,
+                           socket.gethostname(), os.getpid(), node_id)
+    return UnitOutcome(unit, value, None, time.perf_counter() - started, socket.gethostname(), os.getpid(),
+                       node_id)
+
+
+@runtime_checkable
+class Executor(Protocol):
+    """Runs the independent units of a stage (module docstring)."""
+
+    #: short name recorded in results ("local", "ray").
+    name: str
+
+    def start(self) -> None:
+        """Acquire what the executor needs (a Ray connection); idempotent. Raises ValueError, naming the
+        argument, when that is impossible, before any unit runs."""
+
+    def map_units(self, fn: Callable[[Any], Any], units: Sequence[Any], *,
+                  failures: tuple[type[BaseException], ...] = UNIT_FAILURES,
+                  on_done: Callable[[UnitOutcome], None] | None = None) -> list[UnitOutcome]:
+        """Run ``fn(unit)`` for every unit; outcomes in the order of ``units``. ``on_done`` is called in
+        the submitting process as each unit finishes (in completion order)."""
+
+    def describe(self) -> dict[str, Any]:
+        """The executor's settings as JSON values (recorded in the result)."""
+
+    def close(self) -> None:
+        """Release what :meth:`start` acquired."""
+
+    def __enter__(self) -> Executor:
+        """The executor, not started: a stage starts it before it writes anything (:meth:`start`)."""
+
+    def __exit__(self, *exc_info: object) -> None:
+        """:meth:`close`."""
+
+
+class LocalExecutor:
+    """Runs the units in this process one after the other, in order (the default: a plain loop)."""
+
+    name = "local"
+
+    def start(self) -> None:
+        """Nothing to acquire."""
+
+    def map_units(self, fn: Callable[[Any], Any], units: Sequence[Any], *,
+                  failures: tuple[type[BaseException], ...] = UNIT_FAILURES,
+                  on_done: Callable[[UnitOutcome], None] | None = None) -> list[UnitOutcome]:
+        """:meth:`Executor.map_units`, in this process."""
+        outcomes = []
+        for unit in units:
+            outcome = run_unit(fn, unit, failures)
+            outcomes.append(outcome)
+            if on_done is not None:
+                on_done(outcome)
+        return outcomes
+
+    def describe(self) -> dict[str, Any]:
+        """``{"name": "local"}``."""
+        return {"name": self.name}
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+    def __enter__(self) -> LocalExecutor:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()

@@ -1,0 +1,146 @@
+"""The dynamic stage's frames on the Ray executor (2 workers of a local Ray instance) against the local
+executor, on the tiny preset: identical maps, a killed worker's frame rerun, resume from finished frames,
+an unreachable cluster refused before anything is written.
+
+Every run shares the local run's ``tracking/`` (stereo meshes, alignment, tracking): Open3D's
+multi-threaded Poisson meshing differs from run to run in the last bits (tests/pipeline/
+test_dynamic_stage.py), and only the per-frame work runs on the executor.
+"""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from polarface.cli import main
+from polarface.executors import RayExecutor
+from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
+from polarface.pipeline.dynamic import reconstruct_dynamic
+from polarface.simulate.pipeline import SimulationConfig, simulate
+from ray_fixtures import RAY_CPUS, ray_instance  # noqa: F401 (fixture)
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """``(SIM, static RESULT, RESULT with the dynamic stage run by the local executor)``."""
+    root = tmp_path_factory.mktemp("dynamic_executors")
+    sim = root / "sim"
+    simulate(sim, SimulationConfig(preset="tiny", sequences=("static", "dynamic")), progress=False)
+    static = root / "static"
+    reconstruct(resolve_reconstruct_inputs(sim, geometry=sim / "ground_truth"), static,
+                fit_options={"iterations": 60}, progress=False)
+    local = root / "local"
+    shutil.copytree(static, local)
+    reconstruct_dynamic(local, sim, progress=False)
+    return sim, static, local
+
+
+def _copy_with_tracking(tiny, target: Path) -> Path:
+    _, static, local = tiny
+    shutil.copytree(static, target)
+    shutil.copytree(local / "tracking", target / "tracking")
+    return target
+
+
+def _frame_files(result: Path, frame: int) -> dict[str, bytes]:
+    """The bytes of every map and the render of ``frames/NNNN``."""
+    folder = result / "frames" / f"{frame:04d}"
+    files = [*sorted((folder / "maps").iterdir()), folder / "render" / "srgb_linear.exr"]
+    return {path.relative_to(folder).as_posix(): path.read_bytes() for path in files}
+
+
+def _assert_frames_identical(result: Path, local: Path, frames=(0, 1)) -> None:
+    for frame in frames:
+        expected, actual = _frame_files(local, frame), _frame_files(result, frame)
+        assert sorted(actual) == sorted(expected) and len(expected) > 10
+        different = [name for name in expected if actual[name] != expected[name]]
+        assert not different, f"frame {frame}: {different} differ from the local executor's"
+
+
+def test_ray_frames_are_identical_to_the_local_executor(tiny, ray_instance, tmp_path):  # noqa: F811
+    sim, _, local = tiny
+    result = _copy_with_tracking(tiny, tmp_path / "result")
+    record = reconstruct_dynamic(result, sim, progress=False, executor=RayExecutor(workers=RAY_CPUS))
+    assert record["completed"] == [0, 1] and record["failed_frames"] == {}
+    _assert_frames_identical(result, local)
+    units = record["executor"]["units"]
+    assert record["executor"]["name"] == "ray" and sorted(units) == ["0", "1"]
+    assert all(unit["node_id"] and unit["seconds"] > 0 for unit in units.values())
+    assert record["timings"]["frames"]["1"]["total_s"] == units["1"]["seconds"]
+
+
+def _worker_running_a_unit(timeout_s: float):
+    """The first Ray worker process found running a unit (its title is ``ray::_run_on_worker``)."""
+    import psutil
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for process in psutil.process_iter(["cmdline"]):
+            if (process.info["cmdline"] or [""])[0].startswith("ray::_run_on_worker"):
+                return process
+        time.sleep(0.1)
+    raise AssertionError("no Ray worker ran a unit")
+
+
+def test_a_killed_worker_is_retried_and_the_maps_are_identical(tiny, ray_instance, tmp_path):  # noqa: F811
+    sim, _, local = tiny
+    result = _copy_with_tracking(tiny, tmp_path / "result")
+    records = []
+    run = threading.Thread(target=lambda: records.append(
+        reconstruct_dynamic(result, sim, progress=False, executor=RayExecutor(workers=RAY_CPUS))))
+    run.start()
+    victim = _worker_running_a_unit(120)
+    time.sleep(2.0)  # mid-frame: the unit has opened its inputs and started writing frames/NNNN
+    victim.kill()
+    run.join(timeout=600)
+    assert not run.is_alive() and records, "the run did not finish"
+    assert records[0]["completed"] == [0, 1] and records[0]["failed_frames"] == {}
+    assert victim.pid not in {unit["pid"] for unit in records[0]["executor"]["units"].values()}
+    _assert_frames_identical(result, local)
+
+
+def test_a_resumed_run_keeps_the_finished_frames(tiny, ray_instance, tmp_path):  # noqa: F811
+    sim, _, local = tiny
+    result = _copy_with_tracking(tiny, tmp_path / "result")
+    first = reconstruct_dynamic(result, sim, frames="1", progress=False, executor=RayExecutor(workers=1))
+    assert first["completed"] == [1]
+    kept = (result / "frames" / "0001" / "maps" / "rho_s.exr").stat().st_mtime_ns
+    record = reconstruct_dynamic(result, sim, progress=False, executor=RayExecutor(workers=RAY_CPUS))
+    assert record["completed"] == [0, 1]
+    assert (result / "frames" / "0001" / "maps" / "rho_s.exr").stat().st_mtime_ns == kept  # not rerun
+    assert record["executor"]["units"]["1"] == first["executor"]["units"]["1"]
+    _assert_frames_identical(result, local)
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_an_unreachable_ray_address_is_refused_within_seconds_and_nothing_is_written(tiny, tmp_path,
+                                                                                      capsys):
+    sim, static, _ = tiny
+    with socket.socket() as probe:  # a port nobody listens on
+        probe.bind(("127.0.0.1", 0))
+        address = f"127.0.0.1:{probe.getsockname()[1]}"
+    result = tmp_path / "result"
+    shutil.copytree(static, result)
+    before = _tree(result)
+    started = time.perf_counter()
+    assert main(["dynamic", str(result), str(sim), "--executor", "ray", "--ray-address", address,
+                 "--quiet"]) == 2
+    assert time.perf_counter() - started < 15.0
+    assert f"'--ray-address': no Ray cluster answers at '{address}'" in capsys.readouterr().err
+    assert _tree(result) == before and not list(tmp_path.glob(".*lock"))
+    fresh = tmp_path / "fresh"
+    started = time.perf_counter()
+    assert main(["reconstruct", str(sim), "--dynamic", str(sim), "--executor", "ray", "--ray-address",
+                 address, "--out", str(fresh), "--quiet"]) == 2
+    assert time.perf_counter() - started < 15.0
+    assert "'--ray-address'" in capsys.readouterr().err and not fresh.exists()
