@@ -68,6 +68,10 @@ def test_demo_pipeline_tiny_end_to_end(tmp_path):
     assert {"polarimetric", "rerender", "biophysical"} <= set(metrics)
     assert metrics["polarimetric"]["eta"]["median_abs_error"] < 0.1
     assert metrics["biophysical"]["c_m"]["median_abs_error"] < 0.02
+    # stereo geometry: the paper's RMSprop for 150 iterations (docs/reconstruct.md, "Optimiser and geometry")
+    record = json.loads((out / "result" / "result.json").read_text(encoding="utf-8"))
+    options = record["fingerprint"]["options"]
+    assert (options["optimizer"], options["iterations"]) == ("rmsprop", 150)
 
 
 def test_sphere_demo_never_deletes_user_data(tmp_path, capsys):

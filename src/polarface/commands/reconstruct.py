@@ -58,14 +58,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="UV atlas side in texels (default: the simulation's, else 512)",
     )
     parser.add_argument(
-        "--iterations", type=int, default=None, help="optimiser iterations per patch (default 400)"
+        "--iterations", type=int, default=None,
+        help="optimiser iterations per patch (default 400 for lbfgs, 150 for rmsprop with stereo geometry)",
     )
     parser.add_argument("--lr", type=float, default=None, help="learning rate (default 0.03)")
     parser.add_argument(
         "--optimizer",
         choices=("lbfgs", "rmsprop", "adam"),
         default=None,
-        help="lbfgs (default; converges the lobes and eta) or the paper's rmsprop (then --iterations 150)",
+        help="lbfgs (default with known geometry: converges the lobes and eta) or the paper's rmsprop "
+        "(default with stereo geometry, 150 iterations; see docs/reconstruct.md)",
     )
     parser.add_argument(
         "--lobes",

@@ -58,6 +58,11 @@ __all__ = [
 
 LOGGER = logging.getLogger(__name__)
 
+#: Fit options used with geometry reconstructed from the stereo pairs unless given: the paper's RMSprop
+#: for 150 iterations. A converged L-BFGS fit moves eta and rho_s to the stereo geometry's biased minimum
+#: (demo: eta 0.043 -> 0.055, rho_s 42 % -> 61 %); docs/reconstruct.md, "Optimiser and geometry".
+_STEREO_FIT_DEFAULTS = {"optimizer": "rmsprop", "iterations": 150}
+
 
 @dataclasses.dataclass
 class ReconstructContext:
@@ -369,7 +374,10 @@ def reconstruct(
     Args:
         inputs: :func:`polarface.pipeline.reconstruct_inputs.resolve_reconstruct_inputs`.
         out: the RESULT folder (must be empty or absent unless ``resume``).
-        fit_options: :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides.
+        fit_options: :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides; with stereo
+            geometry (no mesh in ``inputs``) ``optimizer`` and ``iterations`` default to the paper's
+            RMSprop for 150 iterations (``_STEREO_FIT_DEFAULTS``; neither applies when ``optimizer``
+            is given).
         holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
         dynamic: a dynamic capture of the same rig (or a simulation folder) reconstructed frame by frame
             after the static stages; frames: its frames to fit (``"0-4,7"``; None: all).
@@ -388,6 +396,8 @@ def reconstruct(
         raise ValueError(f"argument '--holdout-every' must be 0 or >= 2; got {holdout_every}")
     options = dict(fit_options or {})
     stereo = inputs.mesh_path is None
+    if stereo and "optimizer" not in options:
+        options = {**_STEREO_FIT_DEFAULTS, **options}
     geometry_dir = ResultFolder(out).geometry_dir if stereo else inputs.geometry_dir
     ctx = ReconstructContext(
         inputs.capture, out,

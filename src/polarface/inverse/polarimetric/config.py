@@ -37,8 +37,9 @@ class PolarimetricConfig:
     Attributes:
         weights: :class:`LossWeights`.
         optimizer: ``lbfgs`` (default: converges the lobe maps and with them eta,
-            :mod:`polarface.inverse.polarimetric.optimise`), ``rmsprop`` (the paper's; 150 iterations
-            were the earlier default) or ``adam``; iterations: optimiser iterations per patch;
+            :mod:`polarface.inverse.polarimetric.optimise`), ``rmsprop`` (the paper's, 150 iterations; what
+            :func:`polarface.pipeline.reconstruct` uses with stereo geometry, docs/reconstruct.md) or
+            ``adam``; iterations: optimiser iterations per patch;
             lr: learning rate on the raw variables, lr_final_fraction: cosine decay to this fraction of
             lr, warmup: linear learning-rate warm-up steps (rmsprop and adam only).
         patch: largest patch side (texels); halo: halo width (texels, >= 2 for the 5x5 window);
