@@ -7,6 +7,7 @@ import shutil
 
 import numpy as np
 import pytest
+import torch
 from scipy import ndimage
 
 from polarface.cli import main
@@ -176,6 +177,9 @@ def test_reconstruct_with_lobe_refinement(sim, tmp_path):
 
 
 def test_bench_smoke(capsys):
+    import numba
+
+    before = torch.get_num_threads(), numba.get_num_threads()
     assert (
         main(
             [
@@ -201,6 +205,8 @@ def test_bench_smoke(capsys):
         > result["eager_baseline_texel_view_iterations_per_s"]
     )
     assert result["torch_vectorised_texel_view_iterations_per_s"] > 0 and result["speedup"] > 1
+    # --threads holds for the command only (other work in this process keeps its thread counts)
+    assert (torch.get_num_threads(), numba.get_num_threads()) == before
     assert main(["bench", "--side", "2"]) == 2
 
 

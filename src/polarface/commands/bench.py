@@ -44,15 +44,21 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"argument '--{name.replace('_', '-')}' must be >= 1; got {getattr(args, name)}")
     if args.side < 8:
         raise ValueError(f"argument '--side' must be >= 8; got {args.side}")
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ValueError(f"argument '--threads' must be >= 1; got {args.threads}")
-        import numba
-
-        torch.set_num_threads(args.threads)
-        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    if args.threads is not None and args.threads < 1:
+        raise ValueError(f"argument '--threads' must be >= 1; got {args.threads}")
     device = resolve_device(args.device)
-    result = run_benchmark(args.side, args.frames, args.iterations, args.baseline_texels, device=device)
+    import numba
+
+    # --threads holds for this command only: the caller's thread counts are restored afterwards
+    previous = torch.get_num_threads(), numba.get_num_threads()
+    try:
+        if args.threads is not None:
+            torch.set_num_threads(args.threads)
+            numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+        result = run_benchmark(args.side, args.frames, args.iterations, args.baseline_texels, device=device)
+    finally:
+        torch.set_num_threads(previous[0])
+        numba.set_num_threads(previous[1])
     if args.json:
         print(json.dumps(result, indent=2))
         return 0

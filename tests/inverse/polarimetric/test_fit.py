@@ -151,20 +151,19 @@ def _single_texel_problem(dtype=torch.float64, truth: dict | None = None):
     return batch, geometry, float(observed[:, 0].mean()), fused
 
 
+def _texel_problem(data, config, engine, dtype=torch.float64):
+    """The :class:`PatchProblem` of :func:`_single_texel_problem`'s ``data`` for ``engine``."""
+    batch, geometry, scale, fused = data
+    return PatchProblem(
+        batch, geometry, config, scale, dtype, torch.device("cpu"), fused if engine == "fused" else None
+    )
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("engine", ["torch", "fused"])
 def test_noise_free_single_texel_recovers_exact_parameters(engine):
-    batch, geometry, scale, fused = _single_texel_problem()
     config = PolarimetricConfig(optimizer="adam", lr=0.05, iterations=3000, warmup=1, lr_final_fraction=0.01)
-    problem = PatchProblem(
-        batch,
-        geometry,
-        config,
-        scale,
-        torch.float64,
-        torch.device("cpu"),
-        fused if engine == "fused" else None,
-    )
+    problem = _texel_problem(_single_texel_problem(), config, engine)
     result = maps_from_raw(optimise_patch(problem, _start_raw(config), config), config)
     # tolerances: eta 1e-3, alpha_s 5e-3, rho_s 3 %, rho_sss_bar 0.1 %, the broad lobe 0.05 (ill-conditioned
     # under near-coaxial light: only the normal's tilt over the views samples its shape)
@@ -198,7 +197,7 @@ def test_lbfgs_converges_where_rmsprop_stops_short():
     """Noise-free texel: the default L-BFGS reaches the exact parameters (fused engine and torch
     reference on the same trajectory); the paper's RMSprop (150 steps) leaves the broad lobe off by 0.3
     and, through the lobes' Fresnel polarization, eta off by 0.01 (the eta bias, docs/reconstruct.md)."""
-    batch, geometry, scale, fused = _single_texel_problem()
+    data = _single_texel_problem()
     results = {}
     for name, config in (
         ("lbfgs", PolarimetricConfig()),
@@ -206,11 +205,7 @@ def test_lbfgs_converges_where_rmsprop_stops_short():
     ):
         config = config if name == "lbfgs" else dataclasses.replace(config, iterations=150)
         for engine in ("torch", "fused"):
-            problem = PatchProblem(
-                batch, geometry, config, scale, torch.float64, torch.device("cpu"),
-                fused if engine == "fused" else None,
-            )  # fmt: skip
-            raw = optimise_patch(problem, _start_raw(config), config)
+            raw = optimise_patch(_texel_problem(data, config, engine), _start_raw(config), config)
             results[name, engine] = maps_from_raw(raw, config)
     for engine in ("torch", "fused"):
         lbfgs = results["lbfgs", engine]
@@ -231,19 +226,11 @@ def test_one_lobe_keeps_rho_ss_at_zero_and_recovers_the_rest(engine):
     """``lobes="one"`` on a noise-free texel without a second lobe: rho_ss stays ~0 and eta, alpha_s,
     rho_s, rho_sss_bar are exact."""
     truth = {**TRUTH, "rho_ss": 0.0}
-    batch, geometry, scale, fused = _single_texel_problem(truth=truth)
+    data = _single_texel_problem(truth=truth)
     results = {}
     for lobes in ("one", "two"):
         config = PolarimetricConfig(lobes=lobes)
-        problem = PatchProblem(
-            batch,
-            geometry,
-            config,
-            scale,
-            torch.float64,
-            torch.device("cpu"),
-            fused if engine == "fused" else None,
-        )
+        problem = _texel_problem(data, config, engine)
         results[lobes] = maps_from_raw(optimise_patch(problem, _start_raw(config), config), config)
     one = results["one"]
     assert float(one["rho_ss"]) < 1e-9
@@ -256,17 +243,8 @@ def test_one_lobe_keeps_rho_ss_at_zero_and_recovers_the_rest(engine):
 
 @pytest.mark.parametrize("engine", ["torch", "fused"])
 def test_loss_decreases_and_is_deterministic(engine):
-    batch, geometry, scale, fused = _single_texel_problem(torch.float32)
     config = PolarimetricConfig(iterations=30)
-    problem = PatchProblem(
-        batch,
-        geometry,
-        config,
-        scale,
-        torch.float32,
-        torch.device("cpu"),
-        fused if engine == "fused" else None,
-    )
+    problem = _texel_problem(_single_texel_problem(torch.float32), config, engine, torch.float32)
     maps = {
         k: np.full((1, 1, 1), v)
         for k, v in {
