@@ -3,6 +3,8 @@ stale temporaries removed, clear errors for bad URLs."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -82,3 +84,31 @@ def test_bad_urls_are_refused_naming_the_url(memory_url):
         CaptureStore.open("nosuchfs://b/cap")
     with pytest.raises(FileNotFoundError, match="not a capture store"):
         CaptureStore.open(f"{memory_url}/nothing")
+
+
+def test_ingest_and_info_commands_take_urls(tmp_path, memory_url, capsys):
+    from polarface.cli import main
+    from polarface.io import write_png
+
+    paper_rig(width=WIDTH, height=HEIGHT).save(tmp_path / "rig.json")
+    for frame in range(2):
+        for cam, raw in _raws(frame).items():
+            write_png(tmp_path / "raw" / cam / f"{frame}.png", raw, bit_depth=16)
+    ingest = ["ingest", str(tmp_path / "raw"), "--rig", str(tmp_path / "rig.json"), "--no-progress", "--out"]
+    url = f"{memory_url}/cap"
+    assert main([*ingest, url]) == 0 and main([*ingest, f"file://{tmp_path}/cap"]) == 0
+    assert main([*ingest, url]) == 0  # its own store: resumed, every frame skipped
+    remote, local = CaptureStore.open(url), CaptureStore.open(tmp_path / "cap")
+    assert remote.manifest == local.manifest
+    np.testing.assert_array_equal(remote.spectral_stack(1), local.spectral_stack(1))
+    capsys.readouterr()
+    assert main(["info", url, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["kind"] == "capture"
+    storage_path(memory_url).joinpath("other", "notes.txt").write_text("not a capture")
+    assert main([*ingest, f"{memory_url}/other"]) == 2
+    assert "was not written by 'polarface ingest'" in capsys.readouterr().err
+    assert main([*ingest, f"{memory_url}/other", "--force"]) == 2
+    assert "argument '--force'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["info", "nosuchfs://bucket/cap"])
+    assert "argument PATH: storage URL 'nosuchfs://bucket/cap': unknown protocol" in capsys.readouterr().err

@@ -12,7 +12,13 @@ import argparse
 import dataclasses
 from typing import Any, TypeVar
 
-__all__ = ["add_executor_arguments", "add_force_argument", "executor_from_args", "options_from_args"]
+__all__ = [
+    "add_executor_arguments",
+    "add_force_argument",
+    "executor_from_args",
+    "options_from_args",
+    "store_location",
+]
 
 _Options = TypeVar("_Options")
 
@@ -27,6 +33,18 @@ def options_from_args(options_type: type[_Options], args: argparse.Namespace, **
     """
     fields = (f.name for f in dataclasses.fields(options_type) if f.name not in values)  # type: ignore[arg-type]
     return options_type(**{name: getattr(args, name) for name in fields}, **values)
+
+
+def store_location(value: str):
+    """argparse ``type`` of a capture store or RESULT argument: a local path or an fsspec URL
+    (``file://``, ``memory://``, ``s3://bucket/key``; :func:`polarface.io.storage.storage_path`). A URL of
+    an unknown protocol or a missing package is an argument error naming it."""
+    from polarface.io.storage import storage_path
+
+    try:
+        return storage_path(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def add_force_argument(parser: argparse.ArgumentParser, target: str = "the output folder") -> None:

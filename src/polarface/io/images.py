@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from polarface.io.atomic import atomic_path
-from polarface.io.storage import PathOrUrl, StoragePath, local_copy, read_head, storage_path
+from polarface.io.storage import PathOrUrl, StoragePath, UrlPath, local_copy, read_head, storage_path
 
 __all__ = ["colormap_png", "image_header", "read_exr", "read_gray", "read_png", "write_exr", "write_png"]
 
@@ -140,8 +140,10 @@ def _imread(path: PathOrUrl, flags: int) -> np.ndarray:
     path = storage_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image file '{path}' does not exist")
-    with local_copy(path) as local:
-        array = cv2.imread(str(local), flags)
+    if isinstance(path, UrlPath):  # decoded from memory: no temporary file
+        array = cv2.imdecode(np.frombuffer(path.read_bytes(), np.uint8), flags)
+    else:
+        array = cv2.imread(str(path), flags)
     if array is None:
         raise ValueError(f"cannot read image '{path}' (truncated, corrupt or not an image)")
     return array

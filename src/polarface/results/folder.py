@@ -374,19 +374,15 @@ class ResultFolder:
         """
         from polarface.geometry.mesh import load_mesh
 
-        path = self.mesh_path
-        if not path.is_file():
-            raise FileNotFoundError(f"'{path}' does not exist")
-        with local_copy(path) as local:
-            return load_mesh(local)
+        if not self.mesh_path.is_file():
+            raise FileNotFoundError(f"'{self.mesh_path}' does not exist")
+        return load_mesh(self.mesh_path)
 
     def write_mesh(self, mesh) -> StoragePath:
         """Write ``mesh.obj`` (model frame, mm, UVs)."""
         from polarface.geometry.mesh import save_obj
 
-        with atomic_path(self.root / layout.MESH_OBJ) as tmp:
-            save_obj(tmp, mesh)
-        return self.root / layout.MESH_OBJ
+        return save_obj(self.root / layout.MESH_OBJ, mesh)
 
     # ---- dynamic sequences -------------------------------------------------------------------
     def frame(self, index: int) -> ResultFolder:
