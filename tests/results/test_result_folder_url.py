@@ -3,6 +3,7 @@ same bytes and arrays as a local folder's; an unrenderable URL is refused naming
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -96,3 +97,25 @@ def test_missing_maps_and_bad_urls_are_named(memory_url):
         folder.read_scalar_map("eta")
     with pytest.raises(ValueError, match="storage URL 'nosuchfs://bucket/RESULT': unknown protocol"):
         ResultFolder("nosuchfs://bucket/RESULT")
+
+
+def test_render_reads_and_writes_urls_like_local_folders(tmp_path, memory_url, capsys):
+    """``polarface render memory://RESULT --out memory://OUT``: the images of the local RESULT's render."""
+    from disk_fixtures import write_plane_result
+    from polarface.cli import main
+    from storage_fixtures import upload_tree
+
+    local = write_plane_result(tmp_path / "result", resolution=16)
+    url = str(upload_tree(local, f"{memory_url}/result"))
+    options = ["--no-mueller", "--no-strip", "--exposure", "1.0"]
+    assert main(["render", str(local), "--out", str(tmp_path / "out"), *options]) == 0
+    assert main(["render", url, "--out", f"{memory_url}/out", *options]) == 0
+    expected, got = _files(tmp_path / "out"), _files(f"{memory_url}/out")
+    assert "srgb_linear.exr" in expected and sorted(got) == sorted(expected)
+    different = [name for name in expected if got[name] != expected[name]]
+    assert different == ["render.json"]  # its "seconds" only
+    assert json.loads(got["render.json"])["pixels"] == json.loads(expected["render.json"])["pixels"]
+    capsys.readouterr()
+    with pytest.raises(SystemExit):  # commands that write local folders refuse a URL as --out
+        main(["reconstruct", url, "--out", f"{memory_url}/R"])
+    assert "writes a local folder" in capsys.readouterr().err

@@ -147,8 +147,9 @@ def manifest_problems(
     problems: list[str] = []
     listed: set[str] = set()
     camera_sets = set()
+    markers = {path.name for path in (root / "frames").glob("[0-9]*.json")}  # one listing, not one per frame
     for frame in frames:
-        if not frame_marker_path(root, frame.index).is_file():
+        if frame_marker_path(root, frame.index).name not in markers:
             problems.append(
                 f"frame {frame.index}: completion marker frames/{frame.index:06d}.json is missing"
             )
@@ -161,11 +162,11 @@ def manifest_problems(
                 problems.append(f"frame {frame.index}: {exc}")
                 continue
             path = root / relative
-            if not path.is_file():
-                problems.append(f"frame {frame.index}: raw file '{relative}' of camera '{cam_id}' is missing")
-                continue
             try:
                 width, height, channels, bits = image_header(path)
+            except FileNotFoundError:
+                problems.append(f"frame {frame.index}: raw file '{relative}' of camera '{cam_id}' is missing")
+                continue
             except ValueError as exc:
                 problems.append(f"frame {frame.index}: raw file '{relative}' is not an image ({exc})")
                 continue

@@ -99,6 +99,7 @@ class CaptureStore:
         self.chunk = chunk
         self.plane_distance_mm: float | None = None  # None: the rig's convergence distance
         self._group = None
+        self._manifest: dict | None = None
 
     # ----------------------------------------------------------------------------------- writer
     @classmethod
@@ -238,14 +239,18 @@ class CaptureStore:
         rig = Rig.load(root / "rig.json")
         manifest = read_manifest(manifest_path)
         store = cls(root, rig, manifest["sequence"])
+        store._manifest = manifest
         if validate:
             store.validate()
         return store
 
     @property
     def manifest(self) -> dict:
-        """The parsed ``manifest.json``."""
-        return read_manifest(self.root / "manifest.json")
+        """The parsed ``manifest.json``, read once per store object (one request per read at a URL) and
+        refreshed by this object's own writes; reopen the store to see frames another process added."""
+        if self._manifest is None:
+            self._manifest = read_manifest(self.root / "manifest.json")
+        return self._manifest
 
     @property
     def frames(self) -> list[FrameRecord]:
@@ -407,4 +412,5 @@ class CaptureStore:
         return stack
 
     def _write_manifest(self, *, complete: bool) -> dict:
-        return write_manifest(self.root, self.rig, self.sequence, complete=complete)
+        self._manifest = write_manifest(self.root, self.rig, self.sequence, complete=complete)
+        return self._manifest

@@ -16,6 +16,7 @@ __all__ = [
     "add_executor_arguments",
     "add_force_argument",
     "executor_from_args",
+    "local_folder",
     "options_from_args",
     "store_location",
 ]
@@ -45,6 +46,24 @@ def store_location(value: str):
         return storage_path(value)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def local_folder(value: str):
+    """argparse ``type`` of an output folder that must be local (a shared file system path on a cluster):
+    a path or a ``file://`` URL. Another URL is an argument error (rather than a local folder named
+    ``s3:``)."""
+    from pathlib import Path
+
+    from polarface.io.storage import storage_path
+
+    location = store_location(value)
+    if not isinstance(location, Path):
+        raise argparse.ArgumentTypeError(
+            f"'{value}' is a URL; this command writes a local folder (on a cluster, a path of a shared "
+            "file system); write it there and copy it, or give the URL to the commands that take one "
+            "(docs/cluster.md, 'Storage')"
+        )
+    return storage_path(location)
 
 
 def add_force_argument(parser: argparse.ArgumentParser, target: str = "the output folder") -> None:

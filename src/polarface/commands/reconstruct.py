@@ -32,6 +32,7 @@ from polarface.commands import (
     add_executor_arguments,
     add_force_argument,
     executor_from_args,
+    local_folder,
     store_location,
 )
 
@@ -43,7 +44,7 @@ INTERRUPTED = "partial results kept in {out}; rerun with --resume to continue"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", type=store_location,
                         help="static capture store (a path or a URL), or a simulation folder (SIM)")
-    parser.add_argument("--out", type=Path, required=True, help="RESULT folder")
+    parser.add_argument("--out", type=local_folder, required=True, help="RESULT folder")
     parser.add_argument(
         "--geometry",
         type=Path,

@@ -34,7 +34,8 @@ HELP = "render a RESULT: polarizer/Stokes/Mueller/DoP/AoLP/sRGB images, strip li
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Register the command's arguments."""
     parser.add_argument("result", type=store_location, help="RESULT folder (a path or a URL)")
-    parser.add_argument("--out", type=Path, default=None, help="output folder (default RESULT/render)")
+    parser.add_argument("--out", type=store_location, default=None,
+                        help="output folder, a path or a URL (default RESULT/render)")
     add_force_argument(parser)
     parser.add_argument("--camera", default=None, help="camera id of the rig (default: first polarimetric)")
     parser.add_argument(

@@ -9,6 +9,7 @@ Writes are atomic (temporary name, then rename). Paths may be URLs (``memory://`
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -185,9 +186,9 @@ def image_header(path: PathOrUrl) -> tuple[int, int, int, int]:
     from PIL import Image
 
     path = storage_path(path)
-    if not path.is_file():
+    if isinstance(path, Path) and not path.is_file():
         raise FileNotFoundError(f"image file '{path}' does not exist")
-    head = read_head(path, 33)
+    head = read_head(path, 33)  # at a URL one ranged read, which raises FileNotFoundError when missing
     if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and len(head) >= 26:
         width, height, bits, colour_type = struct.unpack(">IIBB", head[16:26])
         channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(colour_type)
