@@ -108,8 +108,11 @@ def test_an_interrupted_upload_keeps_the_old_object(memory_url, monkeypatch):
     monkeypatch.setattr(fs, "pipe_file", half_then_fail)
     with pytest.raises(ConnectionError):
         write_json_atomic(target, {"version": 2, "padding": "x" * 100})
+    monkeypatch.setattr(fs, "put_file", lambda local, path, **kwargs: half_then_fail(path, b"x" * 64))
+    with pytest.raises(ConnectionError):  # a staged file (EXR) whose upload breaks off
+        write_exr(target, {"Y": np.zeros((2, 2), np.float32)})
+    monkeypatch.undo()
     monkeypatch.setattr(fs, "mv", lambda *a, **k: (_ for _ in ()).throw(OSError("mv failed")))
-    monkeypatch.setattr(fs, "pipe_file", original)
     with pytest.raises(OSError, match="mv failed"):
         write_exr(target.with_name("eta.exr"), {"Y": np.zeros((2, 2), np.float32)})
     monkeypatch.undo()

@@ -43,7 +43,7 @@ def _staged_upload(target: UrlPath) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
-        target.write_bytes(tmp.read_bytes())
+        target.upload(tmp)
     finally:
         tmp.unlink(missing_ok=True)
 

@@ -19,8 +19,10 @@ user gave into one of two kinds:
 
 Credentials and other options of a protocol come from fsspec's configuration (environment variables
 ``FSSPEC_<PROTOCOL>_<OPTION>``, e.g. ``FSSPEC_S3_ENDPOINT_URL``, or the protocol package's own, e.g.
-``AWS_PROFILE`` for ``s3fs``), or from ``options`` in the Python API. A ``UrlPath`` pickles as its URL
-and options, so Ray tasks can receive it (``memory://`` is private to one process, though).
+``AWS_PROFILE`` for ``s3fs``), or from ``options`` in the Python API; prefer the configuration, which
+every process and node reads the same way (some stages pass a location on as a string, which drops
+``options``). A ``UrlPath`` pickles as its URL and options, so Ray tasks can receive it (``memory://``
+is private to one process, though).
 """
 
 from __future__ import annotations
@@ -245,22 +247,28 @@ class UrlPath:
         return handle
 
     # ---- writing -----------------------------------------------------------------------------
-    def write_bytes(self, data: bytes) -> int:
-        """Put ``data`` under this key whole: to a temporary key beside it, then moved onto it.
-
-        On an error nothing new appears under the key (the temporary key is removed); returns the size.
-        """
-        parent = posixpath.dirname(self.path)
-        temporary = f"{parent}/.tmp-{self.stem}-{uuid.uuid4().hex[:12]}{self.suffix}"
+    def _publish(self, put) -> None:
+        """``put(temporary key)``, then move the temporary key onto this one; on an error nothing new
+        appears under this key and the temporary key is removed."""
+        temporary = f"{posixpath.dirname(self.path)}/.tmp-{self.stem}-{uuid.uuid4().hex[:12]}{self.suffix}"
         try:
-            self.fs.pipe_file(temporary, bytes(data))
+            put(temporary)
             self.fs.mv(temporary, self.path)
         except BaseException:
             with contextlib.suppress(Exception):
                 if self.fs.exists(temporary):
                     self.fs.rm_file(temporary)
             raise
+
+    def write_bytes(self, data: bytes) -> int:
+        """Put ``data`` under this key whole: to a temporary key beside it, then moved onto it. Returns
+        the size."""
+        self._publish(lambda temporary: self.fs.pipe_file(temporary, bytes(data)))
         return len(data)
+
+    def upload(self, local: str | os.PathLike[str]) -> None:
+        """Put the local file ``local`` under this key whole (streamed from disk; as :meth:`write_bytes`)."""
+        self._publish(lambda temporary: self.fs.put_file(os.fspath(local), temporary))
 
     def write_text(self, text: str, encoding: str = "utf-8") -> int:
         return self.write_bytes(text.encode(encoding))
