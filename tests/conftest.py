@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -23,3 +24,14 @@ def _seed() -> None:
 def test_data() -> Path:
     """Folder of small real-data files copied into the repository (see tests/data/README.md)."""
     return TEST_DATA
+
+
+@pytest.fixture
+def memory_url():
+    """``memory://polarface-test-<random>``: an empty folder of fsspec's in-memory file system (shared by
+    every ``memory://`` URL of this process), removed after the test."""
+    from polarface.io.storage import remove_tree
+
+    url = f"memory://polarface-test-{uuid.uuid4().hex[:10]}"
+    yield url
+    remove_tree(url)

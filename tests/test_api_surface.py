@@ -80,9 +80,9 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "smoothness_penalty", "weighted_residuals",
     ),
     "polarface.io": (
-        "atomic_directory", "atomic_path", "colormap_png", "image_header", "json_values",
-        "read_exr", "read_gray", "read_json_object", "read_png", "write_exr", "write_json_atomic",
-        "write_png",
+        "UrlPath", "atomic_directory", "atomic_path", "colormap_png", "image_header", "is_url",
+        "json_values", "local_copy", "read_exr", "read_gray", "read_json_object", "read_png",
+        "storage_path", "write_exr", "write_json_atomic", "write_png",
     ),
     "polarface.optics": (
         "ANALYZER_ANGLES", "DEFAULT_LIGHT_STOKES", "FresnelTerms", "PolarimetricImages",

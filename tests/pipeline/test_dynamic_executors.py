@@ -166,3 +166,21 @@ def test_an_unreachable_ray_address_is_refused_within_seconds_and_nothing_is_wri
                  address, "--out", str(fresh), "--quiet"]) == 2
     assert time.perf_counter() - started < 15.0
     assert "'--ray-address'" in capsys.readouterr().err and not fresh.exists()
+
+
+def test_a_result_at_a_url_gets_the_local_runs_frames(tiny, memory_url):
+    """``polarface dynamic memory://RESULT SIM``: the static result read from fsspec's in-memory file
+    system, frame 0 unwrapped, fitted and rendered into it (local executor): the maps are the local
+    run's, bit for bit, and the report is written there too."""
+    from polarface.io import storage_path
+    from storage_fixtures import upload_tree
+
+    sim, static, local = tiny
+    upload_tree(static, memory_url)
+    upload_tree(local / "tracking", f"{memory_url}/tracking")
+    assert main(["dynamic", memory_url, str(sim), "--frames", "0", "--quiet"]) == 0
+    frame = storage_path(memory_url) / "frames" / "0000"
+    expected = _frame_files(local, 0)
+    different = [name for name, data in expected.items() if (frame / name).read_bytes() != data]
+    assert not different, f"{different} differ from the local run's"
+    assert (storage_path(memory_url) / "report.html").is_file()

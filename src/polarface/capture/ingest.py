@@ -22,7 +22,6 @@ import csv
 import itertools
 import math
 import os
-import shutil
 from pathlib import Path
 from typing import Literal
 
@@ -33,6 +32,7 @@ from polarface.capture.manifest import raw_bit_depth_ok
 from polarface.capture.rig import Rig
 from polarface.capture.store import CaptureStore
 from polarface.io.images import read_png
+from polarface.io.storage import PathOrUrl, StoragePath, remove_tree, storage_path
 
 __all__ = ["RAW_SUFFIXES", "check_raw_files", "ingest_directory", "scan_raw_directory"]
 
@@ -128,7 +128,7 @@ def _timestamps(root: Path, numbers: list[int], fps: float) -> dict[int, float]:
 def ingest_directory(
     raw_dir: str | os.PathLike[str],
     rig: Rig,
-    out: str | os.PathLike[str],
+    out: PathOrUrl,
     *,
     sequence: Literal["static", "dynamic"] = "static",
     method: DemosaicMethod = "residual",
@@ -140,7 +140,8 @@ def ingest_directory(
     Args:
         raw_dir: the RAW_DIR (see the module docstring).
         rig: the rig.
-        out: capture store directory (created, or resumed when it holds the same rig).
+        out: capture store directory (created, or resumed when it holds the same rig): a local path or a
+            URL (:func:`polarface.io.storage.storage_path`).
         sequence: ``static`` (revolving chair) or ``dynamic`` (expressions).
         method: demosaicing method.
         fps: frame rate used for timestamps when there is no ``timestamps.csv`` (paper: 20 fps).
@@ -155,7 +156,7 @@ def ingest_directory(
     frames = scan_raw_directory(root, rig)
     times = _timestamps(root, sorted(frames), fps)
     check_raw_files(frames, rig, progress=progress)
-    out = Path(out)
+    out = storage_path(out)
     created = not out.exists()
     fresh = created or not (out / "rig.json").exists()
     try:
@@ -171,13 +172,13 @@ def ingest_directory(
     return store
 
 
-def _remove_created(out: Path, created: bool) -> None:
+def _remove_created(out: StoragePath, created: bool) -> None:
     """Remove a store this run created: the folder, or its content when the folder was there (empty)."""
     if created:
-        shutil.rmtree(out, ignore_errors=True)
+        remove_tree(out)
         return
     for child in out.iterdir():
-        if child.is_dir() and not child.is_symlink():
-            shutil.rmtree(child, ignore_errors=True)
-        else:
+        if isinstance(child, Path) and child.is_symlink():
             child.unlink(missing_ok=True)
+        else:
+            remove_tree(child)

@@ -8,9 +8,7 @@ The manifest is rebuilt from the markers after every frame. Layout: ``docs/captu
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -18,6 +16,7 @@ from polarface.capture.observations import OBSERVATION_NAMES
 from polarface.capture.rig import Camera, Rig
 from polarface.io.atomic import write_json_atomic
 from polarface.io.images import image_header, read_png
+from polarface.io.storage import PathOrUrl, StoragePath, storage_path
 
 __all__ = [
     "MANIFEST_FORMAT",
@@ -76,14 +75,14 @@ def raw_bit_depth_ok(raw: np.ndarray, camera: Camera) -> None:
         )
 
 
-def frame_marker_path(root: str | os.PathLike[str], frame_index: int) -> Path:
+def frame_marker_path(root: PathOrUrl, frame_index: int) -> StoragePath:
     """Path of the completion marker ``frames/<frame:06d>.json`` of a frame of the store at ``root``."""
-    return Path(root) / "frames" / f"{frame_index:06d}.json"
+    return storage_path(root) / "frames" / f"{frame_index:06d}.json"
 
 
-def write_manifest(root: str | os.PathLike[str], rig: Rig, sequence: str, *, complete: bool) -> dict:
+def write_manifest(root: PathOrUrl, rig: Rig, sequence: str, *, complete: bool) -> dict:
     """Rebuild ``manifest.json`` from the frame markers (in index order), write it atomically, return it."""
-    root = Path(root)
+    root = storage_path(root)
     frames = []
     for path in sorted((root / "frames").glob("[0-9]*.json")):
         marker = json.loads(path.read_text(encoding="utf-8"))
@@ -112,13 +111,13 @@ def write_manifest(root: str | os.PathLike[str], rig: Rig, sequence: str, *, com
     return manifest
 
 
-def read_manifest(path: str | os.PathLike[str]) -> dict:
-    """The parsed ``manifest.json`` at ``path``.
+def read_manifest(path: PathOrUrl) -> dict:
+    """The parsed ``manifest.json`` at ``path`` (a local path or a URL).
 
     Raises:
         ValueError: invalid JSON, wrong format or sequence, malformed or duplicated frames.
     """
-    path = Path(path)
+    path = storage_path(path)
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -137,19 +136,20 @@ def read_manifest(path: str | os.PathLike[str]) -> dict:
 
 
 def manifest_problems(
-    root: str | os.PathLike[str], rig: Rig, frames: list[FrameRecord], *, deep: bool = False
+    root: PathOrUrl, rig: Rig, frames: list[FrameRecord], *, deep: bool = False
 ) -> list[str]:
     """Every disagreement between the manifest's ``frames`` and the files of the store at ``root``.
 
     Missing raw file or frame marker, camera not in the rig, wrong image size or bit depth, raw files
     not in the manifest; ``deep`` also reads every raw frame's values (:func:`raw_bit_depth_ok`).
     """
-    root = Path(root)
+    root = storage_path(root)
     problems: list[str] = []
     listed: set[str] = set()
     camera_sets = set()
+    markers = {path.name for path in (root / "frames").glob("[0-9]*.json")}  # one listing, not one per frame
     for frame in frames:
-        if not frame_marker_path(root, frame.index).is_file():
+        if frame_marker_path(root, frame.index).name not in markers:
             problems.append(
                 f"frame {frame.index}: completion marker frames/{frame.index:06d}.json is missing"
             )
@@ -162,11 +162,11 @@ def manifest_problems(
                 problems.append(f"frame {frame.index}: {exc}")
                 continue
             path = root / relative
-            if not path.is_file():
-                problems.append(f"frame {frame.index}: raw file '{relative}' of camera '{cam_id}' is missing")
-                continue
             try:
                 width, height, channels, bits = image_header(path)
+            except FileNotFoundError:
+                problems.append(f"frame {frame.index}: raw file '{relative}' of camera '{cam_id}' is missing")
+                continue
             except ValueError as exc:
                 problems.append(f"frame {frame.index}: raw file '{relative}' is not an image ({exc})")
                 continue

@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -24,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from polarface.geometry.camera import PinholeCamera, look_at
 from polarface.io.atomic import write_json_atomic
+from polarface.io.storage import PathOrUrl, StoragePath, storage_path
 
 __all__ = [
     "SIX_CHANNEL_NAMES",
@@ -381,14 +380,14 @@ class Rig(_Model):
         return differences
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> Rig:
-        """Read and validate a ``rig.json``.
+    def load(cls, path: PathOrUrl) -> Rig:
+        """Read and validate a ``rig.json`` (a local path or a URL).
 
         Raises:
             FileNotFoundError: if the file does not exist.
             ValueError: on invalid JSON or schema errors (message names the file and the fields).
         """
-        path = Path(path)
+        path = storage_path(path)
         if not path.is_file():
             raise FileNotFoundError(f"rig file '{path}' does not exist")
         try:
@@ -400,7 +399,7 @@ class Rig(_Model):
         except ValidationError as exc:
             raise ValueError(f"rig file '{path}' is invalid: {_one_line(exc)}") from exc
 
-    def save(self, path: str | os.PathLike[str]) -> Path:
+    def save(self, path: PathOrUrl) -> StoragePath:
         """Write ``rig.json`` atomically; returns the path."""
         return write_json_atomic(path, self.model_dump(mode="json"))
 

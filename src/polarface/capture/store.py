@@ -24,13 +24,16 @@ Atomicity: raw PNGs and JSON files are written through :mod:`polarface.io.atomic
 written before a frame's marker, and a marker is removed before its frame is rewritten, so a crash
 leaves either a complete frame or a frame without marker, which readers refuse and a rerun redoes.
 Arrays grow along the frame axis; one frame of one camera is in memory at a time.
+
+Where: ``CAPTURE`` is a local path or an fsspec URL (``file://``, ``memory://``, ``s3://bucket/key``;
+:func:`polarface.io.storage.storage_path`). On a URL every file is put whole (temporary key, then moved)
+and ``derived.zarr`` goes through zarr's fsspec store, whose chunks are single object puts.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import os
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Literal
@@ -54,6 +57,7 @@ from polarface.capture.observations import (
 from polarface.capture.rig import Camera, Rig
 from polarface.io.atomic import write_json_atomic
 from polarface.io.images import read_png, write_png
+from polarface.io.storage import PathOrUrl, StoragePath, open_zarr_group, storage_path
 
 __all__ = ["CaptureStore"]
 
@@ -69,16 +73,17 @@ def _digest(raw: np.ndarray) -> str:
     return hashlib.sha1(np.ascontiguousarray(raw).tobytes() + str(raw.shape).encode()).hexdigest()
 
 
-def _remove_stale_temporaries(root: Path) -> None:
+def _remove_stale_temporaries(root: StoragePath) -> None:
     """Delete the temporaries an interrupted atomic write left (nothing ever reads them): our ``.tmp-*``
-    files and zarr's ``<chunk>.<uuid>.partial`` files under ``derived.zarr`` (zarr writes a chunk there
-    and renames it; a process killed in between leaves it behind)."""
+    files (keys on a URL) and, on a local store, zarr's ``<chunk>.<uuid>.partial`` files under
+    ``derived.zarr`` (zarr writes a chunk there and renames it; a process killed in between leaves it
+    behind; zarr's fsspec store puts a chunk in one piece and leaves none)."""
     for pattern in (".tmp-*", "raw/*/.tmp-*", "frames/.tmp-*"):
         for path in root.glob(pattern):
             if path.is_file():
                 path.unlink(missing_ok=True)
     derived = root / "derived.zarr"
-    if derived.is_dir():
+    if isinstance(derived, Path) and derived.is_dir():
         for path in derived.rglob("*.partial"):
             if path.is_file():
                 path.unlink(missing_ok=True)
@@ -87,19 +92,20 @@ def _remove_stale_temporaries(root: Path) -> None:
 class CaptureStore:
     """A capture store directory (see the module docstring). Use :meth:`create` or :meth:`open`."""
 
-    def __init__(self, root: Path, rig: Rig, sequence: str, chunk: int = 512) -> None:
-        self.root = Path(root)
+    def __init__(self, root: PathOrUrl, rig: Rig, sequence: str, chunk: int = 512) -> None:
+        self.root = storage_path(root)
         self.rig = rig
         self.sequence = sequence
         self.chunk = chunk
         self.plane_distance_mm: float | None = None  # None: the rig's convergence distance
         self._group = None
+        self._manifest: dict | None = None
 
     # ----------------------------------------------------------------------------------- writer
     @classmethod
     def create(
         cls,
-        path: str | os.PathLike[str],
+        path: PathOrUrl,
         rig: Rig,
         *,
         sequence: Literal["static", "dynamic"] = "static",
@@ -108,14 +114,15 @@ class CaptureStore:
         """Create a store, or reopen an unfinished/finished one with the same rig to resume.
 
         Stale ``.tmp-*`` files of a killed run (in the root, ``raw/<camera>/`` and ``frames/``) are
-        removed first; a folder holding nothing else counts as empty.
+        removed first; a folder holding nothing else counts as empty. ``path`` is a local path or a URL.
 
         Raises:
-            ValueError: on a bad ``sequence``, or an existing store with a different rig.
+            ValueError: on a bad ``sequence``, an existing store with a different rig, or a URL of an
+                unknown protocol or missing package.
         """
         if sequence not in ("static", "dynamic"):
             raise ValueError(f"argument 'sequence' must be 'static' or 'dynamic'; got {sequence!r}")
-        root = Path(path)
+        root = storage_path(path)
         rig_path = root / "rig.json"
         _remove_stale_temporaries(root)
         if rig_path.exists():
@@ -216,28 +223,34 @@ class CaptureStore:
 
     # ----------------------------------------------------------------------------------- reader
     @classmethod
-    def open(cls, path: str | os.PathLike[str], *, validate: bool = True) -> CaptureStore:
-        """Open an existing store (reads ``rig.json`` and ``manifest.json``; validates by default).
+    def open(cls, path: PathOrUrl, *, validate: bool = True) -> CaptureStore:
+        """Open an existing store, at a local path or a URL (reads ``rig.json`` and ``manifest.json``;
+        validates by default).
 
         Raises:
             FileNotFoundError: if the store, its rig or its manifest is missing.
-            ValueError: on an invalid rig/manifest or files that disagree with the manifest.
+            ValueError: on an invalid rig/manifest, files that disagree with the manifest, or a URL of an
+                unknown protocol or missing package.
         """
-        root = Path(path)
+        root = storage_path(path)
         manifest_path = root / "manifest.json"
         if not manifest_path.is_file():
             raise FileNotFoundError(f"'{root}' is not a capture store: no manifest.json")
         rig = Rig.load(root / "rig.json")
         manifest = read_manifest(manifest_path)
         store = cls(root, rig, manifest["sequence"])
+        store._manifest = manifest
         if validate:
             store.validate()
         return store
 
     @property
     def manifest(self) -> dict:
-        """The parsed ``manifest.json``."""
-        return read_manifest(self.root / "manifest.json")
+        """The parsed ``manifest.json``, read once per store object (one request per read at a URL) and
+        refreshed by this object's own writes; reopen the store to see frames another process added."""
+        if self._manifest is None:
+            self._manifest = read_manifest(self.root / "manifest.json")
+        return self._manifest
 
     @property
     def frames(self) -> list[FrameRecord]:
@@ -296,7 +309,7 @@ class CaptureStore:
         return _observation(self.stack(frame_index, camera_id, region), name)
 
     # -------------------------------------------------------------------------------- internals
-    def _marker(self, frame_index: int) -> Path:
+    def _marker(self, frame_index: int) -> StoragePath:
         return frame_marker_path(self.root, frame_index)
 
     def _record(self, frame_index: int) -> FrameRecord:
@@ -306,10 +319,8 @@ class CaptureStore:
         raise ValueError(f"frame {frame_index} is not in the manifest of '{self.root}'")
 
     def _zarr(self, mode: str = "a"):
-        import zarr
-
         if self._group is None or mode == "a":
-            self._group = zarr.open_group(self.root / "derived.zarr", mode=mode)
+            self._group = open_zarr_group(self.root / "derived.zarr", mode)
         return self._group
 
     def _derived_array(self, name: str, frame_index: int):
@@ -401,4 +412,5 @@ class CaptureStore:
         return stack
 
     def _write_manifest(self, *, complete: bool) -> dict:
-        return write_manifest(self.root, self.rig, self.sequence, complete=complete)
+        self._manifest = write_manifest(self.root, self.rig, self.sequence, complete=complete)
+        return self._manifest

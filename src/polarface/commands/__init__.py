@@ -12,7 +12,14 @@ import argparse
 import dataclasses
 from typing import Any, TypeVar
 
-__all__ = ["add_executor_arguments", "add_force_argument", "executor_from_args", "options_from_args"]
+__all__ = [
+    "add_executor_arguments",
+    "add_force_argument",
+    "executor_from_args",
+    "local_folder",
+    "options_from_args",
+    "store_location",
+]
 
 _Options = TypeVar("_Options")
 
@@ -27,6 +34,36 @@ def options_from_args(options_type: type[_Options], args: argparse.Namespace, **
     """
     fields = (f.name for f in dataclasses.fields(options_type) if f.name not in values)  # type: ignore[arg-type]
     return options_type(**{name: getattr(args, name) for name in fields}, **values)
+
+
+def store_location(value: str):
+    """argparse ``type`` of a capture store or RESULT argument: a local path or an fsspec URL
+    (``file://``, ``memory://``, ``s3://bucket/key``; :func:`polarface.io.storage.storage_path`). A URL of
+    an unknown protocol or a missing package is an argument error naming it."""
+    from polarface.io.storage import storage_path
+
+    try:
+        return storage_path(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def local_folder(value: str):
+    """argparse ``type`` of an output folder that must be local (a shared file system path on a cluster):
+    a path or a ``file://`` URL. Another URL is an argument error (rather than a local folder named
+    ``s3:``)."""
+    from pathlib import Path
+
+    from polarface.io.storage import storage_path
+
+    location = store_location(value)
+    if not isinstance(location, Path):
+        raise argparse.ArgumentTypeError(
+            f"'{value}' is a URL; this command writes a local folder (on a cluster, a path of a shared "
+            "file system); write it there and copy it, or give the URL to the commands that take one "
+            "(docs/cluster.md, 'Storage')"
+        )
+    return storage_path(location)
 
 
 def add_force_argument(parser: argparse.ArgumentParser, target: str = "the output folder") -> None:

@@ -16,6 +16,7 @@ import argparse
 import json
 from pathlib import Path
 
+from polarface.commands import store_location
 from polarface.device import resolve_device
 from polarface.inverse.biophysical import BiophysicalConfig
 from polarface.io.output_folder import lock_output
@@ -27,7 +28,8 @@ HELP = "recover melanin/haemoglobin maps and diffusion profiles from a RESULT's 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Register the command's arguments."""
-    parser.add_argument("result", type=Path, help="RESULT folder (maps/rho_sss_bar.exr, mesh.obj, rig.json)")
+    parser.add_argument("result", type=store_location,
+                        help="RESULT folder or URL (maps/rho_sss_bar.exr, mesh.obj, rig.json)")
     parser.add_argument("--local", action="store_true", help="input is a blur-free local albedo")
     parser.add_argument("--coarse-factor", type=int, default=BiophysicalConfig.coarse_factor)
     parser.add_argument("--shape-rounds", type=int, default=BiophysicalConfig.shape_rounds)

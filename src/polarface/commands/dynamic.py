@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
-from polarface.commands import add_executor_arguments, executor_from_args
+from polarface.commands import add_executor_arguments, executor_from_args, store_location
 
 NAME = "dynamic"
 HELP = "reconstruct a dynamic capture frame by frame on a static RESULT (tracking, per-frame maps)"
@@ -24,8 +23,10 @@ HELP = "reconstruct a dynamic capture frame by frame on a static RESULT (trackin
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Register the command's arguments."""
-    parser.add_argument("result", type=Path, help="RESULT folder of a finished static reconstruction")
-    parser.add_argument("dynamic", type=Path, help="dynamic capture store of the same rig, or a SIM folder")
+    parser.add_argument("result", type=store_location,
+                        help="RESULT folder of a finished static reconstruction (a path or a URL)")
+    parser.add_argument("dynamic", type=store_location,
+                        help="dynamic capture store of the same rig (a path or a URL), or a SIM folder")
     parser.add_argument(
         "--frames", default=None, help="frames whose maps are fitted, e.g. '0-4,7' (default: all)"
     )

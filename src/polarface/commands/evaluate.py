@@ -11,12 +11,15 @@ import argparse
 import json
 from pathlib import Path
 
+from polarface.commands import store_location
+
 NAME = "evaluate"
 HELP = "compare a RESULT folder with ground truth (prints JSON metrics)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("result", type=Path, help="RESULT folder of polarface reconstruct")
+    parser.add_argument("result", type=store_location,
+                        help="RESULT folder of polarface reconstruct (a path or a URL)")
     parser.add_argument("--gt", type=Path, required=True, help="simulation folder (or its ground_truth/)")
     parser.add_argument("--groups", nargs="*", default=None, help="metric groups to compute (default all)")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")

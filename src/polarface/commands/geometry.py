@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from polarface.commands import add_force_argument
+from polarface.commands import add_force_argument, local_folder
 
 NAME = "geometry"
 HELP = "reference mesh with a cylindrical atlas, poses and per-frame meshes from the stereo pairs"
@@ -18,7 +18,7 @@ INTERRUPTED = "finished frames kept in {out}; rerun the same command to continue
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", type=Path, help="static capture store, or a simulation folder (SIM)")
-    parser.add_argument("--out", type=Path, required=True, help="GEOM folder")
+    parser.add_argument("--out", type=local_folder, required=True, help="GEOM folder")
     parser.add_argument(
         "--texture-resolution", type=int, default=None,
         help="UV atlas side in texels (default: the simulation's, else 512)",

@@ -9,14 +9,16 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
+
+from polarface.commands import store_location
 
 NAME = "info"
 HELP = "describe a capture store, simulation folder or RESULT folder (--json for machines)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path", type=Path, metavar="PATH", help="capture store, simulation folder or RESULT")
+    parser.add_argument("path", type=store_location, metavar="PATH",
+                        help="capture store, simulation folder or RESULT (a path or a URL)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from polarface.commands import add_force_argument
+from polarface.commands import add_force_argument, store_location
 
 NAME = "ingest"
 HELP = "validate raw frames against a rig and build a capture store with observations"
@@ -20,7 +20,8 @@ INTERRUPTED = "completed frames kept in {out}; rerun the same command to continu
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("raw_dir", type=Path, help="RAW_DIR/<camera_id>/<frame>.png")
     parser.add_argument("--rig", type=Path, required=True, help="rig.json")
-    parser.add_argument("--out", type=Path, required=True, help="capture store directory")
+    parser.add_argument("--out", type=store_location, required=True,
+                        help="capture store directory (a path or a URL)")
     parser.add_argument("--sequence", default="static", choices=["static", "dynamic"])
     parser.add_argument("--method", default="residual", choices=["residual", "bilinear"])
     parser.add_argument("--fps", type=float, default=20.0, help="frame rate when there is no timestamps.csv")

@@ -28,7 +28,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from polarface.commands import add_executor_arguments, add_force_argument, executor_from_args
+from polarface.commands import (
+    add_executor_arguments,
+    add_force_argument,
+    executor_from_args,
+    local_folder,
+    store_location,
+)
 
 NAME = "reconstruct"
 HELP = "static polarimetric inverse rendering of a capture into texture maps (RESULT folder)"
@@ -36,8 +42,9 @@ INTERRUPTED = "partial results kept in {out}; rerun with --resume to continue"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("capture", type=Path, help="static capture store, or a simulation folder (SIM)")
-    parser.add_argument("--out", type=Path, required=True, help="RESULT folder")
+    parser.add_argument("capture", type=store_location,
+                        help="static capture store (a path or a URL), or a simulation folder (SIM)")
+    parser.add_argument("--out", type=local_folder, required=True, help="RESULT folder")
     parser.add_argument(
         "--geometry",
         type=Path,
@@ -99,7 +106,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--dynamic",
-        type=Path,
+        type=store_location,
         default=None,
         metavar="DYNAMIC",
         help="also reconstruct a dynamic capture of the same rig frame by frame (a capture store, or a "

@@ -25,7 +25,7 @@ import argparse
 import json
 from pathlib import Path
 
-from polarface.commands import add_force_argument, options_from_args
+from polarface.commands import add_force_argument, options_from_args, store_location
 
 NAME = "render"
 HELP = "render a RESULT: polarizer/Stokes/Mueller/DoP/AoLP/sRGB images, strip light, chromophore edits"
@@ -33,8 +33,9 @@ HELP = "render a RESULT: polarizer/Stokes/Mueller/DoP/AoLP/sRGB images, strip li
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Register the command's arguments."""
-    parser.add_argument("result", type=Path, help="RESULT folder")
-    parser.add_argument("--out", type=Path, default=None, help="output folder (default RESULT/render)")
+    parser.add_argument("result", type=store_location, help="RESULT folder (a path or a URL)")
+    parser.add_argument("--out", type=store_location, default=None,
+                        help="output folder, a path or a URL (default RESULT/render)")
     add_force_argument(parser)
     parser.add_argument("--camera", default=None, help="camera id of the rig (default: first polarimetric)")
     parser.add_argument(

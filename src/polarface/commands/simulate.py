@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from polarface.commands import add_force_argument
+from polarface.commands import add_force_argument, local_folder
 
 NAME = "simulate"
 HELP = "render a synthetic rig capture of the bundled head with ground truth"
@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--seed", type=int, default=0, help="seed of the sensor noise (ground truth is fixed)"
     )
     parser.add_argument("--skin-type", default="II", help="Fitzpatrick skin type I..VI")
-    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--out", type=local_folder, required=True, help="output folder")
     parser.add_argument("--sequences", default="static,dynamic", help="comma list of static,dynamic")
     parser.add_argument("--no-noise", action="store_true", help="noise-free raw (quantisation only)")
     parser.add_argument("--no-blur", action="store_true", help="local subsurface model (no diffusion blur)")
@@ -55,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
         summary = simulate(str(out), config)
     print(
         json.dumps(
-            {"out": args.out, "timings": summary["timings"], "peak_rss_mb": summary["peak_rss_mb"]}, indent=2
+            {"out": str(args.out), "timings": summary["timings"], "peak_rss_mb": summary["peak_rss_mb"]},
+            indent=2,
         )
     )
     return 0

@@ -16,13 +16,13 @@ This module is geometry, not physics: numpy in and out, never differentiated.
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 
 import numpy as np
 
 from polarface.geometry.poses import check_rigid
 from polarface.io.atomic import atomic_path
+from polarface.io.storage import PathOrUrl, StoragePath, UrlPath, local_copy, storage_path
 
 __all__ = [
     "TriangleMesh",
@@ -276,7 +276,7 @@ def _load_obj_per_corner(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return verts, fv, tex[ft]
 
 
-def load_mesh(path: str | os.PathLike[str], *, flip_v: bool = False, scale: float = 1.0) -> TriangleMesh:
+def load_mesh(path: PathOrUrl, *, flip_v: bool = False, scale: float = 1.0) -> TriangleMesh:
     """Load a triangle mesh with UVs from GLB/glTF, OBJ or PLY.
 
     GLB/glTF go through trimesh (which converts glTF's v-down texture coordinates to v up), OBJ is parsed
@@ -285,7 +285,7 @@ def load_mesh(path: str | os.PathLike[str], *, flip_v: bool = False, scale: floa
     area-weighted and smooth across seams. A multi-mesh scene is concatenated.
 
     Args:
-        path: mesh file.
+        path: mesh file (a local path or a URL, read from a local copy).
         flip_v: apply ``v -> 1 - v`` after the standard conversion (for assets whose UVs were authored
             against the spec, e.g. the three.js Lee Perry-Smith GLB, whose maps expect the raw values).
         scale: multiply positions by this (e.g. source units -> mm).
@@ -297,9 +297,12 @@ def load_mesh(path: str | os.PathLike[str], *, flip_v: bool = False, scale: floa
     """
     import trimesh
 
-    path = Path(path)
+    path = storage_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file '{path}' does not exist")
+    if isinstance(path, UrlPath):
+        with local_copy(path) as local:
+            return load_mesh(local, flip_v=flip_v, scale=scale)
     suffix = path.suffix.lower()
     if suffix not in (".glb", ".gltf", ".obj", ".ply"):
         raise ValueError(f"mesh file '{path}': unsupported format '{suffix}' (GLB, glTF, OBJ, PLY)")
@@ -378,7 +381,7 @@ def _ply_vertex_uv(loaded) -> np.ndarray | None:
 # Saving
 
 
-def save_obj(path: str | os.PathLike[str], mesh: TriangleMesh, *, precision: int = 6) -> Path:
+def save_obj(path: PathOrUrl, mesh: TriangleMesh, *, precision: int = 6) -> StoragePath:
     """Write ``mesh`` as Wavefront OBJ with ``v``, ``vt`` (v up), ``vn`` and ``f v/vt/vn``, atomically.
 
     Positions are written in mm with ``precision`` decimals (1e-6 mm by default).
@@ -396,10 +399,10 @@ def save_obj(path: str | os.PathLike[str], mesh: TriangleMesh, *, precision: int
     text = "\n".join(lines + v_lines + vt_lines + vn_lines + f_lines) + "\n"
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
-    return Path(path)
+    return storage_path(path)
 
 
-def save_ply(path: str | os.PathLike[str], mesh: TriangleMesh) -> Path:
+def save_ply(path: PathOrUrl, mesh: TriangleMesh) -> StoragePath:
     """Write ``mesh`` as binary little-endian PLY (x y z nx ny nz s t as float64/float32), atomically."""
     vertex_dtype = np.dtype(
         [
@@ -434,4 +437,4 @@ def save_ply(path: str | os.PathLike[str], mesh: TriangleMesh) -> Path:
         handle.write(header.encode("ascii"))
         handle.write(verts.tobytes())
         handle.write(faces.tobytes())
-    return Path(path)
+    return storage_path(path)

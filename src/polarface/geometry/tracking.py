@@ -61,10 +61,8 @@ Units: mm, pixels; rig world (OpenCV cameras).
 from __future__ import annotations
 
 import dataclasses
-import os
 import warnings
 from collections.abc import Callable, Mapping, Sequence
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -75,6 +73,7 @@ from polarface.geometry.camera import PinholeCamera
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.raycast import RayCaster, closest_surface_points
 from polarface.io import atomic_path
+from polarface.io.storage import PathOrUrl, StoragePath, local_copy, storage_path
 
 __all__ = [
     "TrackedSequence",
@@ -624,9 +623,9 @@ def track_mesh(
 
 
 # ---- files -----------------------------------------------------------------------------------------
-def save_tracked(path: str | os.PathLike[str], tracked: TrackedSequence) -> Path:
-    """Write ``tracked`` to an ``.npz`` file atomically; returns the path."""
-    target = Path(path)
+def save_tracked(path: PathOrUrl, tracked: TrackedSequence) -> StoragePath:
+    """Write ``tracked`` to an ``.npz`` file (a local path or a URL) atomically; returns the path."""
+    target = storage_path(path)
     if target.suffix != ".npz":
         raise ValueError(f"argument 'path' must end in .npz; got {target}")
     failed_frames = np.array(sorted(tracked.failed), np.int64)
@@ -643,19 +642,19 @@ def save_tracked(path: str | os.PathLike[str], tracked: TrackedSequence) -> Path
     return target
 
 
-def load_tracked(path: str | os.PathLike[str]) -> TrackedSequence:
-    """Read a :func:`save_tracked` file.
+def load_tracked(path: PathOrUrl) -> TrackedSequence:
+    """Read a :func:`save_tracked` file (a local path or a URL).
 
     Raises:
         FileNotFoundError: if ``path`` does not exist.
         ValueError: naming the file when it is not a tracked sequence or its arrays disagree.
     """
-    source = Path(path)
+    source = storage_path(path)
     if not source.is_file():
         raise FileNotFoundError(f"tracked sequence file {source} does not exist")
     names = ("frames", "vertices", "confidence", "anchors", "failed_frames", "failed_reasons")
     try:
-        with np.load(source, allow_pickle=False) as data:
+        with local_copy(source) as local, np.load(local, allow_pickle=False) as data:
             arrays = {name: data[name] for name in names}
     except (OSError, ValueError, KeyError) as error:
         raise ValueError(f"{source}: not a tracked sequence ({error})") from error

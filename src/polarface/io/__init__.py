@@ -1,4 +1,5 @@
-"""File input/output shared by the stages: atomic writes, EXR/PNG images, JSON artifacts.
+"""File input/output shared by the stages: atomic writes, EXR/PNG images, JSON artifacts, and where a
+store lives (a local path or an fsspec URL: :mod:`polarface.io.storage`).
 
 Physics modules (``optics``, ``skin``) never import from here.
 """
@@ -14,17 +15,22 @@ from polarface.io.images import (
     write_png,
 )
 from polarface.io.json_files import json_values, read_json_object
+from polarface.io.storage import UrlPath, is_url, local_copy, storage_path
 
 __all__ = [
+    "UrlPath",
     "atomic_directory",
     "atomic_path",
     "colormap_png",
     "image_header",
+    "is_url",
     "json_values",
+    "local_copy",
     "read_exr",
     "read_gray",
     "read_json_object",
     "read_png",
+    "storage_path",
     "write_exr",
     "write_json_atomic",
     "write_png",

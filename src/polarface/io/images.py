@@ -2,29 +2,30 @@
 
 All arrays are numpy, channels-last ``(H, W)`` or ``(H, W, C)``. EXR holds linear float32 data;
 PNG holds 8- or 16-bit integers (raw frames are 16-bit PNG with the ADC value in the low bits).
-Writes are atomic (temporary name, then rename).
+Writes are atomic (temporary name, then rename). Paths may be URLs (``memory://``, ``s3://``;
+:mod:`polarface.io.storage`): files are uploaded whole and downloaded to read.
 """
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from polarface.io.atomic import atomic_path
+from polarface.io.storage import PathOrUrl, StoragePath, UrlPath, local_copy, read_head, storage_path
 
 __all__ = ["colormap_png", "image_header", "read_exr", "read_gray", "read_png", "write_exr", "write_png"]
 
 
 def write_exr(
-    path: str | os.PathLike[str],
+    path: PathOrUrl,
     channels: Mapping[str, np.ndarray] | np.ndarray,
     names: Sequence[str] | None = None,
     *,
     half: bool = False,
-) -> Path:
+) -> StoragePath:
     """Write a multi-channel float image as OpenEXR (ZIP compression), atomically.
 
     Args:
@@ -64,10 +65,10 @@ def write_exr(
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with atomic_path(path) as tmp, OpenEXR.File(header, data) as exr:
         exr.write(str(tmp))
-    return Path(path)
+    return storage_path(path)
 
 
-def read_exr(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+def read_exr(path: PathOrUrl) -> dict[str, np.ndarray]:
     """Read every channel of an OpenEXR file as float32 ``(H, W)`` arrays keyed by channel name.
 
     Interleaved RGB(A) channel groups that the binding returns as ``(H, W, C)`` are split into
@@ -79,11 +80,11 @@ def read_exr(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     """
     import OpenEXR
 
-    path = Path(path)
+    path = storage_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"EXR file '{path}' does not exist")
     try:
-        with OpenEXR.File(str(path)) as exr:
+        with local_copy(path) as local, OpenEXR.File(str(local)) as exr:
             raw = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
     except Exception as exc:
         raise ValueError(f"cannot read EXR file '{path}': {exc}") from exc
@@ -102,7 +103,7 @@ def read_exr(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     return out
 
 
-def write_png(path: str | os.PathLike[str], image: np.ndarray, *, bit_depth: int = 8) -> Path:
+def write_png(path: PathOrUrl, image: np.ndarray, *, bit_depth: int = 8) -> StoragePath:
     """Write an integer or [0, 1]-float image as an 8- or 16-bit PNG, atomically.
 
     Float input is clipped to [0, 1] and scaled to the full range of ``bit_depth``; integer input is
@@ -130,23 +131,26 @@ def write_png(path: str | os.PathLike[str], image: np.ndarray, *, bit_depth: int
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), np.ascontiguousarray(data)):
             raise ValueError(f"write_png: OpenCV could not write '{path}'")
-    return Path(path)
+    return storage_path(path)
 
 
-def _imread(path: str | os.PathLike[str], flags: int) -> np.ndarray:
+def _imread(path: PathOrUrl, flags: int) -> np.ndarray:
     """``cv2.imread(path, flags)`` of an image file that must exist and decode (errors name the file)."""
     import cv2
 
-    path = Path(path)
+    path = storage_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image file '{path}' does not exist")
-    array = cv2.imread(str(path), flags)
+    if isinstance(path, UrlPath):  # decoded from memory: no temporary file
+        array = cv2.imdecode(np.frombuffer(path.read_bytes(), np.uint8), flags)
+    else:
+        array = cv2.imread(str(path), flags)
     if array is None:
         raise ValueError(f"cannot read image '{path}' (truncated, corrupt or not an image)")
     return array
 
 
-def read_png(path: str | os.PathLike[str]) -> np.ndarray:
+def read_png(path: PathOrUrl) -> np.ndarray:
     """Read a PNG (or TIFF) exactly as stored: uint8/uint16, ``(H, W)`` or ``(H, W, C)`` RGB order.
 
     Raises:
@@ -161,14 +165,14 @@ def read_png(path: str | os.PathLike[str]) -> np.ndarray:
     return np.ascontiguousarray(array)
 
 
-def read_gray(path: str | os.PathLike[str]) -> np.ndarray:
+def read_gray(path: PathOrUrl) -> np.ndarray:
     """An image file as 8-bit greyscale ``(H, W)`` (OpenCV's conversion); errors as :func:`read_png`."""
     import cv2
 
     return _imread(path, cv2.IMREAD_GRAYSCALE)
 
 
-def image_header(path: str | os.PathLike[str]) -> tuple[int, int, int, int]:
+def image_header(path: PathOrUrl) -> tuple[int, int, int, int]:
     """``(width, height, channels, bits per sample)`` of a PNG or TIFF without decoding its pixels.
 
     PNG headers are parsed directly (PIL reports 16-bit colour PNGs as 8-bit ``RGB``); other formats
@@ -181,11 +185,10 @@ def image_header(path: str | os.PathLike[str]) -> tuple[int, int, int, int]:
 
     from PIL import Image
 
-    path = Path(path)
-    if not path.is_file():
+    path = storage_path(path)
+    if isinstance(path, Path) and not path.is_file():
         raise FileNotFoundError(f"image file '{path}' does not exist")
-    with open(path, "rb") as handle:
-        head = handle.read(33)
+    head = read_head(path, 33)  # at a URL one ranged read, which raises FileNotFoundError when missing
     if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and len(head) >= 26:
         width, height, bits, colour_type = struct.unpack(">IIBB", head[16:26])
         channels = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(colour_type)
@@ -193,7 +196,7 @@ def image_header(path: str | os.PathLike[str]) -> tuple[int, int, int, int]:
             raise ValueError(f"image '{path}': unknown PNG colour type {colour_type}")
         return width, height, channels, 8 if colour_type == 3 else bits
     try:
-        with Image.open(path) as img:
+        with local_copy(path) as local, Image.open(local) as img:
             bits = {"1": 1, "L": 8, "P": 8, "RGB": 8, "RGBA": 8, "I;16": 16, "I;16B": 16, "I": 32, "F": 32}
             return img.size[0], img.size[1], len(img.getbands()), bits.get(img.mode, 8)
     except Exception as exc:
@@ -201,7 +204,7 @@ def image_header(path: str | os.PathLike[str]) -> tuple[int, int, int, int]:
 
 
 def colormap_png(
-    path: str | os.PathLike[str],
+    path: PathOrUrl,
     image: np.ndarray,
     *,
     vmin: float | None = None,
@@ -211,7 +214,7 @@ def colormap_png(
     title: str | None = None,
     colorbar: bool = False,
     label: str | None = None,
-) -> Path:
+) -> StoragePath:
     """Write a scalar ``(H, W)`` map as a colour-mapped 8-bit PNG preview.
 
     Args:
@@ -251,10 +254,10 @@ def colormap_png(
         return write_png(path, rgba[..., :3].astype(np.float64), bit_depth=8)
 
     _figure_png(path, np.ma.array(image, mask=~valid), (lo, hi), cmap, title, label, colorbar)
-    return Path(path)
+    return storage_path(path)
 
 
-def _figure_png(path: str | os.PathLike[str], shown: np.ma.MaskedArray, limits: tuple[float, float],
+def _figure_png(path: PathOrUrl, shown: np.ma.MaskedArray, limits: tuple[float, float],
                 cmap: str, title: str | None, label: str | None, colorbar: bool) -> None:
     """Draw a masked ``(H, W)`` map with matplotlib (title, scale bar with ``label``) as a PNG."""
     import matplotlib.pyplot as plt

@@ -3,22 +3,22 @@
 from __future__ import annotations
 
 import json
-import os
-from pathlib import Path
 from typing import Any
+
+from polarface.io.storage import PathOrUrl, storage_path
 
 __all__ = ["json_values", "read_json_object"]
 
 
-def read_json_object(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The JSON object in the UTF-8 file ``path``.
+def read_json_object(path: PathOrUrl) -> dict[str, Any]:
+    """The JSON object in the UTF-8 file ``path`` (a local path or a URL).
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
         ValueError: the file is not UTF-8 JSON, or holds something other than an object (one line naming
             the file).
     """
-    path = Path(path)
+    path = storage_path(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:

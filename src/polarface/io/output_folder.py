@@ -13,6 +13,10 @@ write one folder at once.
   with ``O_CREAT | O_EXCL``): beside, not inside, because some jobs require an empty folder, a file output
   cannot hold it, and ``--force`` swaps the folder. A lock whose pid no longer runs is stale and is taken
   over with a warning. A second process is refused at once with an error naming the first one's pid.
+* An output at a URL (``memory://``, ``s3://``; :mod:`polarface.io.storage`) follows the same policy
+  except that it is not locked (object storage has no exclusive create that every fsspec file system
+  offers, and a pid means nothing on another machine: one writer per URL is the user's job) and that
+  ``--force`` on a non-empty one is refused (a folder cannot be swapped in without a rename).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from polarface.io.atomic import write_json_atomic
+from polarface.io.storage import PathOrUrl, StoragePath, UrlPath, remove_tree, storage_path
 
 __all__ = ["MARKER", "OutputFolderError", "json_manifest", "lock_output", "output_file", "output_folder"]
 
@@ -44,10 +49,10 @@ class OutputFolderError(ValueError):
     """The output folder (or file) cannot be used: foreign, busy, a file where a folder is expected."""
 
 
-def json_manifest(name: str, **expected: object) -> Callable[[Path], bool]:
+def json_manifest(name: str, **expected: object) -> Callable[[StoragePath], bool]:
     """Recognises a command's own folder: ``folder/name`` is a JSON object with the ``expected`` items."""
 
-    def owned(folder: Path) -> bool:
+    def owned(folder: StoragePath) -> bool:
         try:
             data = json.loads((folder / name).read_text(encoding="utf-8"))
         except (OSError, ValueError):
@@ -130,13 +135,17 @@ def _release(lock: Path) -> None:
 
 
 @contextlib.contextmanager
-def lock_output(path: str | os.PathLike[str], command: str) -> Iterator[Path]:
-    """Hold the lock of ``path`` (a folder or file) for the ``with`` body; yields ``Path(path)``.
+def lock_output(path: PathOrUrl, command: str) -> Iterator[StoragePath]:
+    """Hold the lock of ``path`` (a folder or file) for the ``with`` body; yields ``Path(path)`` (a URL is
+    yielded as a :class:`~polarface.io.storage.UrlPath`, unlocked: module docstring).
 
     Raises:
         OutputFolderError: another live process holds the lock (the message names its pid).
     """
-    target = Path(path)
+    target = storage_path(path)
+    if isinstance(target, UrlPath):
+        yield target
+        return
     missing = _missing_ancestors(target.parent)
     lock = _acquire(target, command)
     try:
@@ -160,17 +169,17 @@ def _missing_ancestors(folder: Path) -> list[Path]:
 
 
 # ---- the folder policy ---------------------------------------------------------------------------
-def _entries(folder: Path) -> list[str]:
+def _entries(folder: StoragePath) -> list[str]:
     return [p.name for p in folder.iterdir() if p.name != MARKER]
 
 
-def _is_own(folder: Path, command: str, owned: Callable[[Path], bool] | None) -> bool:
+def _is_own(folder: StoragePath, command: str, owned: Callable[[StoragePath], bool] | None) -> bool:
     if json_manifest(MARKER, format=_FORMAT, command=command)(folder):
         return True
     return owned is not None and owned(folder)
 
 
-def _check(target: Path, command: str, resume: bool | None, force: bool, owned) -> bool:
+def _check(target: StoragePath, command: str, resume: bool | None, force: bool, owned) -> bool:
     """Apply the policy; returns whether the command must write into a temporary sibling (``force``)."""
     if resume and force:
         raise OutputFolderError("arguments '--resume' and '--force' exclude each other")
@@ -178,6 +187,11 @@ def _check(target: Path, command: str, resume: bool | None, force: bool, owned) 
         raise OutputFolderError(f"output folder '{target}' is a file, not a folder; choose another --out")
     if not target.exists() or not _entries(target):
         return False
+    if force and isinstance(target, UrlPath):
+        raise OutputFolderError(
+            f"argument '--force': output '{target}' is at a URL, where a folder cannot be swapped in "
+            "(no rename); remove it first or choose another --out"
+        )
     if force:
         return True
     if not _is_own(target, command, owned):
@@ -193,7 +207,7 @@ def _check(target: Path, command: str, resume: bool | None, force: bool, owned) 
     return False
 
 
-def _write_marker(folder: Path, command: str) -> None:
+def _write_marker(folder: StoragePath, command: str) -> None:
     if not (folder / MARKER).exists():
         write_json_atomic(folder / MARKER, {"format": _FORMAT, "command": command})
 
@@ -212,18 +226,18 @@ def _swap_in(tmp: Path, target: Path) -> None:
 
 @contextlib.contextmanager
 def output_folder(
-    path: str | os.PathLike[str],
+    path: PathOrUrl,
     command: str,
     *,
     resume: bool | None = None,
     force: bool = False,
-    owned: Callable[[Path], bool] | None = None,
+    owned: Callable[[StoragePath], bool] | None = None,
     marker: bool = True,
-) -> Iterator[Path]:
+) -> Iterator[StoragePath]:
     """Lock ``path``, apply the policy (module docstring) and yield the folder the command writes into.
 
     Args:
-        path: the output folder (``--out``).
+        path: the output folder (``--out``): a local path or a URL (module docstring).
         command: the subcommand name (recorded in the marker and the lock).
         resume: ``--resume`` of commands that have it, else None (module docstring).
         force: ``--force``: replace the folder, swapping only after the ``with`` body succeeded.
@@ -235,9 +249,10 @@ def output_folder(
         this call created is removed on failure when nothing but the marker is in it.
 
     Raises:
-        OutputFolderError: a foreign folder, an own one without ``--resume``/``--force``, a file, or busy.
+        OutputFolderError: a foreign folder, an own one without ``--resume``/``--force``, a file, busy, or
+            ``force`` on a non-empty folder at a URL.
     """
-    target = Path(path)
+    target = storage_path(path)
     with lock_output(target, command):
         if _check(target, command, resume, force, owned):
             tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{target.name}-", dir=target.parent))
@@ -257,7 +272,7 @@ def output_folder(
             yield target
         except BaseException:
             if created and target.is_dir() and not _entries(target):
-                shutil.rmtree(target, ignore_errors=True)
+                remove_tree(target)
             raise
 
 

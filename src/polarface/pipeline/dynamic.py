@@ -55,7 +55,7 @@ from polarface.geometry.poses import invert_rigid
 from polarface.geometry.registration import RegistrationConfig
 from polarface.geometry.tracking import TrackingConfig, load_tracked
 from polarface.inverse.polarimetric.dynamic import DynamicConfig
-from polarface.io import json_values
+from polarface.io import json_values, storage_path
 from polarface.pipeline.dynamic_geometry import TrackingFolder, align_reference, stereo_pass, track_sequence
 from polarface.pipeline.geometry import GeometryConfig, check_stereo_pairs
 from polarface.pipeline.reconstruct_inputs import check_capture_manifest
@@ -109,7 +109,7 @@ def resolve_dynamic_capture(path: str | Path) -> Path:
     Raises:
         FileNotFoundError: ``path`` does not exist. ValueError: it is not a capture store.
     """
-    path = Path(path)
+    path = storage_path(path)
     if not path.exists():
         raise FileNotFoundError(f"dynamic capture '{path}' does not exist")
     if (path / "dynamic" / "manifest.json").is_file():

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from polarface.io import storage_path
 from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
 from polarface.pipeline.evaluate_dynamic import dynamic_group
 from polarface.pipeline.evaluate_geometry import (
@@ -276,7 +277,7 @@ def evaluate(
         ValueError: an unknown group name, a malformed ``result.json``, a map whose shape is not the
             mask's or that holds NaN/inf inside the mask (each naming the file).
     """
-    result_dir, gt_dir = Path(result_dir), Path(gt_dir)
+    result_dir, gt_dir = storage_path(result_dir), Path(gt_dir)
     if not ResultFolder(result_dir).result_json_path.is_file():
         raise FileNotFoundError(f"'{result_dir}' is not a RESULT folder (no result.json)")
     ground_truth_root(gt_dir)

@@ -62,6 +62,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -315,10 +316,13 @@ def result_texel_geometry(result_dir: str | Path, resolution: tuple[int, int]):
 
 
 def _signature(*paths: Path | None) -> tuple:
-    """(path, size, mtime) of each existing file: a cache key that changes when a file does."""
+    """(path, size, mtime) of each existing file: a cache key that changes when a file does (at a URL,
+    where file systems disagree on modification times: (URL, content hash))."""
     out = []
     for path in paths:
-        if path is not None and path.is_file():
+        if path is not None and not isinstance(path, Path) and path.is_file():
+            out.append((str(path), hashlib.sha1(path.read_bytes()).hexdigest(), None))
+        elif path is not None and path.is_file():
             stat = path.stat()
             out.append((str(path.resolve()), stat.st_size, stat.st_mtime_ns))
         else:

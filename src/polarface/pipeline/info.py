@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from polarface.io import read_json_object
+from polarface.io import read_json_object, storage_path
 from polarface.results import ResultFolder
 
 __all__ = ["folder_info", "format_info"]
@@ -164,7 +164,7 @@ def folder_info(path: str | Path) -> dict[str, Any]:
         FileNotFoundError: ``path`` does not exist.
         ValueError: ``path`` is none of the three, or one of its JSON files is malformed (named).
     """
-    root = Path(path)
+    root = storage_path(path)
     if not root.exists():
         raise FileNotFoundError(f"argument 'PATH': '{root}' does not exist")
     if (root / "result.json").is_file():

@@ -10,6 +10,8 @@ import dataclasses
 import json
 from pathlib import Path
 
+from polarface.io.storage import StoragePath, open_zarr_group, storage_path
+
 __all__ = ["ReconstructInputs", "check_capture_manifest", "check_derived_store", "resolve_reconstruct_inputs"]
 
 
@@ -22,7 +24,7 @@ class ReconstructInputs:
     ``polarface geometry`` run when one was given.
     """
 
-    capture: Path
+    capture: StoragePath
     mesh_path: Path | None
     poses_path: Path | None
     texture_resolution: int
@@ -70,7 +72,7 @@ def resolve_reconstruct_inputs(
         FileNotFoundError: the capture or mesh does not exist. ValueError: not a capture store, no
         geometry, ``mesh`` without ``poses`` (or the reverse), or the poses file does not exist.
     """
-    capture = Path(capture)
+    capture = storage_path(capture)
     if not capture.exists():
         raise FileNotFoundError(f"capture '{capture}' does not exist")
     sim_root = None
@@ -112,13 +114,11 @@ def check_capture_manifest(store) -> None:
 def check_derived_store(store) -> None:
     """Read ``derived.zarr``'s metadata and the first chunk of each of its arrays (corrupt metadata or
     chunks fail here, naming the store, before any output is written)."""
-    import zarr
-
     path = store.root / "derived.zarr"
     if not path.is_dir():
         return  # CaptureStore reports a missing store where it reads it
     try:
-        root = zarr.open_group(path, mode="r")
+        root = open_zarr_group(path, "r")
         groups = [root[name] for name in ("stacks", "masks") if name in root]
         for group in groups:
             for _, array in group.arrays():

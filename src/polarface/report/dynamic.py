@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from polarface.io import atomic_path
+from polarface.io import atomic_path, storage_path
 from polarface.render.colour import encode_srgb
 from polarface.report.html import HtmlPage, Section
 from polarface.results import CHROMOPHORE_MAPS, CHROMOPHORE_PREVIEWS, RHO_SSS_BAR, ResultFolder
@@ -124,7 +124,7 @@ def write_animation(path: str | Path, images: np.ndarray, labels: list[str] | No
     with atomic_path(path) as tmp:
         pictures[0].save(tmp, format="GIF", save_all=True, append_images=pictures[1:], loop=0,
                          duration=round(1000.0 / frames_per_second))
-    return Path(path)
+    return storage_path(path)
 
 
 def _rho_images(frames: _Frames) -> np.ndarray:

@@ -19,10 +19,11 @@ import html
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path, PurePosixPath
+from pathlib import PurePosixPath
 from typing import Any
 
 from polarface.io.atomic import atomic_path
+from polarface.io.storage import PathOrUrl, StoragePath, storage_path
 
 __all__ = ["HtmlPage", "ImageItem", "Section"]
 
@@ -162,8 +163,8 @@ class HtmlPage:
             top += f'<p class="subtitle">{html.escape(self.subtitle)}</p>'
         return head + top + "\n".join(s.render() for s in self.sections) + "</body></html>\n"
 
-    def write(self, path: str | os.PathLike[str]) -> Path:
-        """Write the page atomically (UTF-8) and return its path."""
+    def write(self, path: PathOrUrl) -> StoragePath:
+        """Write the page atomically (UTF-8; a local path or a URL) and return its path."""
         with atomic_path(path) as tmp:
             tmp.write_text(self.render(), encoding="utf-8")
-        return Path(path)
+        return storage_path(path)

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from polarface.io.storage import PathOrUrl, StoragePath, storage_path
 from polarface.results import layout
 from polarface.results.folder import ResultFolder
 
@@ -25,11 +25,12 @@ def sog_shapes(payload: Mapping[str, Any]):
     return ProfileShapes(*(torch.tensor(layers[k], dtype=torch.float64) for k in layout.SOG_LAYERS))
 
 
-def load_sog(path: str | Path):
-    """Read a ``sog.json`` file back as :class:`polarface.skin.heterogeneous.ProfileShapes` (float64)."""
+def load_sog(path: PathOrUrl):
+    """Read a ``sog.json`` file (a local path or a URL) back as
+    :class:`polarface.skin.heterogeneous.ProfileShapes` (float64)."""
     import json
 
-    return sog_shapes(json.loads(Path(path).read_text(encoding="utf-8")))
+    return sog_shapes(json.loads(storage_path(path).read_text(encoding="utf-8")))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -52,7 +53,7 @@ class ResultAppearance:
     shapes: Any
 
     @classmethod
-    def load(cls, result_dir: str | Path | ResultFolder) -> ResultAppearance:
+    def load(cls, result_dir: PathOrUrl | ResultFolder) -> ResultAppearance:
         """Read maps, mask, ``mesh.obj``, ``rig.json`` and ``maps/sog.json`` of a RESULT folder.
 
         Raises:
@@ -81,7 +82,7 @@ class ResultAppearance:
         return cls(maps, mask, folder.read_mesh(), rig, shapes)
 
 
-def _checked_sog_shapes(payload: Any, path: Path):
+def _checked_sog_shapes(payload: Any, path: StoragePath):
     """:func:`sog_shapes` of a ``sog.json`` payload; ValueError naming ``path`` when it is malformed."""
     layers = payload.get("layers") if isinstance(payload, dict) else None
     missing = [k for k in layout.SOG_LAYERS if not isinstance(layers, dict) or k not in layers]

@@ -12,33 +12,34 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
+
+from polarface.io.storage import PathOrUrl, StoragePath, storage_path
 
 __all__ = ["capture_identity", "file_identity", "fingerprint_differences"]
 
 
-def _sha256_files(paths: list[Path]) -> str:
+def _sha256_files(paths: list[StoragePath]) -> str:
     digest = hashlib.sha256()
     for path in paths:
         digest.update(path.name.encode() + b"\0")
-        with open(path, "rb") as handle:
+        with path.open("rb") as handle:
             for block in iter(lambda: handle.read(1 << 20), b""):
                 digest.update(block)
     return digest.hexdigest()
 
 
-def file_identity(path: str | os.PathLike[str]) -> dict[str, str]:
+def file_identity(path: PathOrUrl) -> dict[str, str]:
     """``{"path", "sha256"}`` of one file (the path is informative; only the hash is compared)."""
-    path = Path(path)
+    path = storage_path(path)
     return {"path": str(path), "sha256": _sha256_files([path])}
 
 
-def capture_identity(capture: str | os.PathLike[str]) -> dict[str, Any]:
-    """``{"path", "frames", "sha256"}`` of a capture store (hash of rig, manifest and frame markers)."""
-    root = Path(capture)
+def capture_identity(capture: PathOrUrl) -> dict[str, Any]:
+    """``{"path", "frames", "sha256"}`` of a capture store, local or at a URL (hash of rig, manifest and
+    frame markers)."""
+    root = storage_path(capture)
     markers = sorted((root / "frames").glob("[0-9]*.json"))
     files = [p for p in (root / "rig.json", root / "manifest.json") if p.is_file()] + markers
     return {"path": str(root), "frames": len(markers), "sha256": _sha256_files(files)}

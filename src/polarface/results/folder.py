@@ -5,13 +5,17 @@ map lives (names in :mod:`polarface.results.layout`), reads and writes maps atom
 :mod:`polarface.io`, and owns ``result.json`` (format keys, stage records). A dynamic sequence keeps
 one sub-folder per frame (``frames/NNNN/``), reached with :meth:`ResultFolder.frame`, which has the
 same API; shared inputs (``rig.json``, ``mesh.obj``) are read from the sequence root.
+
+The root is a local path or an fsspec URL (``file://``, ``memory://``, ``s3://bucket/key``;
+:func:`polarface.io.storage.storage_path`). Every path property is then a
+:class:`~polarface.io.storage.UrlPath` and every write goes through :mod:`polarface.io`, which puts each
+finished file whole under its key (the writers stage it in a local temporary file), so readers on
+other machines never see half a map.
 """
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -26,6 +30,7 @@ from polarface.io import (
     write_json_atomic,
     write_png,
 )
+from polarface.io.storage import PathOrUrl, StoragePath, local_copy, storage_path
 from polarface.results import layout
 from polarface.results.header import check_result_header
 
@@ -51,12 +56,15 @@ class ResultFolder:
     """A RESULT folder rooted at ``root`` (need not exist yet; writers create sub-folders).
 
     Args:
-        root: the folder (``RESULT`` or, for a frame, ``RESULT/frames/NNNN``).
+        root: the folder (``RESULT`` or, for a frame, ``RESULT/frames/NNNN``): a local path or a URL.
         sequence: the enclosing RESULT of a per-frame folder (None for a top-level one).
+
+    Raises:
+        ValueError: ``root`` is a URL of an unknown protocol or one whose package is missing.
     """
 
-    def __init__(self, root: str | os.PathLike[str], *, sequence: ResultFolder | None = None) -> None:
-        self.root = Path(root)
+    def __init__(self, root: PathOrUrl, *, sequence: ResultFolder | None = None) -> None:
+        self.root: StoragePath = storage_path(root)
         self.sequence = sequence
 
     def __repr__(self) -> str:
@@ -74,21 +82,21 @@ class ResultFolder:
     report_path = _under_root(layout.REPORT_HTML)
 
     @property
-    def rig_path(self) -> Path:
+    def rig_path(self) -> StoragePath:
         """``rig.json`` of the sequence root (a frame folder shares its sequence's rig)."""
         return (self.sequence or self).root / layout.RIG_JSON
 
     @property
-    def mesh_path(self) -> Path:
+    def mesh_path(self) -> StoragePath:
         """``mesh.obj``: the frame's own mesh when it has one, else the sequence's rest mesh."""
         own = self.root / layout.MESH_OBJ
         return own if self.sequence is None or own.is_file() else self.sequence.root / layout.MESH_OBJ
 
-    def map_path(self, name: str, suffix: str = ".exr") -> Path:
+    def map_path(self, name: str, suffix: str = ".exr") -> StoragePath:
         """``maps/<name><suffix>``."""
         return self.maps_dir / f"{name}{suffix}"
 
-    def preview_path(self, name: str) -> Path:
+    def preview_path(self, name: str) -> StoragePath:
         """``previews/<name>.png``."""
         return self.previews_dir / f"{name}.png"
 
@@ -180,7 +188,7 @@ class ResultFolder:
             raise ValueError(f"'{path}' has no channel 'Y' (channels {sorted(channels)})")
         return channels["Y"]
 
-    def write_scalar_map(self, name: str, values: np.ndarray) -> Path:
+    def write_scalar_map(self, name: str, values: np.ndarray) -> StoragePath:
         """Write ``(H, W)`` ``values`` as ``maps/<name>.exr`` channel ``Y`` (float32)."""
         return write_exr(self.map_path(name), {"Y": values})
 
@@ -204,7 +212,7 @@ class ResultFolder:
             names = sorted(channels)
         return np.stack([channels[n] for n in names], axis=-1)
 
-    def write_channel_map(self, name: str, values: np.ndarray, channel_names: Sequence[str]) -> Path:
+    def write_channel_map(self, name: str, values: np.ndarray, channel_names: Sequence[str]) -> StoragePath:
         """Write ``(H, W, C)`` ``values`` as ``maps/<name>.exr`` with one named channel per slice."""
         return write_exr(self.map_path(name), {n: values[..., i] for i, n in enumerate(channel_names)})
 
@@ -223,7 +231,7 @@ class ResultFolder:
             raise ValueError(f"mask '{path}' is {mask.shape}, expected {tuple(shape)}")
         return mask > (0.5 if mask.dtype.kind == "f" else 127)
 
-    def write_mask(self, mask: np.ndarray, name: str = layout.MASK) -> Path:
+    def write_mask(self, mask: np.ndarray, name: str = layout.MASK) -> StoragePath:
         """Write ``(H, W)`` bool ``mask`` as ``maps/<name>.png`` (8-bit, 255 = True)."""
         return write_png(self.map_path(name, ".png"), mask.astype(np.uint8) * 255)
 
@@ -321,10 +329,10 @@ class ResultFolder:
 
     # ---- other artifacts ---------------------------------------------------------------------
     @property
-    def loss_curve_path(self) -> Path:
+    def loss_curve_path(self) -> StoragePath:
         return self.checkpoints_dir / "loss_curve.npy"
 
-    def write_loss_curve(self, curve: Sequence[float]) -> Path:
+    def write_loss_curve(self, curve: Sequence[float]) -> StoragePath:
         """``checkpoints/loss_curve.npy``: mean total loss per iteration (float64), atomically."""
         with atomic_path(self.loss_curve_path) as tmp:
             np.save(tmp, np.asarray(curve))
@@ -332,7 +340,10 @@ class ResultFolder:
 
     def read_loss_curve(self) -> np.ndarray | None:
         """The loss curve, or None when it was not written."""
-        return np.load(self.loss_curve_path) if self.loss_curve_path.exists() else None
+        if not self.loss_curve_path.exists():
+            return None
+        with local_copy(self.loss_curve_path) as local:
+            return np.load(local)
 
     def read_sog(self) -> dict[str, Any] | None:
         """``maps/sog.json`` as a dict, or None when absent.
@@ -345,7 +356,7 @@ class ResultFolder:
             return None
         return read_json_object(path)
 
-    def write_sog(self, payload: Mapping[str, Any]) -> Path:
+    def write_sog(self, payload: Mapping[str, Any]) -> StoragePath:
         """Write ``maps/sog.json`` (keys in ``docs/result_folder.md``)."""
         return write_json_atomic(self.map_path("sog", ".json"), dict(payload))
 
@@ -367,12 +378,11 @@ class ResultFolder:
             raise FileNotFoundError(f"'{self.mesh_path}' does not exist")
         return load_mesh(self.mesh_path)
 
-    def write_mesh(self, mesh) -> Path:
+    def write_mesh(self, mesh) -> StoragePath:
         """Write ``mesh.obj`` (model frame, mm, UVs)."""
         from polarface.geometry.mesh import save_obj
 
-        save_obj(self.root / layout.MESH_OBJ, mesh)
-        return self.root / layout.MESH_OBJ
+        return save_obj(self.root / layout.MESH_OBJ, mesh)
 
     # ---- dynamic sequences -------------------------------------------------------------------
     def frame(self, index: int) -> ResultFolder:

@@ -26,6 +26,7 @@ from polarface.geometry.camera import PinholeCamera
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import rasterize_uv
+from polarface.io.storage import PathOrUrl, StoragePath, remove_tree, storage_path
 from polarface.texture.footprint import footprint_sees_surface
 from polarface.texture.unwrap_store import TexelGeometry, UnwrapStore, texel_geometry
 from polarface.texture.views import ViewSpec, build_views
@@ -205,7 +206,7 @@ def _checked_poses(store: CaptureStore, poses: np.ndarray) -> tuple[list[int], n
 
 
 def _resumable_writer(
-    partial: Path, geometry: TexelGeometry, views: Sequence[ViewSpec], patch: int
+    partial: StoragePath, geometry: TexelGeometry, views: Sequence[ViewSpec], patch: int
 ) -> UnwrapStore:
     """The partial store at ``partial`` when it was started with the same views and resolution, else a
     new empty one (replacing whatever was there)."""
@@ -221,7 +222,7 @@ def _resumable_writer(
             writer = None
     if writer is None:
         if partial.exists():
-            shutil.rmtree(partial)
+            remove_tree(partial)
         writer = UnwrapStore.create(partial, geometry, views, patch)
     return writer
 
@@ -277,7 +278,7 @@ def unwrap_capture(
     store: CaptureStore,
     mesh: TriangleMesh,
     poses: np.ndarray,
-    out_path: str | Path,
+    out_path: PathOrUrl,
     config: UnwrapConfig | None = None,
     *,
     progress: bool = True,
@@ -286,19 +287,21 @@ def unwrap_capture(
     :mod:`polarface.texture.unwrap_store`).
 
     Written under ``out_path + '.partial'`` and renamed when complete, so a crash never leaves a store
-    that looks complete; rerunning resumes at the first view not written.
+    that looks complete; rerunning resumes at the first view not written. On a URL (object storage
+    cannot rename a folder) the store is written in place and only its ``complete`` attribute, set
+    last, marks it finished.
 
     Args:
         store: capture store of the static sequence; mesh: rest mesh with UVs, model frame, mm;
         poses: ``(F, 4, 4)`` model -> rig world, one per capture frame (in frame order).
-        out_path: the zarr folder to create. config: :class:`UnwrapConfig`.
+        out_path: the zarr folder to create (a local path or a URL). config: :class:`UnwrapConfig`.
 
     Raises:
         ValueError: pose count differs from the frame count, empty UV atlas, no texel visible in any
             view, NaN observations.
     """
     config = config or UnwrapConfig()
-    out = Path(out_path)
+    out = storage_path(out_path)
     if out.exists():
         existing = UnwrapStore.open(out)
         if existing.complete:
@@ -313,17 +316,18 @@ def unwrap_capture(
         raise ValueError("the UV atlas covers no texel at this texture resolution (mismatched UV atlas?)")
     geometry = texel_geometry(raster)
     views = build_views(store.rig, frames, poses, config.holdout_every)
-    partial = out.with_name(out.name + ".partial")
+    partial = out.with_name(out.name + ".partial") if isinstance(out, Path) else out
     writer = _resumable_writer(partial, geometry, views, config.patch)
     frame_pose = dict(zip(frames, poses, strict=True))
     if not _write_views(store, mesh, frame_pose, geometry, views, writer, config, progress):
-        shutil.rmtree(partial, ignore_errors=True)
+        remove_tree(partial)
         raise ValueError(
             "no texel of the UV atlas is visible in any view (all-invisible texels): check the "
             "poses and the mesh frame"
         )
     writer.mark_complete()
-    if out.exists():
-        shutil.rmtree(out)
-    partial.rename(out)
+    if partial != out:
+        if out.exists():
+            shutil.rmtree(out)
+        partial.rename(out)
     return UnwrapStore.open(out)

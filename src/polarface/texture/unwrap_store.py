@@ -21,18 +21,23 @@ and each view is written (and resumed) independently. View geometry (camera cent
 positions) is stored in the *model* frame: for rigid poses the texel positions and base frames are
 those of the rest mesh and only the per-view vectors move (exact, and H-dependent normals need no
 per-view recomputation). Texture layout: :mod:`polarface.geometry.uv_raster` (row 0 = v 1).
+
+Where: a local path or an fsspec URL (``memory://``, ``s3://bucket/key``;
+:func:`polarface.io.storage.storage_path`), opened through zarr's local or fsspec store; each chunk is
+written in one piece (a rename locally, one object put on a URL), so a rewritten view never leaves half
+a chunk.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Iterator, Sequence
-from pathlib import Path
 
 import numpy as np
 
 from polarface.capture.observations import OBSERVATION_NAMES
 from polarface.geometry.uv_raster import UVRaster
+from polarface.io.storage import PathOrUrl, open_zarr_group, storage_path
 from polarface.texture.views import ViewSpec
 
 __all__ = ["TEXTURE_OBSERVATION_NAMES", "TexelGeometry", "UnwrapStore", "texel_geometry"]
@@ -79,19 +84,18 @@ def texel_geometry(raster: UVRaster) -> TexelGeometry:
 class UnwrapStore:
     """Reader/writer of an unwrapped capture (layout in the module docstring)."""
 
-    def __init__(self, path: str | Path, root) -> None:
-        self.path = Path(path)
+    def __init__(self, path: PathOrUrl, root) -> None:
+        self.path = storage_path(path)
         self.root = root
 
     # ----------------------------------------------------------------------------- creation
     @classmethod
     def create(
-        cls, path: str | Path, geometry: TexelGeometry, views: Sequence[ViewSpec], patch: int
+        cls, path: PathOrUrl, geometry: TexelGeometry, views: Sequence[ViewSpec], patch: int
     ) -> UnwrapStore:
-        import zarr
-
-        path = Path(path)
-        root = zarr.open_group(str(path), mode="w")
+        """A new, empty store at ``path`` (a local path or a URL; whatever was there is replaced)."""
+        path = storage_path(path)
+        root = open_zarr_group(path, "w")
         height, width = geometry.resolution
         chunk = (min(patch, height), min(patch, width))
         for field in dataclasses.fields(geometry):
@@ -133,14 +137,17 @@ class UnwrapStore:
         return cls(path, root)
 
     @classmethod
-    def open(cls, path: str | Path, mode: str = "r") -> UnwrapStore:
-        """Open an unwrap store; ValueError if it is not one."""
-        import zarr
+    def open(cls, path: PathOrUrl, mode: str = "r") -> UnwrapStore:
+        """Open an unwrap store at a local path or a URL.
 
-        path = Path(path)
+        Raises:
+            FileNotFoundError: nothing is there. ValueError: it is not an unwrap store, or the URL's
+                protocol is unknown or its package missing.
+        """
+        path = storage_path(path)
         if not path.exists():
             raise FileNotFoundError(f"unwrap store '{path}' does not exist")
-        root = zarr.open_group(str(path), mode=mode)
+        root = open_zarr_group(path, mode)
         if root.attrs.get("format") != _FORMAT:
             raise ValueError(f"'{path}' is not a polarface unwrap store")
         return cls(path, root)
