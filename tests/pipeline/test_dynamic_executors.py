@@ -9,6 +9,7 @@ test_dynamic_stage.py), and only the per-frame work runs on the executor.
 
 from __future__ import annotations
 
+import os
 import shutil
 import socket
 import subprocess
@@ -18,6 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
 from polarface.cli import main
 from polarface.executors import RayExecutor
@@ -43,8 +45,11 @@ def tiny(tmp_path_factory):
     # The reference runs in a fresh process, as a user's 'polarface dynamic' does: under pytest-xdist
     # this process has run hundreds of tests before, and their left-over process state has been seen to
     # change the in-process reference's last bits (the Ray workers start clean).
+    # Its torch threads are this process's (the Ray workers adopt them too; the render's reductions
+    # depend on them in the last bit).
+    env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
     subprocess.run([sys.executable, "-m", "polarface.cli", "dynamic", str(local), str(sim), "--quiet"],
-                   check=True, capture_output=True)
+                   check=True, capture_output=True, env=env)
     return sim, static, local
 
 
@@ -168,10 +173,11 @@ def test_an_unreachable_ray_address_is_refused_within_seconds_and_nothing_is_wri
     assert "'--ray-address'" in capsys.readouterr().err and not fresh.exists()
 
 
-def test_a_result_at_a_url_gets_the_local_runs_frames(tiny, memory_url):
+def test_a_result_at_a_url_gets_the_local_runs_frames(tiny, memory_url, tmp_path):
     """``polarface dynamic memory://RESULT SIM``: the static result read from fsspec's in-memory file
-    system, frame 0 unwrapped, fitted and rendered into it (local executor): the maps are the local
-    run's, bit for bit, and the report is written there too."""
+    system, frame 0 unwrapped, fitted and rendered into it (local executor): the maps are those of the
+    same run on a local folder in this process (``memory://`` lives in this process only), bit for bit,
+    and the report is written there too."""
     from polarface.io import storage_path
     from storage_fixtures import upload_tree
 
@@ -179,8 +185,10 @@ def test_a_result_at_a_url_gets_the_local_runs_frames(tiny, memory_url):
     upload_tree(static, memory_url)
     upload_tree(local / "tracking", f"{memory_url}/tracking")
     assert main(["dynamic", memory_url, str(sim), "--frames", "0", "--quiet"]) == 0
+    reference = _copy_with_tracking(tiny, tmp_path / "reference")
+    assert main(["dynamic", str(reference), str(sim), "--frames", "0", "--quiet"]) == 0
     frame = storage_path(memory_url) / "frames" / "0000"
-    expected = _frame_files(local, 0)
+    expected = _frame_files(reference, 0)
     different = [name for name, data in expected.items() if (frame / name).read_bytes() != data]
     assert not different, f"{different} differ from the local run's"
     assert (storage_path(memory_url) / "report.html").is_file()
