@@ -13,7 +13,9 @@ done:
 
 * ``geometry``: ``geometry/`` from the stereo pairs (skipped with known geometry);
 * ``prepare``: ``rig.json``, ``mesh.obj``, ``result.json`` skeleton, ``unwrap.zarr`` (texture space);
-* ``polarimetric``: ``maps/*.exr`` + ``maps/mask.png``, ``previews/*.png``, ``checkpoints/``;
+* ``polarimetric``: ``maps/*.exr`` + ``maps/mask.png``, ``previews/*.png``, ``checkpoints/``; its texture
+  patches run front by front on the executor (``--executor ray [--ray-address ADDR]``: as Ray tasks,
+  ``docs/cluster.md``), with the maps of the local executor bit for bit;
 * ``biophysical``: chromophore maps;
 * ``dynamic`` (with ``--dynamic DYNAMIC``): per-frame stereo, tracking of the reference mesh, per-frame
   maps and chromophores in ``RESULT/tracking`` and ``RESULT/frames/NNNN`` (``docs/dynamic.md``);
@@ -115,7 +117,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--frames", default=None, help="dynamic frames whose maps are fitted, e.g. '0-4,7' (default: all)"
     )
-    add_executor_arguments(parser, "dynamic frames")
+    add_executor_arguments(parser, "polarimetric patches and dynamic frames")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run in RESULT")
     add_force_argument(parser, "RESULT")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -9,7 +9,9 @@ run starts; a resumed run whose inputs or options differ is refused (:func:`chec
 * ``geometry``: ``geometry/`` (mesh, poses, per-frame stereo meshes) from the capture's stereo pairs
   (:mod:`polarface.pipeline.geometry`), unless the geometry is given;
 * ``prepare``: ``rig.json``, ``mesh.obj``, ``result.json`` header, ``unwrap.zarr`` (texture space);
-* ``polarimetric``: ``maps/*.exr`` + ``maps/mask.png``, ``previews/*.png``, ``checkpoints/``;
+* ``polarimetric``: ``maps/*.exr`` + ``maps/mask.png``, ``previews/*.png``, ``checkpoints/``; its texture
+  patches run on ``ReconstructContext.executor``, front by front
+  (:mod:`polarface.inverse.polarimetric.patch_units`);
 * ``biophysical``: chromophore maps and diffusion profiles (:mod:`polarface.pipeline.biophysical`);
 * ``dynamic``: with a dynamic capture, per-frame geometry, tracking, maps and chromophores in
   ``tracking/`` and ``frames/NNNN/`` (:mod:`polarface.pipeline.dynamic`); it resumes per frame itself,
@@ -66,8 +68,9 @@ _STEREO_FIT_DEFAULTS = {"optimizer": "rmsprop", "iterations": 150}
 
 @dataclasses.dataclass
 class ReconstructContext:
-    """What the stages share: inputs, options and the RESULT folder; ``executor`` runs the dynamic stage's
-    frames (:class:`polarface.executors.Executor`; None: in this process)."""
+    """What the stages share: inputs, options and the RESULT folder; ``executor`` runs the polarimetric
+    stage's patches and the dynamic stage's frames (:class:`polarface.executors.Executor`; None: in this
+    process)."""
 
     capture: Path
     out: Path
@@ -189,8 +192,11 @@ def stage_prepare(ctx: ReconstructContext) -> dict[str, Any]:
 
 
 def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
-    """Fit the polarimetric maps and write ``maps/``, ``previews/`` (checkpoints in ``checkpoints/``)."""
+    """Fit the polarimetric maps and write ``maps/``, ``previews/`` (checkpoints in ``checkpoints/``); the
+    patches run on ``ctx.executor`` (None: in this process), the record says where and how long
+    (``executor.units``, per patch index)."""
     from polarface.device import resolve_device
+    from polarface.executors import LocalExecutor
     from polarface.inverse.polarimetric import PolarimetricConfig, fit_polarimetric
     from polarface.texture import UnwrapStore
 
@@ -198,14 +204,16 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
     folder = ctx.folder
     device = resolve_device(ctx.device)
     config = PolarimetricConfig(**ctx.fit_options)
+    executor = ctx.executor or LocalExecutor()
     fit = fit_polarimetric(
         UnwrapStore.open(folder.unwrap_path),
         config,
-        device=device,
+        device=ctx.device if ctx.device == "auto" else device,  # "auto": resolved where each patch runs
         checkpoint=folder.checkpoints_dir / "polarimetric.npz",
         progress=ctx.progress,
         stop_after_patches=ctx.stop_after_patches,
         threads=ctx.threads,
+        executor=executor,
     )
     if not fit.complete:
         raise InterruptedError("polarimetric stage interrupted (checkpoint written; rerun with --resume)")
@@ -224,6 +232,8 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
         "final_loss": fit.loss_curve[-1] if fit.loss_curve else None,
         "median": masked,
         "timings": {**fit.timings, "stage_s": time.perf_counter() - started},
+        "executor": {**executor.describe(), "fronts": len(fit.fronts),
+                     "units": {k: fit.units[k] for k in sorted(fit.units, key=int)}},
     }
 
 
@@ -381,8 +391,9 @@ def reconstruct(
         holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
         dynamic: a dynamic capture of the same rig (or a simulation folder) reconstructed frame by frame
             after the static stages; frames: its frames to fit (``"0-4,7"``; None: all).
-        executor: runs the dynamic frames (:class:`polarface.executors.Executor`, started before
-            anything is written; None: in this process, in order).
+        executor: runs the polarimetric patches and the dynamic frames
+            (:class:`polarface.executors.Executor`, started before anything is written; None: in this
+            process, in order).
 
     Raises:
         ValueError, FileNotFoundError: bad input; a RESULT folder this call created is removed.
@@ -424,8 +435,8 @@ def reconstruct(
             from polarface.pipeline.dynamic import open_dynamic_capture
 
             open_dynamic_capture(ctx.dynamic, store.rig, store.root / "rig.json", ctx.frames)
-            if executor is not None:
-                executor.start()
+        if executor is not None:  # an unreachable cluster is refused here
+            executor.start()
         out.mkdir(parents=True, exist_ok=True)
         return run_stages(ctx)
     except (ValueError, FileNotFoundError):

@@ -25,33 +25,43 @@ alpha_s with rho_s in closed form on the I_s residual. Optionally (``config.refi
 default 0) Levenberg-Marquardt iterations on the four lobe maps
 (:mod:`polarface.inverse.polarimetric.refine`) follow each patch's optimisation: they move the
 patch-wide alpha_s mode that RMSprop leaves where the start put it (L-BFGS moves it itself).
-Deterministic for a seed (the
-order of patches is fixed; nothing is random except an optional sample shuffle seeded by ``seed``).
-Checkpoints after every patch allow an interrupted run to resume to identical maps.
+Deterministic: nothing in a patch's fit is random, and the patches run in a fixed order.
+
+The patches are the units of an executor (:mod:`polarface.executors`; in this process by default, or
+Ray tasks): :mod:`polarface.inverse.polarimetric.patch_units` runs them front by front (a wavefront over
+the patch grid) so that the patches of one front run in parallel and the maps are, bit for bit, those of
+fitting the patches one after the other in row-major order. The checkpoint is rewritten after every
+patch, so an interrupted run resumes from the patches done to identical maps.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
+import json
 import logging
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 from scipy import ndimage
 from tqdm import tqdm
 
+from polarface.executors import Executor, LocalExecutor, UnitOutcome
 from polarface.inverse.polarimetric.config import PolarimetricConfig, initial_raw, maps_from_raw
-from polarface.inverse.polarimetric.engines import PolarimetricEngine, resolve_engine
-from polarface.inverse.polarimetric.init import apply_closed_form_starts
-from polarface.inverse.polarimetric.optimise import optimise_patch
-from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
-from polarface.inverse.polarimetric.refine import refine_patch_lobes
-from polarface.texture import UnwrapStore, ViewSpec
+from polarface.inverse.polarimetric.engines import resolve_engine
+from polarface.inverse.polarimetric.patch_units import (
+    PatchResult,
+    PatchUnit,
+    haloed_slices,
+    patch_fronts,
+    run_patch_unit,
+    torch_fit_settings,
+)
+from polarface.texture import UnwrapStore
 
 __all__ = ["PolarimetricFit", "fit_polarimetric"]
 
@@ -70,6 +80,9 @@ class PolarimetricFit:
         timings: seconds per phase; throughput: texel-view iterations per second of the optimisation.
         sample_count: samples (texel x view) fitted; patches: number of patches.
         view_count: ``(Ht, Wt)`` int32 fitting views that see each texel (a reliability map).
+        units: per patch index (a string), where and how long it ran (:meth:`UnitOutcome.placement`;
+            the patches of earlier, resumed runs included). fronts: the wavefront's fronts, lists of
+            patch indices (:func:`polarface.inverse.polarimetric.patch_units.patch_fronts`).
     """
 
     maps: dict[str, np.ndarray]
@@ -81,6 +94,8 @@ class PolarimetricFit:
     patches: int
     complete: bool = True
     view_count: np.ndarray | None = None
+    units: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
+    fronts: list[list[int]] = dataclasses.field(default_factory=list)
 
 
 def _patch_side(unwrap: UnwrapStore, config: PolarimetricConfig, fitting: list[int]) -> int:
@@ -104,109 +119,138 @@ def fit_polarimetric(
     on_patch: Callable[[int, int], None] | None = None,
     threads: int | None = None,
     engine: str = "auto",
+    executor: Executor | None = None,
 ) -> PolarimetricFit:
     """Fit the static polarimetric maps to the fitting (not held-out) views of ``unwrap``.
 
     Args:
         unwrap: a complete :class:`UnwrapStore`.
         config: :class:`PolarimetricConfig`.
-        device: torch device (``polarface.device.resolve_device``).
+        device: torch device, or ``"auto"`` (``polarface.device.resolve_device``); checked here and
+            resolved again by each patch where it runs.
         checkpoint: ``.npz`` path; resumes from it when present, rewritten atomically after every patch.
         progress: tqdm bar over patches.
         stop_after_patches: stop (returning ``complete=False``) after this many newly fitted patches
             (tests of interruption/resume).
         on_patch: callback ``(done, total)``.
-        threads: torch intra-op threads during the fit (None: unchanged). Patch tensors hold ~1e5
-            elements, where OpenMP threads gain little and, on a busy machine, spin against other
-            processes (docs/reconstruct.md): 1 is a safe choice. The fused
+        threads: torch intra-op threads during the fit and each patch (None: unchanged). Patch tensors
+            hold ~1e5 elements, where OpenMP threads gain little and, on a busy machine, spin against
+            other processes (docs/reconstruct.md): 1 is a safe choice. The fused
             kernel's threads are numba's (``NUMBA_NUM_THREADS``, default: all cores).
         engine: data-loss implementation: ``fused`` (numba kernel with analytic gradients, CPU),
             ``torch`` (vectorised autograd reference, any device) or ``auto`` (fused on CPU, torch
             otherwise). Both give the same loss and gradient (tests).
+        executor: runs the patches, front by front
+            (:class:`~polarface.inverse.polarimetric.patch_units.PatchUnit`,
+            :func:`~polarface.inverse.polarimetric.patch_units.run_patch_unit`); None: in this process
+            (:class:`polarface.executors.LocalExecutor`). Started here, before the checkpoint is first
+            written, and left open. The maps do not depend on it.
 
     Raises:
-        ValueError: incomplete unwrap store, no fitting view, or no texel visible in any fitting view.
+        ValueError: incomplete unwrap store, no fitting view, no texel visible in any fitting view, a
+            bad device, engine or ``threads``; an unreachable executor (naming its argument).
+        InterruptedError: a patch whose worker died on every attempt the executor makes (the patches
+            done are kept in the checkpoint; a rerun resumes).
     """
-    device = torch.device(device)
-    chosen = resolve_engine(engine, device)
+    from polarface.device import resolve_device
+
+    spec = "auto" if isinstance(device, str) and device == "auto" else str(torch.device(device))
+    resolve_engine(engine, resolve_device(spec))  # a bad engine or device is refused here
+    options = _PatchOptions(str(unwrap.path), config or PolarimetricConfig(), spec, engine, threads)
     with torch_fit_settings(threads):
-        return _fit(
-            unwrap,
-            config or PolarimetricConfig(),
-            device,
-            checkpoint,
-            progress,
-            stop_after_patches,
-            on_patch,
-            chosen,
-        )
+        return _fit(unwrap, options, checkpoint, progress, stop_after_patches, on_patch,
+                    executor or LocalExecutor())
 
 
-@contextlib.contextmanager
-def torch_fit_settings(threads: int | None) -> Iterator[None]:
-    """Torch settings of a fit, restored afterwards: ``threads`` intra-op threads (None: unchanged) and
-    denormals flushed to zero (RMSprop's running averages of tiny gradients reach denormal floats, whose
-    arithmetic is ~20x slower).
+@dataclasses.dataclass(frozen=True)
+class _PatchOptions:
+    """What every :class:`PatchUnit` of a fit shares: the store's path, options, device spec, engine,
+    threads."""
 
-    Raises:
-        ValueError: ``threads < 1``.
-    """
-    if threads is not None and int(threads) < 1:
-        raise ValueError(f"argument 'threads' must be >= 1; got {threads}")
-    previous_threads = torch.get_num_threads()
-    flushing = torch.set_flush_denormal(True)
-    if threads is not None:
-        torch.set_num_threads(int(threads))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous_threads)
-        if flushing:
-            torch.set_flush_denormal(False)
+    unwrap: str
+    config: PolarimetricConfig
+    device: str
+    engine: str
+    threads: int | None
 
-
-def haloed_slices(rows: slice, cols: slice, halo: int, resolution: tuple[int, int]
-                  ) -> tuple[slice, slice, tuple[slice, slice]]:
-    """A patch's region with its halo (clipped to the texture ``resolution``) and, within that region,
-    the interior ``rows x cols``: ``(halo rows, halo cols, (interior rows, interior cols))``."""
-    height, width = resolution
-    r0, r1 = max(rows.start - halo, 0), min(rows.stop + halo, height)
-    c0, c1 = max(cols.start - halo, 0), min(cols.stop + halo, width)
-    interior = (slice(rows.start - r0, rows.stop - r0), slice(cols.start - c0, cols.stop - c0))
-    return slice(r0, r1), slice(c0, c1), interior
+    def unit(self, index: int, rows: slice, cols: slice, scale: float, state: _FitState) -> PatchUnit:
+        """Patch ``index``'s unit, with a copy of its haloed region of ``state``."""
+        hrows, hcols, _ = haloed_slices(rows, cols, self.config.halo, state.initialised.shape)
+        return PatchUnit(
+            self.unwrap, index, rows, cols, self.config, scale, self.device, self.engine, self.threads,
+            {k: np.array(v[hrows, hcols]) for k, v in state.raw.items()},
+            np.array(state.initialised[hrows, hcols]),
+        )  # fmt: skip
 
 
 @dataclasses.dataclass
 class _FitState:
     """What a checkpoint holds: raw variables (name -> ``(Ht, Wt, c)``), the ``(Ht, Wt)`` bool texels that
-    have their closed-form starts, the indices of the patches done and the loss curve (sums over patches)."""
+    have their closed-form starts, the indices of the patches done, the loss curve and the units'
+    placements (:attr:`PolarimetricFit.units`).
+
+    The loss curve is summed over the patches in row-major order, whatever order they finish in (float
+    sums depend on it): ``curve`` holds the sum over patches ``0 .. folded - 1``, ``pending`` the
+    curves of the patches done after them.
+    """
 
     raw: dict[str, np.ndarray]
     initialised: np.ndarray
     done: set[int]
     curve: list[float]
+    folded: int = 0
+    pending: dict[int, list[float]] = dataclasses.field(default_factory=dict)
+    units: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
 
     @classmethod
     def start(
         cls, resolution: tuple[int, int], side: int, config: PolarimetricConfig, checkpoint: Path | None
     ) -> _FitState:
-        """The initial state, or the checkpoint's when it exists and matches ``side`` and ``resolution``."""
+        """The initial state, or the checkpoint's when it exists and matches ``side`` and ``resolution``
+        (a checkpoint of the row-major loop, without pending curves, too)."""
         height, width = resolution
         state = cls(initial_raw((height, width), config), np.zeros((height, width), bool), set(), [])
-        if checkpoint is not None and checkpoint.exists():
-            with np.load(checkpoint) as saved:
-                if int(saved["patch_side"]) == side and tuple(saved["resolution"]) == (height, width):
-                    state.raw = {k: saved[f"raw_{k}"] for k in state.raw}
-                    state.initialised = saved["initialised"]
-                    state.done = {int(i) for i in saved["done"]}
-                    state.curve = [float(v) for v in saved["curve"]]
+        if checkpoint is None or not checkpoint.exists():
+            return state
+        with np.load(checkpoint) as saved:
+            if int(saved["patch_side"]) != side or tuple(saved["resolution"]) != (height, width):
+                return state
+            state.raw = {k: saved[f"raw_{k}"] for k in state.raw}
+            state.initialised = saved["initialised"]
+            state.done = {int(i) for i in saved["done"]}
+            state.curve = [float(v) for v in saved["curve"]]
+            state.folded = int(saved["curve_folded"]) if "curve_folded" in saved.files else len(state.done)
+            if "pending_index" in saved.files:
+                state.pending = _pending_curves(saved["pending_index"], saved["pending_lengths"],
+                                                saved["pending_curve"])
+            if "units" in saved.files:
+                state.units = json.loads(str(saved["units"]))
         return state
+
+    def apply(self, result: PatchResult, rows: slice, cols: slice, halo: int) -> None:
+        """Write a patch's result: the starts into its halo, then its interior; mark it done."""
+        hrows, hcols, _ = haloed_slices(rows, cols, halo, self.initialised.shape)
+        if result.started is not None and result.starts is not None:
+            for k, values in result.starts.items():
+                self.raw[k][hrows, hcols][result.started] = values
+            self.initialised[hrows, hcols] = True
+        for k, values in (result.interior or {}).items():
+            self.raw[k][rows, cols] = values
+        self.done.add(result.index)
+        self.pending[result.index] = list(result.curve)
+        while self.folded in self.pending:  # curve[step] += the patch's value, patches in row-major order
+            for step, value in enumerate(self.pending.pop(self.folded)):
+                if len(self.curve) <= step:
+                    self.curve.append(0.0)
+                self.curve[step] += value
+            self.folded += 1
 
     def save(self, checkpoint: Path, side: int, resolution: tuple[int, int]) -> None:
         """Write the state to ``checkpoint`` (``.npz``) atomically."""
         from polarface.io import atomic_path
 
         height, width = resolution
+        order = sorted(self.pending)
         with atomic_path(checkpoint) as tmp:
             with open(tmp, "wb") as handle:
                 np.savez(
@@ -215,9 +259,21 @@ class _FitState:
                     resolution=np.array([height, width]),
                     initialised=self.initialised,
                     done=np.array(sorted(self.done), dtype=np.int64),
-                    curve=np.array(self.curve),
+                    curve=np.array(self.curve, dtype=np.float64),
+                    curve_folded=self.folded,
+                    pending_index=np.array(order, dtype=np.int64),
+                    pending_lengths=np.array([len(self.pending[i]) for i in order], dtype=np.int64),
+                    pending_curve=np.array([v for i in order for v in self.pending[i]], dtype=np.float64),
+                    units=np.array(json.dumps(self.units)),
                     **{f"raw_{k}": v for k, v in self.raw.items()},
                 )
+
+
+def _pending_curves(indices: np.ndarray, lengths: np.ndarray, values: np.ndarray) -> dict[int, list[float]]:
+    """A checkpoint's pending curves: patch index -> its ``length`` values, concatenated in ``values``."""
+    ends = np.cumsum(lengths)
+    return {int(index): [float(v) for v in values[end - length : end]]
+            for index, length, end in zip(indices, lengths, ends, strict=True)}
 
 
 @dataclasses.dataclass
@@ -231,71 +287,14 @@ class _Tally:
     work: float = 0.0
     refine_s: float = 0.0
 
-
-def _fit_patch(
-    unwrap: UnwrapStore,
-    rows: slice,
-    cols: slice,
-    fitting: list[int],
-    views: list[ViewSpec],
-    engine: PolarimetricEngine,
-    config: PolarimetricConfig,
-    scale: float,
-    device: torch.device,
-    state: _FitState,
-    tally: _Tally,
-) -> None:
-    """Fit one patch (its interior ``rows x cols`` plus a halo): closed-form starts of the texels not yet
-    started, the optimiser, the optional lobe refinement (``views``: the store's view list); writes the
-    interior back into ``state`` and adds to ``tally``."""
-    dtype = torch.float32
-    hrows, hcols, (ir, ic) = haloed_slices(rows, cols, config.halo, unwrap.resolution)
-    built = build_patch_samples(
-        unwrap, hrows, hcols, fitting, views, dtype=dtype, device=device, fused=engine.fused_samples
-    )
-    batch, geometry = built[0], built[1]
-    if batch is None:
-        return
-    problem = PatchProblem(
-        batch, geometry, config, scale, dtype, device, built[2] if engine.fused_samples else None
-    )
-    patch_raw = {
-        k: torch.as_tensor(v[hrows, hcols], dtype=dtype, device=device) for k, v in state.raw.items()
-    }
-    todo = ~state.initialised[hrows, hcols]
-    if todo.any():
-        apply_closed_form_starts(batch, patch_raw, todo, problem.normals, config, dtype, device)
-    sample_count = batch.count
-    seen_texels = batch.texel.cpu().numpy()
-    # the reference batch serves the closed-form starts and the lobe refinement only
-    reference = batch if config.refine_lobes_iterations > 0 else None
-    if engine.fused_samples:
-        problem.batch = batch = None
-    tick = time.perf_counter()
-    result = optimise_patch(problem, patch_raw, config, state.curve)
-    tally.optimise_s += time.perf_counter() - tick
-    if reference is not None:  # Levenberg-Marquardt on the four lobe maps
-        tick = time.perf_counter()
-        with torch.no_grad():
-            normal = problem.normals(maps_from_raw(result, config)["displacement_mm"][..., 0])
-        result = refine_patch_lobes(reference, result, normal, problem.mask, config, scale)
-        tally.refine_s += time.perf_counter() - tick
-        reference = None
-    tally.work += sample_count * int(config.iterations)
-    tally.samples += sample_count
-    for k, v in result.items():
-        state.raw[k][rows, cols] = v[ir, ic].cpu().numpy()
-        # halo texels not yet fitted keep their refined initial albedos (better start for neighbours)
-    if todo.any():
-        for k in ("rho_sss_bar", "rho_s", "eta", "alpha_s"):
-            fresh = patch_raw[k].cpu().numpy()
-            region = state.raw[k][hrows, hcols]
-            region[todo] = fresh[todo]
-            state.raw[k][rows, cols] = result[k][ir, ic].cpu().numpy()
-        state.initialised[hrows, hcols] = True
-    seen = np.zeros(geometry.mask.shape, bool)
-    seen.reshape(-1)[seen_texels] = True
-    tally.seen[rows, cols] |= seen[ir, ic]
+    def add(self, result: PatchResult, rows: slice, cols: slice, iterations: int) -> None:
+        """Add one patch's counters."""
+        self.samples += result.samples
+        self.work += result.samples * int(iterations)
+        self.optimise_s += result.optimise_s
+        self.refine_s += result.refine_s
+        if result.seen is not None:
+            self.seen[rows, cols] |= result.seen
 
 
 def _coverage(unwrap: UnwrapStore, config: PolarimetricConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -318,72 +317,101 @@ def _coverage(unwrap: UnwrapStore, config: PolarimetricConfig) -> tuple[np.ndarr
     return mask_seen, view_count
 
 
-def _fit(
-    unwrap: UnwrapStore,
-    config: PolarimetricConfig,
-    device: torch.device,
-    checkpoint: str | Path | None,
-    progress: bool,
-    stop_after_patches: int | None,
-    on_patch: Callable[[int, int], None] | None,
-    engine: PolarimetricEngine,
-) -> PolarimetricFit:
-    torch.manual_seed(config.seed)
+def _checked_scale(unwrap: UnwrapStore) -> float:
+    """The observation scale (mean ``I_sss`` of the fitting views) of a store fit to be fitted."""
     if not unwrap.complete:
         raise ValueError(f"unwrap store '{unwrap.path}' is incomplete; rerun the unwrapping")
-    views = unwrap.views
-    fitting = [i for i, v in enumerate(views) if not v.held_out]
+    fitting = [i for i, v in enumerate(unwrap.views) if not v.held_out]
     if not fitting:
         raise ValueError("no fitting view: every view is held out")
     scale = unwrap.mean_i_sss(fitting)
     if not scale > 0:
         raise ValueError("no texel is visible in any fitting view (all-invisible texels)")
+    return scale
+
+
+def _lost_patch_error(failed: dict[int, str], patches: list[tuple[slice, slice]], done: int,
+                      checkpoint: Path | None) -> InterruptedError:
+    """The error of a fit whose patches' workers died more often than the executor retries (the first
+    such patch named)."""
+    index, reason = min(failed.items())
+    rows, cols = patches[index]
+    kept = f"kept in '{checkpoint}'" if checkpoint is not None else "not kept (no checkpoint)"
+    return InterruptedError(
+        f"polarimetric patch {index} (texture rows {rows.start}-{rows.stop - 1}, columns {cols.start}-"
+        f"{cols.stop - 1}): {reason}; the {done} patches done are {kept}: rerun to resume"
+    )
+
+
+def _fit(
+    unwrap: UnwrapStore,
+    options: _PatchOptions,
+    checkpoint: str | Path | None,
+    progress: bool,
+    stop_after_patches: int | None,
+    on_patch: Callable[[int, int], None] | None,
+    executor: Executor,
+) -> PolarimetricFit:
+    """The wavefront over the patches (module docstring of
+    :mod:`~polarface.inverse.polarimetric.patch_units`), each front's patches as executor units."""
+    config = options.config
+    torch.manual_seed(config.seed)
+    scale = _checked_scale(unwrap)
     started = time.perf_counter()
-    side = _patch_side(unwrap, config, fitting)
+    side = _patch_side(unwrap, config, [i for i, v in enumerate(unwrap.views) if not v.held_out])
     patches = list(unwrap.patches(side))
+    fronts = patch_fronts(patches, side, config.halo)
     ckpt = Path(checkpoint) if checkpoint is not None else None
     state = _FitState.start(unwrap.resolution, side, config, ckpt)
     tally = _Tally(np.zeros(unwrap.resolution, bool))
-    newly = 0
+    executor.start()
+    failed: dict[int, str] = {}
     bar = tqdm(total=len(patches), desc="polarimetric fit", unit="patch", disable=not progress)
     bar.update(len(state.done))
-    for index, (rows, cols) in enumerate(patches):
-        if index in state.done:
-            continue
-        if stop_after_patches is not None and newly >= stop_after_patches:
-            bar.close()
-            return PolarimetricFit(
-                _to_maps(state.raw, config), tally.seen, state.curve, {}, 0.0, tally.samples, len(patches),
-                complete=False,
-            )  # fmt: skip
-        _fit_patch(unwrap, rows, cols, fitting, views, engine, config, scale, device, state, tally)
-        state.done.add(index)
-        newly += 1
+
+    def done(outcome: UnitOutcome) -> None:
+        index = outcome.unit.index
+        if not outcome.ok:
+            failed[index] = str(outcome.error)
+            return
+        rows, cols = patches[index]
+        state.apply(outcome.value, rows, cols, config.halo)
+        tally.add(outcome.value, rows, cols, config.iterations)
+        state.units[str(index)] = outcome.placement()
         if ckpt is not None:
             state.save(ckpt, side, unwrap.resolution)
         bar.update(1)
         if on_patch is not None:
             on_patch(len(state.done), len(patches))
+
+    newly = 0
+    for front in fronts:
+        todo = [index for index in front if index not in state.done]
+        if todo and stop_after_patches is not None:
+            if newly >= stop_after_patches:
+                bar.close()
+                return PolarimetricFit(
+                    _to_maps(state.raw, config), tally.seen, state.curve, {}, 0.0, tally.samples,
+                    len(patches), complete=False, units=state.units, fronts=fronts,
+                )  # fmt: skip
+            todo = todo[: stop_after_patches - newly]
+        units = [options.unit(index, *patches[index], scale, state) for index in todo]
+        executor.map_units(run_patch_unit, units, failures=(), on_done=done)
+        newly += len(todo)
+        if failed:
+            bar.close()
+            raise _lost_patch_error(failed, patches, len(state.done), ckpt)
     bar.close()
     mask_seen, view_count = _coverage(unwrap, config)
-    patches_fitted = max(len(patches), 1)
-    curve_mean = [v / patches_fitted for v in state.curve]
+    curve_mean = [v / max(len(patches), 1) for v in state.curve]
     timings = {
-        "fit_s": time.perf_counter() - started,
-        "optimise_s": tally.optimise_s,
-        "refine_s": tally.refine_s,
+        "fit_s": time.perf_counter() - started, "optimise_s": tally.optimise_s, "refine_s": tally.refine_s
     }
     throughput = tally.work / tally.optimise_s if tally.optimise_s > 0 else 0.0
     return PolarimetricFit(
-        _to_maps(state.raw, config),
-        mask_seen,
-        curve_mean,
-        timings,
-        throughput,
-        tally.samples,
-        len(patches),
-        view_count=view_count.astype(np.int32),
-    )
+        _to_maps(state.raw, config), mask_seen, curve_mean, timings, throughput, tally.samples, len(patches),
+        view_count=view_count.astype(np.int32), units=state.units, fronts=fronts,
+    )  # fmt: skip
 
 
 def _to_maps(raw: dict[str, np.ndarray], config: PolarimetricConfig) -> dict[str, np.ndarray]:

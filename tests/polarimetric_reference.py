@@ -1,0 +1,66 @@
+"""The static polarimetric fit's patch loop as it was before the patches became executor units (the
+row-major loop of ``polarface.inverse.polarimetric.fit`` up to commit 96424f7): the reference that the
+wavefront schedule must reproduce bit for bit (importable: ``tests`` is on pytest's ``pythonpath``).
+
+Patches run one after the other in row-major order and read and write one shared state in place (the
+haloed region's tensors share memory with it), as the old loop did; fused engine on the CPU, float32.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from polarface.inverse.polarimetric import PolarimetricConfig, initial_raw
+from polarface.inverse.polarimetric.fit import _patch_side, _to_maps, haloed_slices, torch_fit_settings
+from polarface.inverse.polarimetric.init import apply_closed_form_starts
+from polarface.inverse.polarimetric.optimise import optimise_patch
+from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
+from polarface.texture import UnwrapStore
+
+__all__ = ["row_major_fit"]
+
+
+def _fit_patch(unwrap, rows, cols, fitting, views, config, scale, raw, initialised, curve) -> None:
+    """One patch of the old loop, in place on ``raw`` and ``initialised``."""
+    dtype, device = torch.float32, torch.device("cpu")
+    hrows, hcols, (ir, ic) = haloed_slices(rows, cols, config.halo, unwrap.resolution)
+    batch, geometry, fused = build_patch_samples(unwrap, hrows, hcols, fitting, views, dtype=dtype,
+                                                 device=device, fused=True)
+    if batch is None:
+        return
+    problem = PatchProblem(batch, geometry, config, scale, dtype, device, fused)
+    patch_raw = {k: torch.as_tensor(v[hrows, hcols], dtype=dtype, device=device) for k, v in raw.items()}
+    todo = ~initialised[hrows, hcols]
+    if todo.any():
+        apply_closed_form_starts(batch, patch_raw, todo, problem.normals, config, dtype, device)
+    problem.batch = None
+    result = optimise_patch(problem, patch_raw, config, curve)
+    for k, v in result.items():
+        raw[k][rows, cols] = v[ir, ic].numpy()
+    if todo.any():
+        for k in ("rho_sss_bar", "rho_s", "eta", "alpha_s"):
+            fresh = patch_raw[k].numpy()
+            region = raw[k][hrows, hcols]
+            region[todo] = fresh[todo]
+            raw[k][rows, cols] = result[k][ir, ic].numpy()
+        initialised[hrows, hcols] = True
+
+
+def row_major_fit(unwrap: UnwrapStore, config: PolarimetricConfig
+                  ) -> tuple[dict[str, np.ndarray], list[float]]:
+    """``(maps, mean loss curve)`` of the row-major loop (one torch thread; without lobe refinement)."""
+    assert config.refine_lobes_iterations == 0
+    views = unwrap.views
+    fitting = [i for i, v in enumerate(views) if not v.held_out]
+    scale = unwrap.mean_i_sss(fitting)
+    patches = list(unwrap.patches(_patch_side(unwrap, config, fitting)))
+    raw = initial_raw(unwrap.resolution, config)
+    initialised = np.zeros(unwrap.resolution, bool)
+    curve: list[float] = []
+    with torch_fit_settings(1):
+        torch.manual_seed(config.seed)
+        for rows, cols in patches:
+            _fit_patch(unwrap, rows, cols, fitting, views, config, scale, raw, initialised, curve)
+        maps = _to_maps(raw, config)
+    return maps, [v / len(patches) for v in curve]
