@@ -24,6 +24,14 @@ Atomicity: raw PNGs and JSON files are written through :mod:`polarface.io.atomic
 written before a frame's marker, and a marker is removed before its frame is rewritten, so a crash
 leaves either a complete frame or a frame without marker, which readers refuse and a rerun redoes.
 Arrays grow along the frame axis; one frame of one camera is in memory at a time.
+
+Frames written in parallel (executor units, :mod:`polarface.executors`): every derived array is
+chunked one frame per chunk along axis 0, so two frames never share a chunk. What several frames
+share — the arrays' metadata and ``manifest.json`` — is written by the submitting process only:
+:meth:`CaptureStore.reserve_frames` sizes every derived array before the units run, each unit opens the
+store with :meth:`CaptureStore.open_writer` and calls :meth:`CaptureStore.add_frame` with
+``update_manifest=False`` (its own raw files, chunks and marker only), and the submitting process
+rebuilds the manifest as units finish and finalizes the store after them.
 """
 
 from __future__ import annotations
@@ -132,6 +140,48 @@ class CaptureStore:
         store._write_manifest(complete=False)
         return store
 
+    @classmethod
+    def open_writer(cls, path: str | os.PathLike[str], *, chunk: int = 512) -> CaptureStore:
+        """Open a store that :meth:`create` made (finished or not) to add frames in another process: the
+        rig from ``rig.json`` and the sequence from ``manifest.json``; nothing is validated, removed or
+        written (module docstring, "Frames written in parallel").
+
+        Raises:
+            FileNotFoundError: the store has no ``rig.json`` or ``manifest.json``.
+            ValueError: an invalid rig or manifest.
+        """
+        root = Path(path)
+        for name in ("rig.json", "manifest.json"):
+            if not (root / name).is_file():
+                raise FileNotFoundError(f"'{root}' is not a capture store being written: no {name}")
+        return cls(root, Rig.load(root / "rig.json"), read_manifest(root / "manifest.json")["sequence"],
+                   chunk)
+
+    def reserve_frames(self, frame_count: int) -> None:
+        """Create or grow every derived array to hold frames ``0 .. frame_count - 1`` (the shapes follow
+        from the rig: demosaiced stacks and masks at each polarization camera's size, the six-channel
+        merge on the reference camera's grid), so that units adding frames in parallel write chunks only,
+        never array metadata. Arrays already larger are left as they are.
+
+        Raises:
+            ValueError: ``frame_count < 1``, or an existing array's shape disagrees with the rig.
+        """
+        if int(frame_count) < 1:
+            raise ValueError(f"argument 'frame_count' must be >= 1; got {frame_count}")
+        last = int(frame_count) - 1
+        for camera in self.rig.polarimetric_cameras():
+            if camera.sensor not in _POLARIZATION:
+                continue
+            image = (camera.height, camera.width)
+            colour = (3,) if camera.sensor == "color-polarization" else ()
+            self._ensure(f"stacks/{camera.id}", last, (4, *image, *colour), "float32", 1)
+            self._ensure(f"masks/{camera.id}", last, image, "uint8", 0)
+        if self.spectral_reference is not None:
+            reference = self.rig.camera(self.spectral_reference)
+            image = (reference.height, reference.width)
+            self._ensure("spectral/stacks", last, (4, *image, 6), "float32", 1)
+            self._ensure("spectral/valid", last, image, "uint8", 0)
+
     def add_frame(
         self,
         frame_index: int,
@@ -140,6 +190,7 @@ class CaptureStore:
         *,
         process: bool = True,
         method: DemosaicMethod = "residual",
+        update_manifest: bool = True,
     ) -> bool:
         """Store one frame: raw PNGs, then (``process``) stacks, masks and observations, then the marker.
 
@@ -151,6 +202,8 @@ class CaptureStore:
             raws: camera id -> raw counts ``(H, W)`` (integer); every polarimetric camera of the rig.
             process: compute the derived arrays.
             method: demosaicing method.
+            update_manifest: rebuild ``manifest.json`` after the frame (False in a unit running beside
+                others: the submitting process rebuilds it; module docstring).
 
         Returns:
             True if the frame was written, False if skipped as already complete.
@@ -182,7 +235,8 @@ class CaptureStore:
             ):
                 return False
             marker_path.unlink()  # the frame is rewritten: untrust it first
-            self._write_manifest(complete=False)
+            if update_manifest:
+                self._write_manifest(complete=False)
         raw_paths = {}
         for cam_id, raw in arrays.items():
             relative = f"raw/{cam_id}/{frame_index:06d}.png"
@@ -205,8 +259,14 @@ class CaptureStore:
             "method": method if process else None,
         }
         write_json_atomic(marker_path, marker)
-        self._write_manifest(complete=False)
+        if update_manifest:
+            self._write_manifest(complete=False)
         return True
+
+    def write_manifest(self) -> dict:
+        """Rebuild ``manifest.json`` from the frame markers, not complete yet (the submitting process of
+        parallel units, as they finish); returns it."""
+        return self._write_manifest(complete=False)
 
     def finalize(self) -> dict:
         """Write ``manifest.json`` listing every completed frame, then validate the store."""

@@ -4,6 +4,8 @@ Writes OUT/static and OUT/dynamic (capture stores that ``polarface ingest`` vali
 OUT/ground_truth (parameter maps, meshes, poses, noise-free observations, texel visibility) and
 OUT/simulation.json. Layout: docs/simulate.md. Resumable: rerun the same command to continue.
 OUT must be absent, empty or a previous simulation (``--force`` replaces it); it is locked while running.
+``--executor ray [--ray-address ADDR] [--workers N]`` renders the frames as Ray tasks (``docs/cluster.md``);
+an unreachable address is refused before anything is written.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from polarface.commands import add_force_argument
+from polarface.commands import add_executor_arguments, add_force_argument, executor_from_args
 
 NAME = "simulate"
 HELP = "render a synthetic rig capture of the bundled head with ground truth"
@@ -34,6 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="static (revolving chair) frames, same sweep (default: the preset's)",
     )
+    add_executor_arguments(parser, "frames")
     add_force_argument(parser)
 
 
@@ -51,8 +54,10 @@ def run(args: argparse.Namespace) -> int:
         static_frames=args.static_frames,
     )
     owned = json_manifest("simulation.json")
-    with output_folder(args.out, NAME, force=args.force, owned=owned) as out:
-        summary = simulate(str(out), config)
+    with executor_from_args(args) as executor:
+        executor.start()  # an unreachable --ray-address is refused before the output is touched
+        with output_folder(args.out, NAME, force=args.force, owned=owned) as out:
+            summary = simulate(str(out), config, executor=executor)
     print(
         json.dumps(
             {"out": args.out, "timings": summary["timings"], "peak_rss_mb": summary["peak_rss_mb"]}, indent=2

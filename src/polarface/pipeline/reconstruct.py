@@ -61,8 +61,8 @@ LOGGER = logging.getLogger(__name__)
 
 @dataclasses.dataclass
 class ReconstructContext:
-    """What the stages share: inputs, options and the RESULT folder; ``executor`` runs the dynamic stage's
-    frames (:class:`polarface.executors.Executor`; None: in this process)."""
+    """What the stages share: inputs, options and the RESULT folder; ``executor`` runs the geometry stage's
+    and the dynamic stage's frames (:class:`polarface.executors.Executor`; None: in this process)."""
 
     capture: Path
     out: Path
@@ -120,14 +120,15 @@ def _load_geometry(ctx: ReconstructContext):
 
 def stage_geometry(ctx: ReconstructContext) -> dict[str, Any]:
     """Reconstruct the mesh and poses from the capture's stereo pairs into ``RESULT/geometry``
-    (:func:`polarface.pipeline.geometry.reconstruct_geometry`); skipped when the geometry is given."""
+    (:func:`polarface.pipeline.geometry.reconstruct_geometry`, its frames on ``ctx.executor``); skipped
+    when the geometry is given."""
     from polarface.pipeline.geometry import GeometryConfig, reconstruct_geometry
 
     if not ctx.stereo:
         return {"skipped": "geometry given (--geometry or --mesh/--poses)"}
     summary = reconstruct_geometry(
         ctx.capture, ctx.geometry_dir, GeometryConfig(texture_resolution=ctx.texture_resolution),
-        progress=ctx.progress,
+        progress=ctx.progress, executor=ctx.executor,
     )
     return {
         "geometry": str(ctx.geometry_dir),
@@ -373,8 +374,9 @@ def reconstruct(
         holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
         dynamic: a dynamic capture of the same rig (or a simulation folder) reconstructed frame by frame
             after the static stages; frames: its frames to fit (``"0-4,7"``; None: all).
-        executor: runs the dynamic frames (:class:`polarface.executors.Executor`, started before
-            anything is written; None: in this process, in order).
+        executor: runs the geometry stage's and the dynamic stage's frames
+            (:class:`polarface.executors.Executor`, started before anything is written; None: in this
+            process, in order).
 
     Raises:
         ValueError, FileNotFoundError: bad input; a RESULT folder this call created is removed.
@@ -414,8 +416,8 @@ def reconstruct(
             from polarface.pipeline.dynamic import open_dynamic_capture
 
             open_dynamic_capture(ctx.dynamic, store.rig, store.root / "rig.json", ctx.frames)
-            if executor is not None:
-                executor.start()
+        if executor is not None and (ctx.dynamic is not None or stereo):  # before anything is written
+            executor.start()
         out.mkdir(parents=True, exist_ok=True)
         return run_stages(ctx)
     except (ValueError, FileNotFoundError):
