@@ -1,9 +1,20 @@
 """The dynamic stage's frames on the local executor and on Ray with 1 and 2 workers, and a projection to
-a 200-frame full-preset sequence on 1, 8 and 64 GPU workers.
+a 200-frame full-preset sequence on 1, 8 and 64 GPU workers; the frames of ``simulate``, ``ingest`` and
+the geometry stage likewise (``--stages``).
 
 Usage:
     python benchmarks/bench_executor.py [--preset tiny|demo] [--work DIR] [--workers 1 2]
-                                        [--unit-s 1200] [--json OUT.json]
+                                        [--unit-s 1200] [--stages dynamic simulate ingest geometry]
+                                        [--json OUT.json]
+
+``simulate``, ``ingest`` and ``geometry`` (:func:`_frame_stages`): each stage runs into a fresh folder
+with the local executor and with Ray (``--workers`` tasks in flight): ``simulate`` the preset's static
+and dynamic sequences, ``ingest`` the simulated static capture's ``raw/`` folder (a RAW_DIR) with its
+rig, the geometry stage that capture (Poisson meshing on one thread, so that the frames' meshes can be
+compared bytes for bytes). Prints frames per second, the speed-up over the local executor and whether
+the outputs are the local executor's bytes (``simulation.json``, ``ingest.json`` and, for the geometry,
+everything but ``frames/`` and ``clouds/`` excluded: they hold timings, or come from the registration,
+which runs in the submitting process and differs from run to run by ~1e-13 mm).
 
 Builds (or reuses, in ``--work``) a simulation with its dynamic sequence and a static RESULT (known
 geometry), runs the dynamic stage once with the local executor (which computes ``tracking/``), then again
@@ -12,11 +23,12 @@ with ``max(--workers)`` CPUs; ``--workers`` tasks in flight). Prints frames per 
 work, the speed-up over the local executor, Ray's overhead per unit (seconds per frame above the local
 executor's with one worker) and whether the maps are identical to the local executor's.
 
-Projection (on paper): ``T(W) = F * s_shared + ceil(F / W) * (u + o)`` for F = 200 frames, with
-``s_shared`` the per-frame stereo and tracking seconds measured here (they stay on the submitting
-process) scaled by the stereo pixel count of the full preset, ``u`` the per-frame cost of a unit on a
-GPU worker (``--unit-s``; default 1200 s: the paper's 20 min per dynamic frame on an A100) and ``o``
-the overhead per unit measured here.
+Projection (on paper): ``T(W) = F * s_track + ceil(F / W) * (s_stereo + o) + ceil(F / W) * (u + o)``
+for F = 200 frames, with ``s_track`` the per-frame tracking seconds measured here (it stays on the
+submitting process) and ``s_stereo`` the per-frame stereo seconds (a unit on the executor since the
+stereo pass runs there), both scaled by the stereo pixel count of the full preset, ``u`` the per-frame
+cost of a unit on a GPU worker (``--unit-s``; default 1200 s: the paper's 20 min per dynamic frame on an
+A100) and ``o`` the overhead per unit measured here.
 """
 
 from __future__ import annotations
@@ -29,14 +41,14 @@ import time
 from pathlib import Path
 
 
-def _build(work: Path, preset: str) -> tuple[Path, Path]:
+def _build(work: Path, preset: str, static_result: bool = True) -> tuple[Path, Path]:
     from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
     from polarface.simulate.pipeline import SimulationConfig, simulate
 
     sim, static = work / "sim", work / "static"
     if not (sim / "dynamic" / "manifest.json").is_file():
         simulate(sim, SimulationConfig(preset=preset, sequences=("static", "dynamic")), progress=False)
-    if not (static / "maps" / "eta.exr").is_file():
+    if static_result and not (static / "maps" / "eta.exr").is_file():
         shutil.rmtree(static, ignore_errors=True)
         reconstruct(resolve_reconstruct_inputs(sim, geometry=sim / "ground_truth"), static, progress=False)
     return sim, static
@@ -67,10 +79,73 @@ def _identical(result: Path, reference: Path, frames: list[int]) -> bool:
 
 def _warm_up(unit: int) -> int:
     """Import what a frame needs (a Ray worker's first unit pays it otherwise)."""
+    import polarface.capture.ingest
     import polarface.inverse.polarimetric.kernel
-    import polarface.pipeline.dynamic  # noqa: F401
+    import polarface.pipeline.dynamic
+    import polarface.pipeline.geometry
+    import polarface.simulate.frames  # noqa: F401
 
     return unit
+
+
+def _digests(root: Path, keep) -> dict[str, str]:
+    import hashlib
+
+    return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file() and keep(p.relative_to(root))}
+
+
+def _frame_stages(work: Path, preset: str, stages: list[str], workers: list[int]) -> dict:
+    """Frames per second of ``stages`` (simulate, ingest, geometry) with the local executor and Ray
+    (module docstring); ``{stage: {run: row}}``."""
+    from polarface.capture.ingest import ingest_directory
+    from polarface.capture.rig import Rig
+    from polarface.executors import LocalExecutor, RayExecutor
+    from polarface.geometry import PoissonConfig
+    from polarface.pipeline.geometry import GeometryConfig, reconstruct_geometry
+    from polarface.simulate.pipeline import SimulationConfig, simulate
+    from polarface.simulate.presets import get_preset
+
+    sizes = get_preset(preset)
+    capture = work / "sim" / "static"
+    geometry = GeometryConfig(texture_resolution=sizes.texture_resolution,
+                              frame_poisson=PoissonConfig(threads=1),
+                              reference_poisson=PoissonConfig(resolution_mm=3.0, threads=1))
+
+    def run_simulate(out: Path, executor) -> None:
+        simulate(out, SimulationConfig(preset=preset), progress=False, executor=executor)
+
+    def run_ingest(out: Path, executor) -> None:
+        ingest_directory(capture / "raw", Rig.load(capture / "rig.json"), out, progress=False,
+                         executor=executor)
+
+    def run_geometry(out: Path, executor) -> None:
+        reconstruct_geometry(capture, out, geometry, progress=False, executor=executor)
+
+    jobs = {  # stage: (frames, run, files compared)
+        "simulate": (sizes.static_frames + sizes.dynamic_frames, run_simulate,
+                     lambda path: path.name != "simulation.json"),
+        "ingest": (sizes.static_frames, run_ingest, lambda path: path.name != "ingest.json"),
+        "geometry": (sizes.static_frames, run_geometry, lambda path: path.parts[0] in ("frames", "clouds")),
+    }
+    results: dict = {}
+    for stage in stages:
+        frames, run, keep = jobs[stage]
+        rows: dict = {}
+        executors = [("local", LocalExecutor()), *((f"ray_{w}", RayExecutor(workers=w)) for w in workers)]
+        for name, executor in executors:
+            target = work / f"{stage}_{name}"
+            shutil.rmtree(target, ignore_errors=True)
+            started = time.perf_counter()
+            run(target, executor)
+            seconds = time.perf_counter() - started
+            rows[name] = {"wall_s": seconds, "frames_per_s": frames / seconds,
+                          "speedup": rows["local"]["wall_s"] / seconds if rows else 1.0,
+                          "identical": _digests(target, keep) == _digests(work / f"{stage}_local", keep)}
+            print(f"{stage:>9} {name:>8}: {frames / seconds:.3f} frames/s, wall {seconds:.1f} s, speed-up "
+                  f"{rows[name]['speedup']:.2f}, identical: {rows[name]['identical']}")
+        results[stage] = rows
+    return results
 
 
 def main() -> None:
@@ -80,9 +155,32 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=Path("bench_executor_work"))
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--unit-s", type=float, default=1200.0, help="per-frame unit seconds on a GPU worker")
+    parser.add_argument("--stages", nargs="+", default=["dynamic", "simulate", "ingest", "geometry"],
+                        choices=("dynamic", "simulate", "ingest", "geometry"))
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
+    summary: dict = {"preset": args.preset}
+    frame_stages = [stage for stage in args.stages if stage != "dynamic"]
+    if frame_stages:
+        from polarface.executors import RayExecutor
 
+        work = args.work / args.preset
+        _build(work, args.preset, static_result=False)
+        warm = RayExecutor(workers=max(args.workers))
+        warm.start()  # the local Ray instance the runs share (they find it connected)
+        warm.map_units(_warm_up, list(range(max(args.workers))))
+        try:
+            summary["stages"] = _frame_stages(work, args.preset, frame_stages, args.workers)
+        finally:
+            warm.close()
+    if "dynamic" in args.stages:
+        summary.update(_dynamic(args))
+    if args.json is not None:
+        args.json.write_text(json.dumps(summary, indent=1))
+
+
+def _dynamic(args: argparse.Namespace) -> dict:
+    """The dynamic stage's benchmark and projection (module docstring)."""
     from polarface.executors import LocalExecutor, RayExecutor
     from polarface.simulate.presets import get_preset
 
@@ -112,15 +210,15 @@ def main() -> None:
     finally:
         ray.close()
     timings = first["timings"]
-    shared = (timings["geometry_s"] + timings["tracking_s"]) / len(first["frames"])
+    stereo, track = (timings[key] / len(first["frames"]) for key in ("geometry_s", "tracking_s"))
     measured, full = get_preset(args.preset), get_preset("full")
-    shared_full = shared * (full.stereo_width * full.stereo_height) / (
-        measured.stereo_width * measured.stereo_height)
+    scale = (full.stereo_width * full.stereo_height) / (measured.stereo_width * measured.stereo_height)
     overhead = max(rows[f"ray_{min(args.workers)}"]["overhead_per_unit_s"], 0.0)
-    wall_h = {str(w): (200 * shared_full + math.ceil(200 / w) * (args.unit_s + overhead)) / 3600
-              for w in (1, 8, 64)}
-    summary = {"preset": args.preset, "frames": frames, "runs": rows, "shared_s_per_frame": shared,
-               "projection_full_200_frames": {"shared_s_per_frame": shared_full, "unit_s": args.unit_s,
+    wall_h = {str(w): (200 * track * scale + math.ceil(200 / w) * (stereo * scale + overhead)
+                       + math.ceil(200 / w) * (args.unit_s + overhead)) / 3600 for w in (1, 8, 64)}
+    summary = {"frames": frames, "runs": rows, "stereo_s_per_frame": stereo, "tracking_s_per_frame": track,
+               "projection_full_200_frames": {"stereo_s_per_frame": stereo * scale,
+                                              "tracking_s_per_frame": track * scale, "unit_s": args.unit_s,
                                               "overhead_s": overhead, "wall_h": wall_h}}
     for name, row in rows.items():
         print(f"{name:>8}: {row['frames_per_s']:.3f} frames/s, wall {row['wall_s']:.1f} s, unit "
@@ -128,8 +226,7 @@ def main() -> None:
               f"{row.get('overhead_per_unit_s', 0.0):+.1f} s, identical maps: {row['identical']}")
     print("projected 200-frame full sequence (h):",
           ", ".join(f"{w} GPU workers {h:.1f}" for w, h in wall_h.items()))
-    if args.json is not None:
-        args.json.write_text(json.dumps(summary, indent=1))
+    return summary
 
 
 if __name__ == "__main__":
