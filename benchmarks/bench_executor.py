@@ -11,8 +11,11 @@ Usage:
 with the local executor and with Ray (``--workers`` tasks in flight): ``simulate`` the preset's static
 and dynamic sequences, ``ingest`` the simulated static capture's ``raw/`` folder (a RAW_DIR) with its
 rig, the geometry stage that capture (Poisson meshing on one thread, so that the frames' meshes can be
-compared bytes for bytes). Prints frames per second, the speed-up over the local executor and whether
-the outputs are the local executor's bytes (``simulation.json``, ``ingest.json`` and, for the geometry,
+compared bytes for bytes). Every run uses one torch and numba thread (the Ray workers adopt it). Prints
+frames per second of the stage's per-frame part (``simulate``: both sequences; ``ingest``: after the raw
+files are checked; geometry: stereo and frame meshes, before the registration), the speed-up of that
+part over the local executor, the whole stage's wall time, and whether the outputs are the local
+executor's bytes (``simulation.json``, ``ingest.json`` and, for the geometry,
 everything but ``frames/`` and ``clouds/`` excluded: they hold timings, or come from the registration,
 which runs in the submitting process and differs from run to run by ~1e-13 mm).
 
@@ -112,15 +115,21 @@ def _frame_stages(work: Path, preset: str, stages: list[str], workers: list[int]
                               frame_poisson=PoissonConfig(threads=1),
                               reference_poisson=PoissonConfig(resolution_mm=3.0, threads=1))
 
-    def run_simulate(out: Path, executor) -> None:
-        simulate(out, SimulationConfig(preset=preset), progress=False, executor=executor)
+    # each returns the seconds of the stage's per-frame part (what the executor runs, plus the frame the
+    # submitting process runs itself: the simulation's exposure frame, the geometry's reference frame)
+    def run_simulate(out: Path, executor) -> float:
+        timings = simulate(out, SimulationConfig(preset=preset), progress=False, executor=executor)["timings"]
+        return timings["static_s"] + timings["dynamic_s"]
 
-    def run_ingest(out: Path, executor) -> None:
+    def run_ingest(out: Path, executor) -> float:
         ingest_directory(capture / "raw", Rig.load(capture / "rig.json"), out, progress=False,
                          executor=executor)
+        timings = json.loads((out / "ingest.json").read_text())["timings"]
+        return timings["total_s"] - timings["check_s"]  # the raw files are checked first, in process
 
-    def run_geometry(out: Path, executor) -> None:
-        reconstruct_geometry(capture, out, geometry, progress=False, executor=executor)
+    def run_geometry(out: Path, executor) -> float:
+        summary = reconstruct_geometry(capture, out, geometry, progress=False, executor=executor)
+        return summary["timings"]["stereo_and_frame_meshes_s"]
 
     jobs = {  # stage: (frames, run, files compared)
         "simulate": (sizes.static_frames + sizes.dynamic_frames, run_simulate,
@@ -137,13 +146,14 @@ def _frame_stages(work: Path, preset: str, stages: list[str], workers: list[int]
             target = work / f"{stage}_{name}"
             shutil.rmtree(target, ignore_errors=True)
             started = time.perf_counter()
-            run(target, executor)
+            part = run(target, executor)
             seconds = time.perf_counter() - started
-            rows[name] = {"wall_s": seconds, "frames_per_s": frames / seconds,
-                          "speedup": rows["local"]["wall_s"] / seconds if rows else 1.0,
+            rows[name] = {"wall_s": seconds, "frames_s": part, "frames_per_s": frames / part,
+                          "speedup": rows["local"]["frames_s"] / part if rows else 1.0,
                           "identical": _digests(target, keep) == _digests(work / f"{stage}_local", keep)}
-            print(f"{stage:>9} {name:>8}: {frames / seconds:.3f} frames/s, wall {seconds:.1f} s, speed-up "
-                  f"{rows[name]['speedup']:.2f}, identical: {rows[name]['identical']}")
+            row = rows[name]
+            print(f"{stage:>9} {name:>8}: {frames / part:.3f} frames/s (frames {part:.1f} s of wall "
+                  f"{seconds:.1f} s), speed-up {row['speedup']:.2f}, identical: {row['identical']}")
         results[stage] = rows
     return results
 
@@ -159,6 +169,9 @@ def main() -> None:
                         choices=("dynamic", "simulate", "ingest", "geometry"))
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
+    from polarface.executors import ThreadSettings
+
+    ThreadSettings(1, 1).apply()  # one torch and numba thread in this process and (adopted) on the workers
     summary: dict = {"preset": args.preset}
     frame_stages = [stage for stage in args.stages if stage != "dynamic"]
     if frame_stages:

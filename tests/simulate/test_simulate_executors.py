@@ -48,14 +48,18 @@ def test_ray_frames_are_the_local_executor_bytes(local, ray_instance, tmp_path):
 
 
 def _worker_running_a_unit(timeout_s: float):
-    """The first Ray worker process found running a unit (its title is ``ray::_run_on_worker``)."""
+    """The first worker of this process's own Ray instance (its descendants: not another session's)
+    found running a unit (its title is ``ray::_run_on_worker``)."""
     import psutil
 
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        for process in psutil.process_iter(["cmdline"]):
-            if (process.info["cmdline"] or [""])[0].startswith("ray::_run_on_worker"):
-                return process
+        for process in psutil.Process().children(recursive=True):
+            try:
+                if process.cmdline()[:1] and process.cmdline()[0].startswith("ray::_run_on_worker"):
+                    return process
+            except psutil.Error:  # exited meanwhile
+                continue
         time.sleep(0.05)
     raise AssertionError("no Ray worker ran a unit")
 

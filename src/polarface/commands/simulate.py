@@ -36,14 +36,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="static (revolving chair) frames, same sweep (default: the preset's)",
     )
+    parser.add_argument(
+        "--threads", type=int, default=1,
+        help="torch threads of the renders (default 1; Ray workers adopt it: more than 1 per worker on a "
+        "machine whose cores all run workers makes OpenMP threads spin against each other)",
+    )
     add_executor_arguments(parser, "frames")
     add_force_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch
+
     from polarface.io.output_folder import json_manifest, output_folder
     from polarface.simulate.pipeline import SimulationConfig, simulate
 
+    if args.threads < 1:
+        raise ValueError(f"argument '--threads' must be >= 1; got {args.threads}")
+    torch.set_num_threads(args.threads)  # before the executor records the thread counts its workers adopt
     config = SimulationConfig(
         preset=args.preset,
         seed=args.seed,
