@@ -45,8 +45,8 @@ def run(args: argparse.Namespace) -> int:
     )
     owned = json_manifest(GEOMETRY_JSON, format="polarface-geometry")
     with executor_from_args(args) as executor:
-        executor.start()  # an unreachable --ray-address is refused before the output is touched
         with output_folder(args.out, NAME, force=args.force, owned=owned, marker=False) as out:
+            executor.start()  # an unreachable --ray-address is refused before anything is written
             summary = reconstruct_geometry(inputs.capture, out, config, progress=not args.quiet,
                                            executor=executor)
     rejected = summary["rejected_frames"]

@@ -36,13 +36,12 @@ def run(args: argparse.Namespace) -> int:
     from polarface.capture.rig import Rig
     from polarface.io.output_folder import output_folder
 
-    rig = Rig.load(args.rig)
     with executor_from_args(args) as executor:
-        executor.start()  # an unreachable --ray-address is refused before the output is touched
         with output_folder(args.out, NAME, force=args.force, owned=_capture_store, marker=False) as out:
+            executor.start()  # an unreachable --ray-address is refused before anything is written
             store = ingest_directory(
                 args.raw_dir,
-                rig,
+                Rig.load(args.rig),
                 out,
                 sequence=args.sequence,
                 method=args.method,

@@ -65,8 +65,8 @@ def run(args: argparse.Namespace) -> int:
     )
     owned = json_manifest("simulation.json")
     with executor_from_args(args) as executor:
-        executor.start()  # an unreachable --ray-address is refused before the output is touched
         with output_folder(args.out, NAME, force=args.force, owned=owned) as out:
+            executor.start()  # an unreachable --ray-address is refused before anything is written
             summary = simulate(str(out), config, executor=executor)
     print(
         json.dumps(
