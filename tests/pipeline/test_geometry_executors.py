@@ -18,14 +18,12 @@ import numpy as np
 import pytest
 
 from polarface.capture.store import CaptureStore
-from polarface.executors import RayExecutor
+from polarface.executors import LocalExecutor, RayExecutor
 from polarface.geometry import PoissonConfig, load_poses
 from polarface.pipeline.dynamic_geometry import TrackingFolder, stereo_pass
 from polarface.pipeline.geometry import GeometryConfig, reconstruct_geometry
 from polarface.simulate import SimulationConfig, simulate
 from ray_fixtures import RAY_CPUS, ray_instance  # noqa: F401 (fixture)
-
-pytestmark = pytest.mark.slow
 
 CONFIG = GeometryConfig(texture_resolution=256, frame_poisson=PoissonConfig(threads=1),
                         reference_poisson=PoissonConfig(resolution_mm=3.0, threads=1))
@@ -49,6 +47,7 @@ def _frame_files(root: Path, *folders: str) -> dict[str, str]:
             for folder in folders for p in sorted((root / folder).glob("*")) if p.is_file()}
 
 
+@pytest.mark.slow
 def test_ray_geometry_frames_are_the_local_executor_files(sim, local_geom, ray_instance, tmp_path):  # noqa: F811
     local, expected = local_geom
     summary = reconstruct_geometry(sim / "static", tmp_path / "geom", CONFIG, progress=False,
@@ -74,6 +73,7 @@ def _stereo_pass(store: Path, root: Path, executor=None) -> TrackingFolder:
     return tracking
 
 
+@pytest.mark.slow
 def test_dynamic_stereo_on_ray_and_a_failing_frame(sim, ray_instance, tmp_path):  # noqa: F811
     local = _stereo_pass(sim / "dynamic", tmp_path / "local")
     remote = _stereo_pass(sim / "dynamic", tmp_path / "ray", RayExecutor(workers=RAY_CPUS))
@@ -91,3 +91,22 @@ def test_dynamic_stereo_on_ray_and_a_failing_frame(sim, ray_instance, tmp_path):
     assert list(failed.summary["frames"]) == ["0"]
     assert "cannot read image" in failed.summary["executor"]["units"]["1"]["error"]
     assert not failed.stereo_path(1).exists() and failed.stereo_path(0).is_file()
+
+
+def test_reconstruct_runs_the_geometry_frames_on_its_executor(tmp_path, monkeypatch):
+    """``reconstruct``'s geometry stage hands ``ReconstructContext.executor`` to the stage."""
+    import polarface.pipeline.geometry as geometry_module
+    from polarface.pipeline.reconstruct import ReconstructContext, stage_geometry
+
+    seen = {}
+
+    def stage(capture, out, config, *, progress, executor):
+        seen["executor"] = executor
+        return {"reference_frame": 1, "rejected_frames": {}, "atlas": {}, "timings": {}}
+
+    monkeypatch.setattr(geometry_module, "reconstruct_geometry", stage)
+    executor = LocalExecutor()
+    ctx = ReconstructContext(tmp_path / "capture", tmp_path / "result", tmp_path / "mesh.obj",
+                             tmp_path / "poses.json", 16, "cpu", False, False, 0,
+                             geometry_dir=tmp_path / "result" / "geometry", stereo=True, executor=executor)
+    assert stage_geometry(ctx)["reference_frame"] == 1 and seen["executor"] is executor
