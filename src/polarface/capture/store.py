@@ -25,13 +25,10 @@ written before a frame's marker, and a marker is removed before its frame is rew
 leaves either a complete frame or a frame without marker, which readers refuse and a rerun redoes.
 Arrays grow along the frame axis; one frame of one camera is in memory at a time.
 
-Frames written in parallel (executor units, :mod:`polarface.executors`): every derived array is
-chunked one frame per chunk along axis 0, so two frames never share a chunk. What several frames
-share — the arrays' metadata and ``manifest.json`` — is written by the submitting process only:
-:meth:`CaptureStore.reserve_frames` sizes every derived array before the units run, each unit opens the
-store with :meth:`CaptureStore.open_writer` and calls :meth:`CaptureStore.add_frame` with
-``update_manifest=False`` (its own raw files, chunks and marker only), and the submitting process
-rebuilds the manifest as units finish and finalizes the store after them.
+Frames written in parallel (executor units): one frame per chunk along axis 0, so frames never share
+a chunk; the submitting process sizes the arrays first (:meth:`CaptureStore.reserve_frames`), a unit
+opens the store with :meth:`CaptureStore.open_writer` and adds its frame with ``update_manifest=False``,
+and the submitting process rebuilds the manifest (:meth:`CaptureStore.write_manifest`) and finalizes.
 """
 
 from __future__ import annotations
@@ -142,9 +139,8 @@ class CaptureStore:
 
     @classmethod
     def open_writer(cls, path: str | os.PathLike[str], *, chunk: int = 512) -> CaptureStore:
-        """Open a store that :meth:`create` made (finished or not) to add frames in another process: the
-        rig from ``rig.json`` and the sequence from ``manifest.json``; nothing is validated, removed or
-        written (module docstring, "Frames written in parallel").
+        """Open a store that :meth:`create` made (finished or not) to add frames from a unit: nothing is
+        validated, removed or written (module docstring).
 
         Raises:
             FileNotFoundError: the store has no ``rig.json`` or ``manifest.json``.
@@ -158,10 +154,8 @@ class CaptureStore:
                    chunk)
 
     def reserve_frames(self, frame_count: int) -> None:
-        """Create or grow every derived array to hold frames ``0 .. frame_count - 1`` (the shapes follow
-        from the rig: demosaiced stacks and masks at each polarization camera's size, the six-channel
-        merge on the reference camera's grid), so that units adding frames in parallel write chunks only,
-        never array metadata. Arrays already larger are left as they are.
+        """Create or grow every derived array to hold frames ``0 .. frame_count - 1`` (shapes from the rig),
+        so that units adding frames write chunks only, never array metadata; larger arrays are kept.
 
         Raises:
             ValueError: ``frame_count < 1``, or an existing array's shape disagrees with the rig.
