@@ -100,6 +100,7 @@ CASES: list[tuple[str, Callable[[Path], list[str]], str]] = [
     ("simulate seed", lambda t: _simulate(t, "--seed", "-1"), "seed"),
     ("simulate skin type", lambda t: _simulate(t, "--skin-type", "VII"), "skin_type"),
     ("simulate sequences", lambda t: _simulate(t, "--sequences", "static,nosuch"), "sequences"),
+    ("simulate threads", lambda t: _simulate(t, "--threads", "0"), "--threads"),
     ("stokes phase", lambda t: _stokes(t, "--phase", "5", "-1"), "phase"),
     ("stokes exposure", lambda t: _stokes(t, "--exposure", "0"), "exposure"),
     ("skin-fit header-only csv", _skin_fit_header_only, "holds no spectra"),

@@ -48,10 +48,11 @@ def _raw_dir(tmp_path, frames=range(4), name="raw_in"):
 
 
 def _tree(root: Path) -> dict[str, str]:
+    """Digest of every file of a store but ``ingest.json``, the run's record (seconds, pids differ)."""
     return {
         p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
         for p in sorted(root.rglob("*"))
-        if p.is_file()
+        if p.is_file() and p.name != "ingest.json"
     }
 
 

@@ -81,6 +81,8 @@ def test_geometry_stage_resumes_without_redoing_frames(sim, geom):
 
 @pytest.mark.slow
 def test_frame_without_stereo_points_is_rejected_and_listed(sim, tmp_path):
+    """Frame 0 has black stereo images (no points), frame 1 a truncated one (its unit fails): both are
+    rejected with their reasons and the run goes on; frame 1 has no cloud, so the next run redoes it."""
     from polarface.capture.store import CaptureStore
     from polarface.io import read_png, write_png
 
@@ -91,10 +93,16 @@ def test_frame_without_stereo_points_is_rejected_and_listed(sim, tmp_path):
         for camera in (camera_a, camera_b):
             path = store_copy / store.frames[0].raw[camera.id]
             write_png(path, np.zeros_like(read_png(path)), bit_depth=16)
+    truncated = store_copy / store.frames[1].raw["stereo0_a"]
+    truncated.write_bytes(truncated.read_bytes()[: truncated.stat().st_size // 2])  # header intact
     summary = reconstruct_geometry(store_copy, tmp_path / "GEOM", GeometryConfig(texture_resolution=256),
                                    progress=False)
-    assert list(summary["rejected_frames"]) == ["0"]
+    assert list(summary["rejected_frames"]) == ["0", "1"]
     assert "no mesh" in summary["rejected_frames"]["0"] or "points" in summary["rejected_frames"]["0"]
+    assert summary["rejected_frames"]["1"].startswith("unit failed: ") and "cannot read image" in \
+        summary["rejected_frames"]["1"]
+    assert "cannot read image" in summary["executor"]["units"]["1"]["error"]
+    assert not (tmp_path / "GEOM" / "clouds" / "000001.npz").exists()
     assert len(load_poses(tmp_path / "GEOM" / "poses.json")) == 4  # the run went on
 
 

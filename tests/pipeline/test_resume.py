@@ -46,9 +46,9 @@ def _tree(root: Path) -> dict[str, str]:
         if not path.is_file():
             continue
         data = path.read_bytes()
-        if path.name == "simulation.json":  # timings and peak memory differ between runs
+        if path.name == "simulation.json":  # timings, peak memory, where frames ran differ between runs
             summary = json.loads(data)
-            summary.pop("timings"), summary.pop("peak_rss_mb")
+            summary.pop("timings"), summary.pop("peak_rss_mb"), summary.pop("executor")
             data = json.dumps(summary, sort_keys=True).encode()
         out[path.relative_to(root).as_posix()] = hashlib.sha256(data).hexdigest()
     return out

@@ -15,7 +15,8 @@ from polarface.capture.rig import paper_rig
 from polarface.capture.store import CaptureStore
 from polarface.geometry.poses import check_rigid, load_poses
 from polarface.io import read_exr
-from polarface.simulate.pipeline import SimulationConfig, SimulationScene, _raw_frames, simulate
+from polarface.simulate.frames import _raw_frames
+from polarface.simulate.pipeline import SimulationConfig, SimulationScene, simulate
 from polarface.simulate.presets import SKIN_TYPES, get_preset, get_skin_type
 
 

@@ -14,16 +14,25 @@ Nothing half-written: every raw file is decoded and checked against its camera (
 depth, range) before anything is written, and an error names the file; a run that fails removes the
 store it created (or, resuming, leaves the frames that were complete before; a frame without its
 marker is redone by the next run, and stale ``.tmp-*`` files are removed by it).
+
+Each frame is one executor unit (:class:`IngestUnit`, :func:`run_ingest_unit`;
+:mod:`polarface.executors`): it reads its raw files and writes its raw PNGs, its derived chunks and its
+marker into the store itself; the submitting process sizes the derived arrays first, rebuilds
+``manifest.json`` as frames finish and finalizes the store after them
+(:mod:`polarface.capture.store`, "Frames written in parallel"). ``CAPTURE/ingest.json`` records the
+executor, the seconds and the host of every frame, and the timings.
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import itertools
 import math
 import os
+import time
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from tqdm import tqdm
 
@@ -31,13 +40,20 @@ from polarface.capture.demosaic import DemosaicMethod
 from polarface.capture.manifest import raw_bit_depth_ok
 from polarface.capture.rig import Rig
 from polarface.capture.store import CaptureStore
+from polarface.executors import Executor, LocalExecutor, UnitOutcome
+from polarface.io.atomic import write_json_atomic
 from polarface.io.images import read_png
 from polarface.io.storage import PathOrUrl, StoragePath, remove_tree, storage_path
 
-__all__ = ["RAW_SUFFIXES", "check_raw_files", "ingest_directory", "scan_raw_directory"]
+__all__ = [
+    "INGEST_JSON", "RAW_SUFFIXES", "IngestUnit", "check_raw_files", "ingest_directory", "run_ingest_unit",
+    "scan_raw_directory",
+]
 
 #: File suffixes recognised as raw frames.
 RAW_SUFFIXES = (".png", ".tif", ".tiff")
+#: The ingest record in the capture store (executor, per-frame placement, timings).
+INGEST_JSON = "ingest.json"
 
 
 def scan_raw_directory(raw_dir: str | os.PathLike[str], rig: Rig) -> dict[int, dict[str, Path]]:
@@ -125,6 +141,40 @@ def _timestamps(root: Path, numbers: list[int], fps: float) -> dict[int, float]:
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class IngestUnit:
+    """One frame of :func:`ingest_directory` as an executor unit: where its inputs are, not the inputs.
+
+    Attributes:
+        store: the capture store being written (made by :meth:`CaptureStore.create`; absolute path or URL).
+        frame: the frame number (the slot on the derived arrays' axis 0).
+        timestamp: its timestamp (s).
+        raw_files: ``(camera id, raw file)`` pairs of the frame (absolute paths).
+        method: demosaicing method.
+    """
+
+    store: StoragePath
+    frame: int
+    timestamp: float
+    raw_files: tuple[tuple[str, Path], ...]
+    method: DemosaicMethod = "residual"
+
+
+def run_ingest_unit(unit: IngestUnit) -> dict[str, Any]:
+    """Store one frame (:class:`IngestUnit`): its raw PNGs, derived chunks and marker, not the manifest
+    (:meth:`CaptureStore.add_frame` with ``update_manifest=False``); a frame already stored with the same
+    raw content is skipped. Returns ``{"written": bool}``.
+
+    Raises:
+        ValueError, FileNotFoundError: a raw file cannot be read or does not fit its camera (reported by
+            the executor as the frame's failure).
+    """
+    store = CaptureStore.open_writer(unit.store)
+    raws = {camera_id: read_png(path) for camera_id, path in unit.raw_files}
+    written = store.add_frame(unit.frame, unit.timestamp, raws, method=unit.method, update_manifest=False)
+    return {"written": bool(written)}
+
+
 def ingest_directory(
     raw_dir: str | os.PathLike[str],
     rig: Rig,
@@ -134,6 +184,7 @@ def ingest_directory(
     method: DemosaicMethod = "residual",
     fps: float = 20.0,
     progress: bool = True,
+    executor: Executor | None = None,
 ) -> CaptureStore:
     """Validate a RAW_DIR against the rig, then store every frame with derived arrays (resumable).
 
@@ -146,30 +197,78 @@ def ingest_directory(
         method: demosaicing method.
         fps: frame rate used for timestamps when there is no ``timestamps.csv`` (paper: 20 fps).
         progress: show a tqdm progress bar.
+        executor: runs the frames (:class:`IngestUnit`); None: in this process, in order. It is started
+            after the raw files are checked and before anything is written, and left open.
 
     Returns:
         The finalised, validated :class:`CaptureStore`.
+
+    Raises:
+        ValueError: a bad RAW_DIR, raw file, timestamp or ``fps`` (nothing written), or frames that failed
+            in their units (named with their reasons, once the other units are done; as for any failure,
+            a store this run created is removed, a resumed one keeps its complete frames).
     """
     if not (math.isfinite(fps) and fps > 0):
         raise ValueError(f"argument 'fps' must be finite and > 0; got {fps}")
+    started = time.perf_counter()
     root = Path(raw_dir)
     frames = scan_raw_directory(root, rig)
     times = _timestamps(root, sorted(frames), fps)
     check_raw_files(frames, rig, progress=progress)
+    executor = executor or LocalExecutor()
+    executor.start()
+    check_s = time.perf_counter() - started
     out = storage_path(out)
     created = not out.exists()
     fresh = created or not (out / "rig.json").exists()
     try:
         store = CaptureStore.create(out, rig, sequence=sequence)
-        for number in tqdm(sorted(frames), desc="ingest", unit="frame", disable=not progress):
-            raws = {cam_id: read_png(path) for cam_id, path in frames[number].items()}
-            store.add_frame(number, times[number], raws, method=method)
+        store.reserve_frames(max(frames) + 1)
+        units = [IngestUnit(out.absolute() if isinstance(out, Path) else out, number, times[number],
+                            tuple((cam, path.absolute()) for cam, path in sorted(frames[number].items())),
+                            method) for number in sorted(frames)]
+        placements = _ingest_units(store, units, executor, progress)
         store.finalize()
     except BaseException:
         if created or (fresh and (out / "rig.json").exists()):  # this run created the store
             _remove_created(out, created)
         raise
+    write_json_atomic(out / INGEST_JSON, {
+        "format": "polarface-ingest", "version": 1, "raw_dir": str(root.absolute()), "method": method,
+        "frames": sorted(frames),
+        "executor": {**executor.describe(), "units": placements},
+        "timings": {"check_s": check_s, "total_s": time.perf_counter() - started},
+    })
     return store
+
+
+def _ingest_units(store: CaptureStore, units: list[IngestUnit], executor: Executor,
+                  progress: bool) -> dict[str, dict[str, Any]]:
+    """Run the frames' units, rebuilding the manifest as each finishes; their placements by frame.
+
+    Raises:
+        ValueError: naming the frames that failed and why (the others are stored).
+    """
+    placements: dict[str, dict[str, Any]] = {}
+    failed: dict[int, str] = {}
+    bar = tqdm(total=len(units), desc="ingest", unit="frame", disable=not progress)
+
+    def done(outcome: UnitOutcome) -> None:
+        placements[str(outcome.unit.frame)] = {**outcome.placement(), **(outcome.value or {})}
+        if outcome.ok:
+            store.write_manifest()
+        else:
+            failed[outcome.unit.frame] = outcome.error
+        bar.update(1)
+
+    try:
+        executor.map_units(run_ingest_unit, units, on_done=done)
+    finally:
+        bar.close()
+    if failed:
+        reasons = "; ".join(f"frame {frame}: {reason}" for frame, reason in sorted(failed.items()))
+        raise ValueError(f"ingest into '{store.root}': {len(failed)} frame(s) failed: {reasons}")
+    return {frame: placements[frame] for frame in sorted(placements, key=int)}
 
 
 def _remove_created(out: StoragePath, created: bool) -> None:

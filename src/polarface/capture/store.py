@@ -28,6 +28,11 @@ Arrays grow along the frame axis; one frame of one camera is in memory at a time
 Where: ``CAPTURE`` is a local path or an fsspec URL (``file://``, ``memory://``, ``s3://bucket/key``;
 :func:`polarface.io.storage.storage_path`). On a URL every file is put whole (temporary key, then moved)
 and ``derived.zarr`` goes through zarr's fsspec store, whose chunks are single object puts.
+
+Frames written in parallel (executor units): one frame per chunk along axis 0, so frames never share
+a chunk; the submitting process sizes the arrays first (:meth:`CaptureStore.reserve_frames`), a unit
+opens the store with :meth:`CaptureStore.open_writer` and adds its frame with ``update_manifest=False``,
+and the submitting process rebuilds the manifest (:meth:`CaptureStore.write_manifest`) and finalizes.
 """
 
 from __future__ import annotations
@@ -139,6 +144,45 @@ class CaptureStore:
         store._write_manifest(complete=False)
         return store
 
+    @classmethod
+    def open_writer(cls, path: PathOrUrl, *, chunk: int = 512) -> CaptureStore:
+        """Open a store that :meth:`create` made (finished or not) to add frames from a unit: nothing is
+        validated, removed or written (module docstring).
+
+        Raises:
+            FileNotFoundError: the store has no ``rig.json`` or ``manifest.json``.
+            ValueError: an invalid rig or manifest.
+        """
+        root = storage_path(path)
+        for name in ("rig.json", "manifest.json"):
+            if not (root / name).is_file():
+                raise FileNotFoundError(f"'{root}' is not a capture store being written: no {name}")
+        return cls(root, Rig.load(root / "rig.json"), read_manifest(root / "manifest.json")["sequence"],
+                   chunk)
+
+    def reserve_frames(self, frame_count: int) -> None:
+        """Create or grow every derived array to hold frames ``0 .. frame_count - 1`` (shapes from the rig),
+        so that units adding frames write chunks only, never array metadata; larger arrays are kept.
+
+        Raises:
+            ValueError: ``frame_count < 1``, or an existing array's shape disagrees with the rig.
+        """
+        if int(frame_count) < 1:
+            raise ValueError(f"argument 'frame_count' must be >= 1; got {frame_count}")
+        last = int(frame_count) - 1
+        for camera in self.rig.polarimetric_cameras():
+            if camera.sensor not in _POLARIZATION:
+                continue
+            image = (camera.height, camera.width)
+            colour = (3,) if camera.sensor == "color-polarization" else ()
+            self._ensure(f"stacks/{camera.id}", last, (4, *image, *colour), "float32", 1)
+            self._ensure(f"masks/{camera.id}", last, image, "uint8", 0)
+        if self.spectral_reference is not None:
+            reference = self.rig.camera(self.spectral_reference)
+            image = (reference.height, reference.width)
+            self._ensure("spectral/stacks", last, (4, *image, 6), "float32", 1)
+            self._ensure("spectral/valid", last, image, "uint8", 0)
+
     def add_frame(
         self,
         frame_index: int,
@@ -147,6 +191,7 @@ class CaptureStore:
         *,
         process: bool = True,
         method: DemosaicMethod = "residual",
+        update_manifest: bool = True,
     ) -> bool:
         """Store one frame: raw PNGs, then (``process``) stacks, masks and observations, then the marker.
 
@@ -158,6 +203,8 @@ class CaptureStore:
             raws: camera id -> raw counts ``(H, W)`` (integer); every polarimetric camera of the rig.
             process: compute the derived arrays.
             method: demosaicing method.
+            update_manifest: rebuild ``manifest.json`` after the frame (False in a unit running beside
+                others: the submitting process rebuilds it; module docstring).
 
         Returns:
             True if the frame was written, False if skipped as already complete.
@@ -189,7 +236,8 @@ class CaptureStore:
             ):
                 return False
             marker_path.unlink()  # the frame is rewritten: untrust it first
-            self._write_manifest(complete=False)
+            if update_manifest:
+                self._write_manifest(complete=False)
         raw_paths = {}
         for cam_id, raw in arrays.items():
             relative = f"raw/{cam_id}/{frame_index:06d}.png"
@@ -212,8 +260,14 @@ class CaptureStore:
             "method": method if process else None,
         }
         write_json_atomic(marker_path, marker)
-        self._write_manifest(complete=False)
+        if update_manifest:
+            self._write_manifest(complete=False)
         return True
+
+    def write_manifest(self) -> dict:
+        """Rebuild ``manifest.json`` from the frame markers, not complete yet (the submitting process of
+        parallel units, as they finish); returns it."""
+        return self._write_manifest(complete=False)
 
     def finalize(self) -> dict:
         """Write ``manifest.json`` listing every completed frame, then validate the store."""

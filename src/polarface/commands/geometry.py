@@ -2,6 +2,8 @@
 stereo pairs (paper Sec. "Geometry Reconstruction and Tracking"; layout in ``docs/geometry.md``,
 "Geometry from stereo"). ``reconstruct`` runs the same stage by default; ``reconstruct --geometry GEOM``
 reuses this command's output. Rerunning on the same output resumes at the first unfinished frame.
+``--executor ray [--ray-address ADDR] [--workers N]`` runs the frames' stereo as Ray tasks
+(``docs/cluster.md``); an unreachable address is refused before anything is written.
 """
 
 from __future__ import annotations
@@ -9,7 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from polarface.commands import add_force_argument, local_folder
+from polarface.commands import add_executor_arguments, add_force_argument, executor_from_args, local_folder
 
 NAME = "geometry"
 HELP = "reference mesh with a cylindrical atlas, poses and per-frame meshes from the stereo pairs"
@@ -28,6 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="capture frame whose rig world is the model frame (default: the middle frame)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_executor_arguments(parser, "frames")
     add_force_argument(parser, "GEOM")
 
 
@@ -41,8 +44,11 @@ def run(args: argparse.Namespace) -> int:
         texture_resolution=inputs.texture_resolution, reference_frame=args.reference_frame
     )
     owned = json_manifest(GEOMETRY_JSON, format="polarface-geometry")
-    with output_folder(args.out, NAME, force=args.force, owned=owned, marker=False) as out:
-        summary = reconstruct_geometry(inputs.capture, out, config, progress=not args.quiet)
+    with executor_from_args(args) as executor:
+        with output_folder(args.out, NAME, force=args.force, owned=owned, marker=False) as out:
+            executor.start()  # an unreachable --ray-address is refused before anything is written
+            summary = reconstruct_geometry(inputs.capture, out, config, progress=not args.quiet,
+                                           executor=executor)
     rejected = summary["rejected_frames"]
     print(
         f"polarface geometry: wrote {args.out} (reference frame {summary['reference_frame']}, "

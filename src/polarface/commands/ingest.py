@@ -2,7 +2,9 @@
 
 See ``docs/capture_store.md`` for the RAW_DIR layout (optional ``timestamps.csv``) and for the store
 layout (``rig.json``, ``manifest.json``, ``raw/``, ``frames/``, ``derived.zarr``). Rerunning on the
-same output resumes: completed frames with unchanged raw data are skipped.
+same output resumes: completed frames with unchanged raw data are skipped. ``--executor ray
+[--ray-address ADDR] [--workers N]`` stores the frames as Ray tasks (``docs/cluster.md``); an
+unreachable address is refused before anything is written.
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from polarface.commands import add_force_argument, store_location
+from polarface.commands import add_executor_arguments, add_force_argument, executor_from_args, store_location
 
 NAME = "ingest"
 HELP = "validate raw frames against a rig and build a capture store with observations"
@@ -26,6 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", default="residual", choices=["residual", "bilinear"])
     parser.add_argument("--fps", type=float, default=20.0, help="frame rate when there is no timestamps.csv")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_executor_arguments(parser, "frames")
     add_force_argument(parser)
 
 
@@ -34,16 +37,19 @@ def run(args: argparse.Namespace) -> int:
     from polarface.capture.rig import Rig
     from polarface.io.output_folder import output_folder
 
-    with output_folder(args.out, NAME, force=args.force, owned=_capture_store, marker=False) as out:
-        store = ingest_directory(
-            args.raw_dir,
-            Rig.load(args.rig),
-            out,
-            sequence=args.sequence,
-            method=args.method,
-            fps=args.fps,
-            progress=not args.no_progress,
-        )
+    with executor_from_args(args) as executor:
+        with output_folder(args.out, NAME, force=args.force, owned=_capture_store, marker=False) as out:
+            executor.start()  # an unreachable --ray-address is refused before anything is written
+            store = ingest_directory(
+                args.raw_dir,
+                Rig.load(args.rig),
+                out,
+                sequence=args.sequence,
+                method=args.method,
+                fps=args.fps,
+                progress=not args.no_progress,
+                executor=executor,
+            )
     print(
         f"capture store '{args.out}': {len(store.frames)} frame(s), cameras "
         f"{sorted({c for f in store.frames for c in f.raw})}"

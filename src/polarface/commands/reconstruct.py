@@ -117,7 +117,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--frames", default=None, help="dynamic frames whose maps are fitted, e.g. '0-4,7' (default: all)"
     )
-    add_executor_arguments(parser, "polarimetric patches and dynamic frames")
+    add_executor_arguments(parser, "geometry frames, polarimetric patches and dynamic frames")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run in RESULT")
     add_force_argument(parser, "RESULT")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -95,18 +95,22 @@ class ThreadSettings:
         import numba
         import torch
 
-        return cls(torch.get_num_threads(), numba.get_num_threads())
+        torch_threads = torch.get_num_threads()
+        numba_threads = numba.get_num_threads()  # launches numba's threads: with its OpenMP layer
+        torch.set_num_threads(torch_threads)  # that resets the OpenMP runtime torch shares; restore it
+        return cls(torch_threads, numba_threads)
 
     def apply(self) -> None:
-        """Set this process's thread counts (numba's clipped to the threads it launched)."""
-        if self.torch_threads is not None:
-            import torch
-
-            torch.set_num_threads(int(self.torch_threads))
+        """Set this process's thread counts (numba's clipped to the threads it launched; numba's first,
+        since launching its OpenMP threads resets the OpenMP thread count torch shares)."""
         if self.numba_threads is not None:
             import numba
 
             numba.set_num_threads(max(1, min(int(self.numba_threads), numba.config.NUMBA_NUM_THREADS)))
+        if self.torch_threads is not None:
+            import torch
+
+            torch.set_num_threads(int(self.torch_threads))
 
 
 def failure_reason(exc: BaseException) -> str:

@@ -343,9 +343,10 @@ def reconstruct_dynamic(
         capture: the dynamic capture store (or a simulation folder: ``SIM/dynamic``).
         frames: the frames whose maps are fitted (``"0-4,7"`` or indices; None: all). Stereo and tracking
             always cover the whole sequence (a frame is tracked through the ones before it).
-        executor: runs the frames' step 4 (:class:`FrameUnit`, :func:`run_frame_unit`); None: in this
-            process, in order (:class:`polarface.executors.LocalExecutor`). It is started here, before
-            anything is written, and left open. A frame that fails is recorded with its reason.
+        executor: runs the frames' stereo (step 1, :class:`polarface.pipeline.geometry.StereoFrameUnit`)
+            and step 4 (:class:`FrameUnit`, :func:`run_frame_unit`); None: in this process, in order
+            (:class:`polarface.executors.LocalExecutor`). It is started here, before anything is
+            written, and left open. A frame that fails is recorded with its reason.
 
     Raises:
         ValueError: RESULT holds no static result, the capture's rig differs from the static one, the
@@ -372,7 +373,7 @@ def reconstruct_dynamic(
     tracking = TrackingFolder(folder.tracking_dir, header)
     tracking.root.mkdir(parents=True, exist_ok=True)
     tracking.save()
-    geometry_s = stereo_pass(store, tracking, all_frames, config.geometry, progress)
+    geometry_s = stereo_pass(store, tracking, all_frames, config.geometry, progress, executor)
     reference = folder.read_mesh()
     alignment = align_reference(folder, reference, tracking, all_frames[0], config.alignment,
                                 config.min_alignment_fitness)

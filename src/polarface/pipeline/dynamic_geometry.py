@@ -3,19 +3,26 @@ each frame's stereo mesh, the reference mesh's rigid alignment to the first fram
 through the sequence. ``tracking/tracking.json`` holds the capture identity, the configuration and every
 step's results (written after each step, so a run resumes); a folder written for another capture or
 configuration is refused. Layout: ``docs/result_folder.md``.
+
+Each frame's stereo mesh is an executor unit (:class:`polarface.pipeline.geometry.StereoFrameUnit`):
+the frames' stereo runs on the stage's executor (in this process, or as Ray tasks), each unit writing
+``tracking/stereo/NNNNNN.ply`` itself; ``tracking.json`` (its ``frames`` and ``executor``) is written
+here as units finish. A frame whose unit fails is reported and left out (no surface to track against)
+and redone by the next run. The alignment and the tracking, sequential by nature, run in this process.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from polarface.capture.store import CaptureStore
-from polarface.geometry.mesh import TriangleMesh, load_mesh, sample_surface, save_ply
+from polarface.executors import Executor, LocalExecutor, UnitOutcome
+from polarface.geometry.mesh import TriangleMesh, load_mesh, sample_surface
 from polarface.geometry.point_cloud import PointCloud
 from polarface.geometry.registration import RegistrationConfig, register_pair
 from polarface.geometry.tracking import (
@@ -27,10 +34,12 @@ from polarface.geometry.tracking import (
     track_mesh,
 )
 from polarface.io import read_json_object, write_json_atomic
-from polarface.pipeline.geometry import GeometryConfig, frame_geometry
+from polarface.pipeline.geometry import GeometryConfig, StereoFrameUnit, run_stereo_units
 from polarface.results import ResultFolder, layout
 
 __all__ = ["TrackingFolder", "align_reference", "stereo_pass", "track_sequence"]
+
+LOGGER = logging.getLogger(__name__)
 
 
 class TrackingFolder:
@@ -67,22 +76,29 @@ def _short(value: Any) -> str:
 
 
 def stereo_pass(store: CaptureStore, tracking: TrackingFolder, frames: list[int], config: GeometryConfig,
-                 progress: bool) -> float:
-    """Each frame's stereo mesh into ``tracking/stereo`` (frames already done are skipped); seconds."""
+                progress: bool, executor: Executor | None = None) -> float:
+    """Each frame's stereo mesh into ``tracking/stereo`` (frames already done are skipped), as units of
+    ``executor`` (None: in this process, in order); seconds. A frame whose unit fails is logged and left
+    without an entry (the next run redoes it)."""
     started = time.perf_counter()
+    executor = executor or LocalExecutor()
     entries = tracking.summary["frames"]
-    for frame in tqdm(frames, desc="dynamic: stereo", unit="frame", disable=not progress):
-        if str(frame) in entries:
-            continue
-        result = frame_geometry(store, frame, config)
-        entry: dict[str, Any] = {"points": len(result.cloud), "seconds": result.seconds}
-        if result.mesh is None:
-            entry["error"] = result.error
+    placements = tracking.summary.setdefault("executor", {}).setdefault("units", {})
+    tracking.summary["executor"] = {**executor.describe(), "units": placements}
+    units = [StereoFrameUnit(store.root.absolute(), frame, config, tracking.stereo_path(frame).absolute())
+             for frame in frames if str(frame) not in entries]
+
+    def record(frame: int, entry: dict[str, Any] | None, outcome: UnitOutcome) -> None:
+        placements[str(frame)] = outcome.placement()
+        if entry is None:
+            LOGGER.warning("dynamic frame %d: stereo failed: %s", frame, outcome.error)
         else:
-            save_ply(tracking.stereo_path(frame), result.mesh)
-            entry["mesh_vertices"] = result.mesh.vertex_count
-        entries[str(frame)] = entry
+            entries[str(frame)] = entry
         tracking.save()
+
+    run_stereo_units(executor, units, record, desc="dynamic: stereo", total=len(frames), progress=progress)
+    tracking.summary["frames"] = {str(f): entries[str(f)] for f in frames if str(f) in entries}
+    tracking.save()
     return time.perf_counter() - started
 
 

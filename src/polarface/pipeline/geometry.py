@@ -18,6 +18,14 @@ sequence, the reference mesh fused from all frames with a cylindrical texture at
 Frames are processed one at a time (memory bounded per frame) and skipped when their cloud and mesh
 exist, so an interrupted run resumes; ``geometry.json`` records the capture and configuration, and a
 folder written with others is refused.
+
+Each frame but the reference frame is an executor unit (:class:`StereoFrameUnit`,
+:func:`run_stereo_frame_unit`; :mod:`polarface.executors`): it reads the frame's raw stereo images from
+the capture and writes ``frames/NNNNNN.ply`` and ``clouds/NNNNNN.npz`` itself (atomically, the cloud
+last); this process computes the reference frame first (a capture whose reference frame gives no
+geometry writes nothing), writes ``geometry.json`` as frames finish, and registers and fuses the
+sequence after them. A frame whose unit fails is rejected with its reason, like a frame without a
+surface, and retried by the next run. ``geometry.json``'s ``executor`` records where each frame ran.
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ import dataclasses
 import logging
 import os
 import resource
+import socket
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -35,6 +44,7 @@ import numpy as np
 from tqdm import tqdm
 
 from polarface.capture.store import CaptureStore
+from polarface.executors import Executor, LocalExecutor, UnitOutcome
 from polarface.geometry.atlas import (
     CylindricalAtlasConfig,
     cylindrical_atlas,
@@ -51,8 +61,8 @@ from polarface.geometry.stereo import StereoConfig, StereoDepth, match_stereo_pa
 from polarface.io import json_values, read_json_object, write_json_atomic
 
 __all__ = [
-    "GEOMETRY_JSON", "FrameGeometry", "GeometryConfig", "check_stereo_pairs", "frame_geometry",
-    "frame_stereo", "reconstruct_geometry",
+    "GEOMETRY_JSON", "FrameGeometry", "GeometryConfig", "StereoFrameUnit", "check_stereo_pairs",
+    "frame_geometry", "frame_stereo", "reconstruct_geometry", "run_stereo_frame_unit",
 ]
 
 LOGGER = logging.getLogger(__name__)
@@ -185,21 +195,80 @@ def frame_geometry(store: CaptureStore, frame: int, config: GeometryConfig) -> F
 
 
 def _write_frame(out: Path, frame: int, result: FrameGeometry, previews: bool) -> dict[str, Any]:
-    """Write a frame's mesh, previews and cloud (the cloud last: it marks the frame complete); returns
-    its summary entry."""
-    cloud_path, mesh_path = _paths(out, frame)
-    entry: dict[str, Any] = {"points": len(result.cloud), "pairs": {n: len(d.cloud) for n, d in result.pairs}}
+    """Write a frame's mesh, previews and cloud into GEOM (:func:`write_frame_geometry`); returns its
+    summary entry."""
     if previews:
         from polarface.report.geometry import write_depth_previews
 
         write_depth_previews(out / "previews", result.pairs)
+    cloud_path, mesh_path = _paths(out, frame)
+    return write_frame_geometry(result, mesh_path, cloud_path)
+
+
+def write_frame_geometry(result: FrameGeometry, mesh_path: Path, cloud_path: Path | None) -> dict[str, Any]:
+    """Write a frame's mesh to ``mesh_path`` (when meshing succeeded) and then its cloud to ``cloud_path``
+    (None: not kept; written last, it marks the frame complete), atomically; returns the frame's summary
+    entry: ``points``, ``pairs`` (points per stereo pair), ``seconds``, and ``mesh_vertices`` or ``error``."""
+    entry: dict[str, Any] = {"points": len(result.cloud), "pairs": {n: len(d.cloud) for n, d in result.pairs},
+                             "seconds": result.seconds}
     if result.mesh is None:
         entry["error"] = result.error
     else:
         save_ply(mesh_path, result.mesh)
-        entry.update({"mesh_vertices": result.mesh.vertex_count, "seconds": result.seconds})
-    save_point_cloud(cloud_path, result.cloud)
+        entry["mesh_vertices"] = result.mesh.vertex_count
+    if cloud_path is not None:
+        save_point_cloud(cloud_path, result.cloud)
     return entry
+
+
+@dataclasses.dataclass(frozen=True)
+class StereoFrameUnit:
+    """One frame's stereo, fusion and meshing (:func:`frame_geometry`) as an executor unit: where its
+    inputs and outputs are, not the data.
+
+    Attributes:
+        capture: the capture store (absolute path).
+        frame: the frame's index in the capture.
+        config: the geometry configuration (its ``stereo``, ``frame_voxel_mm`` and ``frame_poisson``).
+        mesh_path: where the frame's mesh goes (PLY, rig world, mm; absolute path).
+        cloud_path: where its fused cloud goes (``.npz``; None: not kept).
+    """
+
+    capture: Path
+    frame: int
+    config: GeometryConfig
+    mesh_path: Path
+    cloud_path: Path | None = None
+
+
+def run_stereo_frame_unit(unit: StereoFrameUnit) -> dict[str, Any]:
+    """Stereo, fusion and meshing of one frame (:class:`StereoFrameUnit`) from the capture, written by
+    :func:`write_frame_geometry`; returns the frame's summary entry (``error`` when meshing failed).
+
+    Raises:
+        ValueError, FileNotFoundError: the frame's raw images cannot be read or matched (reported by the
+            executor as the frame's failure).
+    """
+    store = CaptureStore.open(unit.capture, validate=False)
+    return write_frame_geometry(frame_geometry(store, unit.frame, unit.config), unit.mesh_path,
+                                unit.cloud_path)
+
+
+def run_stereo_units(executor: Executor, units: list[StereoFrameUnit], record, *, desc: str,
+                     total: int, progress: bool) -> None:
+    """Run ``units`` on ``executor`` with one progress bar over ``total`` frames (those done before count
+    as done); ``record(frame, entry or None, outcome)`` is called in this process as each finishes
+    (``entry`` None: the unit failed, ``outcome.error`` says why)."""
+    bar = tqdm(total=total, initial=total - len(units), desc=desc, unit="frame", disable=not progress)
+
+    def done(outcome: UnitOutcome) -> None:
+        record(outcome.unit.frame, outcome.value if outcome.ok else None, outcome)
+        bar.update(1)
+
+    try:
+        executor.map_units(run_stereo_frame_unit, units, on_done=done)
+    finally:
+        bar.close()
 
 
 #: The configuration that makes the per-frame files; the rest (registration, reference mesh, atlas) is
@@ -241,8 +310,13 @@ def reconstruct_geometry(
     config: GeometryConfig = GeometryConfig(),
     *,
     progress: bool = True,
+    executor: Executor | None = None,
 ) -> dict[str, Any]:
     """Run the geometry stage of ``capture`` into ``out`` (module docstring); returns the summary.
+
+    Args:
+        executor: runs the frames but the reference frame (:class:`StereoFrameUnit`); None: in this
+            process, in order. It is started before anything is written and left open.
 
     Raises:
         ValueError: the rig has no stereo pair or a pair's calibration is broken (nothing written), no
@@ -251,6 +325,7 @@ def reconstruct_geometry(
     from polarface.results.fingerprint import capture_identity
 
     started = time.perf_counter()
+    executor = executor or LocalExecutor()
     store = CaptureStore.open(capture)
     check_stereo_pairs(store)  # fails before anything is written
     frames = [record.index for record in store.frames]
@@ -265,8 +340,10 @@ def reconstruct_geometry(
         "config": config.to_json(), "reference_frame": reference, "complete": False,
     }
     previous = _check_resume(out, header)
+    executor.start()
+    placements = dict(previous.get("executor", {}).get("units", {}))
     entries = _frame_pass(store, out, frames, reference, config, header, dict(previous.get("frames", {})),
-                          progress)
+                          (executor, placements), progress)
     stereo_s = time.perf_counter() - started
     failed = {f: entries[str(f)]["error"] for f in frames if "error" in entries[str(f)]}
     usable = [f for f in frames if f not in failed]
@@ -291,6 +368,7 @@ def reconstruct_geometry(
         "mesh": {"vertices": atlas.mesh.vertex_count, "faces": atlas.mesh.face_count},
         "timings": {"stereo_and_frame_meshes_s": stereo_s, "total_s": time.perf_counter() - started},
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "executor": {**executor.describe(), "units": {k: placements[k] for k in sorted(placements, key=int)}},
     }
     from polarface.report.geometry import write_geometry_report
 
@@ -300,11 +378,22 @@ def reconstruct_geometry(
 
 
 def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: int, config: GeometryConfig,
-                header: dict[str, Any], entries: dict[str, Any], progress: bool) -> dict[str, Any]:
-    """Stereo and meshes of every frame not done yet, the reference frame first (a capture whose
-    reference frame gives no geometry writes nothing); returns the per-frame summary entries."""
+                header: dict[str, Any], entries: dict[str, Any], run: tuple[Executor, dict[str, Any]],
+                progress: bool) -> dict[str, Any]:
+    """Stereo and meshes of every frame not done yet: the reference frame first, in this process (a
+    capture whose reference frame gives no geometry writes nothing), then the others as units of
+    ``run = (executor, placements)`` (each frame's placement recorded in ``placements``; a failed unit
+    becomes an entry with its ``error``, redone by the next run: it wrote no cloud); returns the
+    per-frame summary entries in frame order."""
+    executor, placements = run
+
+    def save() -> None:  # geometry.json after every frame: a stopped run resumes with its entries
+        write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries,
+                                                "executor": {**executor.describe(), "units": placements}})
+
     done = {f for f in frames if _paths(out, f)[0].exists() and str(f) in entries}
     if reference not in done:
+        started = time.perf_counter()
         first = frame_geometry(store, reference, config)
         if first.mesh is None:
             raise ValueError(
@@ -314,13 +403,21 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
             )
         out.mkdir(parents=True, exist_ok=True)
         entries[str(reference)] = _write_frame(out, reference, first, previews=True)
-    write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries})
-    for frame in tqdm(frames, desc="geometry: stereo", unit="frame", disable=not progress):
-        if frame == reference or frame in done:
-            continue
-        entries[str(frame)] = _write_frame(out, frame, frame_geometry(store, frame, config), previews=False)
-        write_json_atomic(out / GEOMETRY_JSON, {**header, "frames": entries})
-    return entries
+        placements[str(reference)] = UnitOutcome(
+            reference, seconds=time.perf_counter() - started, host=socket.gethostname(), pid=os.getpid()
+        ).placement()
+    save()
+    root = out.absolute()
+    units = [StereoFrameUnit(store.root.absolute(), frame, config, *reversed(_paths(root, frame)))
+             for frame in frames if frame != reference and frame not in done]
+
+    def record(frame: int, entry: dict[str, Any] | None, outcome: UnitOutcome) -> None:
+        entries[str(frame)] = entry if entry is not None else {"error": f"unit failed: {outcome.error}"}
+        placements[str(frame)] = outcome.placement()
+        save()
+
+    run_stereo_units(executor, units, record, desc="geometry: stereo", total=len(frames), progress=progress)
+    return {str(frame): entries[str(frame)] for frame in frames}
 
 
 def _reference_atlas(store: CaptureStore, poses: np.ndarray, reference_row: int, fused: PointCloud,

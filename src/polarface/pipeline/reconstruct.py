@@ -68,9 +68,9 @@ _STEREO_FIT_DEFAULTS = {"optimizer": "rmsprop", "iterations": 150}
 
 @dataclasses.dataclass
 class ReconstructContext:
-    """What the stages share: inputs, options and the RESULT folder; ``executor`` runs the polarimetric
-    stage's patches and the dynamic stage's frames (:class:`polarface.executors.Executor`; None: in this
-    process)."""
+    """What the stages share: inputs, options and the RESULT folder; ``executor`` runs the geometry stage's
+    frames, the polarimetric stage's patches and the dynamic stage's frames
+    (:class:`polarface.executors.Executor`; None: in this process)."""
 
     capture: Path
     out: Path
@@ -128,14 +128,15 @@ def _load_geometry(ctx: ReconstructContext):
 
 def stage_geometry(ctx: ReconstructContext) -> dict[str, Any]:
     """Reconstruct the mesh and poses from the capture's stereo pairs into ``RESULT/geometry``
-    (:func:`polarface.pipeline.geometry.reconstruct_geometry`); skipped when the geometry is given."""
+    (:func:`polarface.pipeline.geometry.reconstruct_geometry`, its frames on ``ctx.executor``); skipped
+    when the geometry is given."""
     from polarface.pipeline.geometry import GeometryConfig, reconstruct_geometry
 
     if not ctx.stereo:
         return {"skipped": "geometry given (--geometry or --mesh/--poses)"}
     summary = reconstruct_geometry(
         ctx.capture, ctx.geometry_dir, GeometryConfig(texture_resolution=ctx.texture_resolution),
-        progress=ctx.progress,
+        progress=ctx.progress, executor=ctx.executor,
     )
     return {
         "geometry": str(ctx.geometry_dir),
@@ -391,7 +392,7 @@ def reconstruct(
         holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
         dynamic: a dynamic capture of the same rig (or a simulation folder) reconstructed frame by frame
             after the static stages; frames: its frames to fit (``"0-4,7"``; None: all).
-        executor: runs the polarimetric patches and the dynamic frames
+        executor: runs the geometry frames, the polarimetric patches and the dynamic frames
             (:class:`polarface.executors.Executor`, started before anything is written; None: in this
             process, in order).
 

@@ -5,8 +5,9 @@ the sensor model's noise and writes a capture store plus ``ground_truth/`` (``do
 :func:`make_sphere_capture` is the small sphere-cap capture the tests and the benchmark use.
 """
 
+from polarface.simulate.frames import render_frame
 from polarface.simulate.ground_truth import AppearanceMaps, blood_flow_factor, build_appearance_maps
-from polarface.simulate.pipeline import SimulationConfig, SimulationScene, render_frame, simulate
+from polarface.simulate.pipeline import SimulationConfig, SimulationScene, simulate
 from polarface.simulate.presets import PRESETS, SKIN_TYPES, SimulationPreset, get_preset, get_skin_type
 from polarface.simulate.sequences import static_poses
 from polarface.simulate.sphere_capture import (

@@ -21,7 +21,8 @@ from polarface.geometry.uv_raster import UVRaster
 from polarface.io import write_exr, write_png
 
 if TYPE_CHECKING:
-    from polarface.simulate.pipeline import RenderedFrame, SimulationScene
+    from polarface.simulate.frames import RenderedFrame
+    from polarface.simulate.pipeline import SimulationScene
 
 __all__ = ["ObservationWriter", "texel_visibility", "write_static_ground_truth"]
 
@@ -70,8 +71,22 @@ def write_static_ground_truth(root: Path, scene: SimulationScene, poses: np.ndar
     save_poses(root / "static" / "poses.json", poses)
 
 
+def _mark_order(key: str) -> tuple[int, int, str]:
+    """Sort key of a "frame done" attribute ``SEQUENCE/INDEX``: static before dynamic, then the index."""
+    sequence, _, index = key.partition("/")
+    order = ("static", "dynamic")
+    return (order.index(sequence) if sequence in order else len(order),
+            int(index) if index.isdigit() else -1, key)
+
+
 class ObservationWriter:
-    """Noise-free observations and texel visibility per view in ``observations.zarr`` (resumable)."""
+    """Noise-free observations and texel visibility per view in ``observations.zarr`` (resumable).
+
+    Every array holds one frame per chunk along axis 0, so frames written in parallel (executor units)
+    never share a chunk; what they share is written by the submitting process only: the arrays
+    (:meth:`create_arrays`, before the units) and the group's "frame done" attributes (:meth:`mark_done`,
+    as units finish). :meth:`write` with ``mark=False`` writes a frame's chunks only.
+    """
 
     def __init__(self, path: Path, scene: SimulationScene, counts: dict[str, int]) -> None:
         import zarr
@@ -84,27 +99,58 @@ class ObservationWriter:
         chunks = (1, *shape[1:])
         return self.root.require_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill)
 
-    def done(self, sequence: str, index: int) -> bool:
-        return bool(self.root.attrs.get(f"{sequence}/{index}", False))
-
-    def write(self, sequence: str, index: int, frame: RenderedFrame) -> None:
+    def _layout(self, sequence: str, camera) -> dict[str, tuple[tuple[int, ...], str, object]]:
+        """``name -> (shape, dtype, fill)`` of the arrays of one sequence and polarimetric camera."""
         count = self.counts[sequence]
         height, width = self.scene.raster.mask.shape
+        h, w = camera.height, camera.width
+        prefix = f"{sequence}/{camera.id}"
+        return {
+            **{f"{prefix}/{name}": ((count, h, w, 3), "float32", 0.0) for name in ("i_sss", "i_zeta", "i_s")},
+            f"{prefix}/mask": ((count, h, w), "bool", False),
+            f"{prefix}/uv": ((count, h, w, 2), "float32", 0.0),
+            f"{prefix}/texel_visible": ((count, height, width), "bool", False),
+            f"{prefix}/texel_pixel": ((count, height, width, 2), "float32", -1.0),
+        }
+
+    def create_arrays(self, sequences: tuple[str, ...] | list[str]) -> None:
+        """Create every array of ``sequences`` (the submitting process, before units write frames)."""
+        for sequence in sequences:
+            for camera in self.scene.rig.polarimetric_cameras():
+                for name, (shape, dtype, fill) in self._layout(sequence, camera).items():
+                    self._array(name, shape, dtype, fill)
+
+    def done(self, sequence: str, index: int) -> bool:
+        """True when frame ``index`` of ``sequence`` is marked written (:meth:`mark_done`)."""
+        return bool(self.root.attrs.get(f"{sequence}/{index}", False))
+
+    def mark_done(self, sequence: str, index: int) -> None:
+        """Mark frame ``index`` of ``sequence`` written (the group's attributes: submitting process only).
+        The marks are kept in frame order (static, then dynamic, by index), whatever order frames finish
+        in, so that the group's metadata is the same bytes however the frames ran."""
+        marks = {**self.root.attrs.asdict(), f"{sequence}/{index}": True}
+        self.root.attrs.put(dict(sorted(marks.items(), key=lambda item: _mark_order(item[0]))))
+
+    def write(self, sequence: str, index: int, frame: RenderedFrame, *, mark: bool = True) -> None:
+        """Write one frame's observations and texel visibility per polarimetric camera; ``mark``: then
+        :meth:`mark_done` (False in a unit: the submitting process marks it)."""
         for camera in self.scene.rig.polarimetric_cameras():
             view = frame.views[camera.id]
-            h, w = view.mask.shape
-            prefix = f"{sequence}/{camera.id}"
             images = view.images
+            layout = self._layout(sequence, camera)
+            visible, pixel = texel_visibility(frame.caster, frame.raster, camera.pinhole())
+            prefix = f"{sequence}/{camera.id}"
             values = {
                 "i_sss": 2.0 * images["i90"],
                 "i_zeta": images["i135"] - images["i45"],
                 "i_s": images["i0"] - images["i90"],
+                "mask": view.mask,
+                "uv": view.uv,
+                "texel_visible": visible,
+                "texel_pixel": pixel,
             }
-            for name, image in values.items():
-                self._array(f"{prefix}/{name}", (count, h, w, 3), "float32", 0.0)[index] = image
-            self._array(f"{prefix}/mask", (count, h, w), "bool", False)[index] = view.mask
-            self._array(f"{prefix}/uv", (count, h, w, 2), "float32", 0.0)[index] = view.uv
-            visible, pixel = texel_visibility(frame.caster, frame.raster, camera.pinhole())
-            self._array(f"{prefix}/texel_visible", (count, height, width), "bool", False)[index] = visible
-            self._array(f"{prefix}/texel_pixel", (count, height, width, 2), "float32", -1.0)[index] = pixel
-        self.root.attrs[f"{sequence}/{index}"] = True
+            for name, value in values.items():
+                shape, dtype, fill = layout[f"{prefix}/{name}"]
+                self._array(f"{prefix}/{name}", shape, dtype, fill)[index] = value
+        if mark:
+            self.mark_done(sequence, index)

@@ -19,35 +19,49 @@
 Frames are resumable: the capture store skips complete frames and ground-truth files are written
 atomically and skipped when present, so an interrupted run continues where it stopped. Rendering is
 deterministic; raw noise is drawn from ``numpy.random.default_rng((seed, sequence, frame, camera))``.
+
+Each frame is an executor unit (:mod:`polarface.simulate.frames`; :mod:`polarface.executors`): the
+frames of a sequence render and write their own files in any order, in this process or as Ray tasks,
+with the same bytes. Only the exposure is order-dependent: it is fixed by the first frame rendered (the
+first sequence's frame 0), which this process renders and writes before the others are submitted.
+``simulation.json`` records the executor and, per frame, the seconds it took and where it ran.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import resource
+import socket
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
-from polarface.capture.rig import Camera, Rig, paper_rig
-from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
+from polarface.capture.rig import Rig, paper_rig
 from polarface.capture.store import CaptureStore
+from polarface.executors import Executor, LocalExecutor, UnitOutcome
 from polarface.geometry.head_asset import HeadAsset, head_placement, load_head_asset
-from polarface.geometry.mesh import TriangleMesh, save_ply
-from polarface.geometry.raycast import RayCaster
-from polarface.geometry.uv_raster import UVRaster, rasterize_uv, reposition
-from polarface.io import read_json_object, write_exr, write_json_atomic
-from polarface.render.renderer import render_view, rig_lighting, shading_normals
-from polarface.render.shading import FrameTextures
-from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
+from polarface.geometry.uv_raster import UVRaster, rasterize_uv
+from polarface.io import read_json_object, write_json_atomic
+from polarface.render.subsurface import SubsurfaceModel
+from polarface.simulate.frames import (
+    SimulationFrameUnit,
+    exposure_from,
+    frame_counts,
+    render_frame,
+    run_simulation_unit,
+    shared_scene,
+    with_exposure,
+    write_frame,
+)
 from polarface.simulate.ground_truth import AppearanceMaps, build_appearance_maps
 from polarface.simulate.ground_truth_store import ObservationWriter, write_static_ground_truth
 from polarface.simulate.presets import SimulationPreset, get_preset, get_skin_type
-from polarface.simulate.sequences import FRAME_RATE_HZ, chromophore_maps, sequence_frames, static_poses
+from polarface.simulate.sequences import FRAME_RATE_HZ, chromophore_maps, sequence_frame, static_poses
 
 __all__ = ["SimulationConfig", "SimulationScene", "render_frame", "simulate"]
 
@@ -157,60 +171,6 @@ class SimulationScene:
         return cls(config, preset, rig, asset, raster, maps, calibration, subsurface, head_placement())
 
 
-def _camera_channels(camera: Camera) -> tuple[int, int, int]:
-    return tuple(camera.colour_channels[c] for c in ("R", "G", "B"))  # type: ignore[return-value]
-
-
-@dataclasses.dataclass(frozen=True)
-class RenderedFrame:
-    """The per-camera renders and the geometry of one frame (internal to the pipeline)."""
-
-    mesh: TriangleMesh
-    caster: RayCaster  # Embree scene of ``mesh``, reused for the texel visibility
-    views: dict  # camera id -> ViewRender
-    raster: UVRaster
-    shading_normal: np.ndarray
-
-
-def render_frame(
-    scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps, subsurface: SubsurfaceModel
-) -> RenderedFrame:
-    """Render every camera of the rig for one posed/deformed head (noise-free radiance)."""
-    caster = RayCaster(mesh_world)
-    raster = reposition(scene.raster, mesh_world)
-    shading = shading_normals(raster, maps.displacement_mm)
-    lights, intensity = rig_lighting(scene.rig)
-    reference = scene.rig.polarimetric_cameras()[0].pinhole()
-    flux = entering_flux(caster, raster, shading, maps.eta, lights, intensity, reference.up_vector)
-    exitance = texture_space_exitance(flux, subsurface, scene.calibration, blur=scene.config.subsurface_blur)
-    textures = FrameTextures.build(
-        {
-            "eta": maps.eta,
-            "alpha_s": maps.alpha_s,
-            "alpha_ss": maps.alpha_ss,
-            "rho_s": maps.rho_s,
-            "rho_ss": maps.rho_ss,
-        },
-        shading,
-        exitance,
-        raster.mask,
-    )
-    views = {}
-    for camera in scene.rig.cameras:
-        polarimetric = camera.role == "polarimetric"
-        views[camera.id] = render_view(
-            caster,
-            mesh_world,
-            camera.pinhole(),
-            textures,
-            lights,
-            intensity,
-            _camera_channels(camera) if polarimetric else tuple(range(6)),
-            polarization=polarimetric,
-        )
-    return RenderedFrame(mesh_world, caster, views, raster, shading)
-
-
 def _with_stereo_resolution(rig: Rig, width: int, height: int) -> Rig:
     """The rig with its RGB stereo cameras resampled to ``width`` x ``height`` (K scaled)."""
     cameras = []
@@ -229,51 +189,6 @@ def _with_stereo_resolution(rig: Rig, width: int, height: int) -> Rig:
     )
 
 
-def _stereo_rgb(s0: np.ndarray, rig: Rig) -> np.ndarray:
-    """RGB of an unfiltered camera from the six half-band channels: mean of each colour's two halves."""
-    upper, lower = rig.polarimetric_cameras()[:2]
-    rgb = [
-        0.5 * (s0[..., upper.colour_channels[c]] + s0[..., lower.colour_channels[c]]) for c in ("R", "G", "B")
-    ]
-    return np.stack(rgb, axis=-1)
-
-
-def _raw_frames(
-    scene: SimulationScene, frame: RenderedFrame, sequence: str, index: int
-) -> dict[str, np.ndarray]:
-    """Noisy (or noise-free) integer raw frames of every camera."""
-    noise = SensorNoise(exposure=float(scene.exposure))
-    raws = {}
-    for camera_number, camera in enumerate(scene.rig.cameras):
-        view = frame.views[camera.id]
-        rng = np.random.default_rng(
-            (scene.config.seed, 0 if sequence == "static" else 1, index, camera_number)
-        )
-        if camera.role == "polarimetric":
-            images = [
-                torch.from_numpy(np.ascontiguousarray(view.images[k])) for k in ("i0", "i45", "i90", "i135")
-            ]
-            # Analyzer intensities are >= 0; clip float rounding (~1e-8) of s0 - s1 at dark pixels.
-            signal = np.clip(mosaic(*images, sensor=camera.sensor).numpy(), 0.0, None)
-            raws[camera.id] = simulate_raw(signal, noise, seed=rng, noiseless=not scene.config.noise)
-        else:
-            rgb = np.clip(_stereo_rgb(view.images["s0"], scene.rig), 0.0, None)
-            channels = [
-                simulate_raw(rgb[..., c], noise, seed=rng, noiseless=not scene.config.noise) for c in range(3)
-            ]
-            raws[camera.id] = np.stack(channels, axis=-1)
-    return raws
-
-
-def _exposure_from(frame: RenderedFrame, scene: SimulationScene) -> float:
-    """Exposure putting the 99.5th percentile of the co-polarized image at ``exposure_fill``."""
-    camera = scene.rig.polarimetric_cameras()[0]
-    view = frame.views[camera.id]
-    values = view.images["i0"][view.mask]
-    level = float(np.percentile(values, 99.5)) if values.size else 1.0
-    return scene.config.exposure_fill / max(level, 1e-12)
-
-
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
@@ -290,7 +205,8 @@ def _check_resumable(summary_path: Path, config_dict: dict) -> None:
 
 
 def simulate(
-    out_dir: str | Path, config: SimulationConfig, *, progress: bool = True, resume: bool = True
+    out_dir: str | Path, config: SimulationConfig, *, progress: bool = True, resume: bool = True,
+    executor: Executor | None = None,
 ) -> dict:
     """Render the configured sequences into ``out_dir`` (see the module docstring); returns the summary.
 
@@ -299,66 +215,39 @@ def simulate(
     written with ``complete: false`` and the configuration when the run starts, so an interrupted
     folder is refused to another configuration too.
 
+    Args:
+        executor: runs the frames (:class:`polarface.simulate.frames.SimulationFrameUnit`); None: in this
+            process, in order. It is started before anything is written and left open.
+
     Raises:
         ValueError: ``out_dir`` holds a simulation with another configuration, or (``resume`` False)
-            is not empty.
+            is not empty; or frames failed in their units (named; the other frames are kept, a rerun
+            continues).
     """
     started = time.perf_counter()
-    out = Path(out_dir)
+    out = Path(out_dir).absolute()
     summary_path = out / "simulation.json"
+    executor = executor or LocalExecutor()
+    executor.start()
     config_dict = _check_resume(out, config, resume)
     out.mkdir(parents=True, exist_ok=True)
     scene = SimulationScene.build(config)
+    previous = read_json_object(summary_path) if summary_path.exists() else {}
     if not summary_path.exists():
         write_json_atomic(summary_path, _summary_head(config_dict, scene, complete=False))
     setup_s = time.perf_counter() - started
-    poses = static_poses(scene)
     gt = out / "ground_truth"
-    write_static_ground_truth(gt, scene, poses)
-    counts = {"static": scene.preset.static_frames, "dynamic": scene.preset.dynamic_frames}
-    writer = ObservationWriter(gt / "observations.zarr", scene, counts)
+    write_static_ground_truth(gt, scene, static_poses(scene))
     timings: dict[str, float] = {"setup_s": setup_s}
-    for sequence in config.sequences:
-        seq_started = time.perf_counter()
-        store: CaptureStore | None = None
-        if (out / sequence / "rig.json").exists():
-            store = CaptureStore.create(
-                out / sequence, Rig.load(out / sequence / "rig.json"), sequence=sequence
-            )
-            scene.rig = store.rig
-            scene.exposure = float(store.rig.cameras[0].exposure)
-        frames = sequence_frames(scene, sequence)
-        bar = tqdm(
-            frames, total=counts[sequence], desc=f"simulate {sequence}", unit="frame", disable=not progress
-        )
-        for index, time_s, mesh, maps, subsurface in bar:
-            mesh_path = gt / sequence / "meshes" / f"{index:06d}.ply"
-            if (
-                store is not None
-                and store.has_frame(index)
-                and writer.done(sequence, index)
-                and mesh_path.exists()
-            ):
-                continue  # resume: this frame is complete
-            frame = render_frame(scene, mesh, maps, subsurface)
-            if scene.exposure is None:
-                scene.exposure = _exposure_from(frame, scene)
-                scene.rig = _with_exposure(scene.rig, scene.exposure)
-            if store is None:
-                store = CaptureStore.create(out / sequence, scene.rig, sequence=sequence)
-            store.add_frame(index, time_s, _raw_frames(scene, frame, sequence, index))
-            save_ply(mesh_path, mesh)
-            if sequence == "dynamic":
-                names = list(scene.calibration.channel_names)
-                write_exr(gt / "dynamic" / "maps" / f"{index:06d}_c_h_out.exr", {"Y": maps.c_h_out})
-                write_exr(
-                    gt / "dynamic" / "maps" / f"{index:06d}_rho_sss_bar.exr",
-                    {n: maps.rho_sss_bar[..., i] for i, n in enumerate(names)},
-                )
-            writer.write(sequence, index, frame)
-        if store is not None:
-            store.finalize()
-        timings[f"{sequence}_s"] = time.perf_counter() - seq_started
+    placements = dict(previous.get("executor", {}).get("units", {}))
+    # one handle on observations.zarr's attributes in this process: a second one would rewrite them stale
+    writer = ObservationWriter(gt / "observations.zarr", scene, frame_counts(scene))
+    writer.create_arrays(config.sequences)
+    with shared_scene(scene):
+        for sequence in config.sequences:
+            seq_started = time.perf_counter()
+            _simulate_sequence(scene, out, sequence, writer, executor, placements, progress)
+            timings[f"{sequence}_s"] = time.perf_counter() - seq_started
     summary = {
         **_summary_head(config_dict, scene, complete=True),
         "exposure": scene.exposure,
@@ -366,16 +255,87 @@ def simulate(
         "head_placement": scene.placement.tolist(),
         "timings": {**timings, "total_s": time.perf_counter() - started},
         "peak_rss_mb": _peak_rss_mb(),
+        "executor": {**executor.describe(), "units": placements},
     }
     write_json_atomic(summary_path, summary)
     return summary
 
 
+def _simulate_sequence(scene: SimulationScene, out: Path, sequence: str, writer: ObservationWriter,
+                       executor: Executor, placements: dict[str, Any], progress: bool) -> None:
+    """Every frame of ``sequence`` not done yet (:func:`_frame_done`): the exposure frame in this process
+    when the exposure is not known yet, the others as units; then the store is finalized. Records each
+    frame's placement in ``placements`` (``"SEQUENCE/INDEX"``).
+
+    Raises:
+        ValueError: naming the frames whose units failed.
+    """
+    count = frame_counts(scene)[sequence]
+    store: CaptureStore | None = None
+    if (out / sequence / "rig.json").exists():
+        store = CaptureStore.create(out / sequence, Rig.load(out / sequence / "rig.json"), sequence=sequence)
+        scene.rig = store.rig
+        scene.exposure = float(store.rig.cameras[0].exposure)
+    pending = [i for i in range(count) if not _frame_done(out, store, writer, sequence, i)]
+    bar = tqdm(total=count, initial=count - len(pending), desc=f"simulate {sequence}", unit="frame",
+               disable=not progress)
+    if pending and scene.exposure is None:  # the first frame fixes the exposure of the whole capture
+        frame_started = time.perf_counter()
+        index, time_s, mesh, maps, subsurface = sequence_frame(scene, sequence, pending.pop(0))
+        frame = render_frame(scene, mesh, maps, subsurface)
+        scene.exposure = exposure_from(frame, scene)
+        scene.rig = with_exposure(scene.rig, scene.exposure)
+        store = CaptureStore.create(out / sequence, scene.rig, sequence=sequence)
+        store.reserve_frames(count)
+        write_frame(scene, out, sequence, index, time_s, mesh, maps, frame)
+        store.write_manifest()
+        writer.mark_done(sequence, index)
+        placements[f"{sequence}/{index}"] = UnitOutcome(
+            index, seconds=time.perf_counter() - frame_started, host=socket.gethostname(), pid=os.getpid()
+        ).placement()
+        bar.update(1)
+    if store is None:
+        store = CaptureStore.create(out / sequence, scene.rig, sequence=sequence)
+    store.reserve_frames(count)
+    failed: dict[int, str] = {}
+
+    def done(outcome: UnitOutcome) -> None:
+        unit = outcome.unit
+        placements[f"{sequence}/{unit.index}"] = {**outcome.placement(), **(outcome.value or {})}
+        if outcome.ok:
+            store.write_manifest()
+            writer.mark_done(sequence, unit.index)
+        else:
+            failed[unit.index] = outcome.error
+        bar.update(1)
+
+    units = [SimulationFrameUnit(out, scene.config, sequence, index) for index in pending]
+    try:
+        executor.map_units(run_simulation_unit, units, on_done=done)
+    finally:
+        bar.close()
+    if failed:
+        reasons = "; ".join(f"frame {index}: {reason}" for index, reason in sorted(failed.items()))
+        raise ValueError(f"simulate '{out}': {len(failed)} {sequence} frame(s) failed: {reasons}; the other "
+                         "frames are kept, rerun to continue")
+    store.finalize()
+
+
+def _frame_done(out: Path, store: CaptureStore | None, writer: ObservationWriter, sequence: str,
+                index: int) -> bool:
+    """True when frame ``index`` of ``sequence`` is complete: its store marker, its observations marked
+    done and its ground-truth mesh."""
+    mesh_path = out / "ground_truth" / sequence / "meshes" / f"{index:06d}.ply"
+    if store is None or not store.has_frame(index):
+        return False
+    return writer.done(sequence, index) and mesh_path.exists()
+
+
 def _check_resume(out: Path, config: SimulationConfig, resume: bool) -> dict:
     """The configuration as recorded in ``simulation.json``; refuse a folder this run must not continue.
 
-    Stale ``.tmp-*`` files of a killed run under ``ground_truth/`` are removed (the capture stores
-    remove theirs in :meth:`polarface.capture.store.CaptureStore.create`).
+    Stale ``.tmp-*`` and zarr ``*.partial`` files of a killed run under ``ground_truth/`` are removed
+    (the capture stores remove theirs in :meth:`polarface.capture.store.CaptureStore.create`).
     """
     config_dict = dataclasses.asdict(config)
     config_dict["sequences"] = list(config.sequences)
@@ -383,7 +343,8 @@ def _check_resume(out: Path, config: SimulationConfig, resume: bool) -> dict:
         raise ValueError(
             f"output folder '{out}' exists and is not empty; pass '--resume' or choose another --out"
         )
-    for stale in sorted((out / "ground_truth").rglob(".tmp-*")):  # left by a killed run
+    ground_truth = out / "ground_truth"  # left by a killed run (zarr: a chunk written, not renamed)
+    for stale in sorted([*ground_truth.rglob(".tmp-*"), *ground_truth.rglob("*.partial")]):
         if stale.is_file():
             stale.unlink(missing_ok=True)
     _check_resumable(out / "simulation.json", config_dict)
@@ -400,11 +361,3 @@ def _summary_head(config_dict: dict, scene: SimulationScene, *, complete: bool) 
         "preset": dataclasses.asdict(scene.preset),
         "channel_names": list(scene.calibration.channel_names),
     }
-
-
-def _with_exposure(rig: Rig, exposure: float) -> Rig:
-    """The rig with every camera's exposure set (so demosaiced images come back in radiance units)."""
-    data = rig.model_dump(mode="json")
-    for camera in data["cameras"]:
-        camera["exposure"] = exposure
-    return Rig.model_validate(data)

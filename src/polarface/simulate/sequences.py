@@ -1,10 +1,11 @@
 """The simulated sequences: static chair rotations and the dynamic expression + blood-flow frames.
 
-:func:`sequence_frames` yields, per frame of a sequence, the head mesh in the rig world and the maps
-and subsurface model of that frame; the static sequence turns the rest head on the chair
-(:func:`static_poses`), the dynamic one deforms it with the expression rig and lowers the outer
-haemoglobin under a pressed forehead patch that refills over time (:func:`pressed_patch`,
-:func:`with_c_h_out`).
+:func:`sequence_frame` gives one frame of a sequence — the head mesh in the rig world and the maps and
+subsurface model of that frame — from the frame's index alone (so frames can be rendered in any order,
+in parallel: :mod:`polarface.simulate.frames`); :func:`sequence_frames` yields them in order. The
+static sequence turns the rest head on the chair (:func:`static_poses`), the dynamic one deforms it
+with the expression rig and lowers the outer haemoglobin under a pressed forehead patch that refills
+over time (:func:`pressed_patch`, :func:`with_c_h_out`).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ __all__ = [
     "FRAME_RATE_HZ",
     "chromophore_maps",
     "pressed_patch",
+    "sequence_frame",
     "sequence_frames",
     "static_poses",
     "with_c_h_out",
@@ -45,31 +47,47 @@ def chromophore_maps(maps: AppearanceMaps) -> dict[str, np.ndarray]:
 def sequence_frames(
     scene: SimulationScene, sequence: str
 ) -> Iterable[tuple[int, float, TriangleMesh, AppearanceMaps, SubsurfaceModel]]:
-    """Yield ``(index, timestamp s, mesh in rig world, maps, subsurface model)`` of a sequence."""
+    """Yield :func:`sequence_frame` of every frame of a sequence, in order."""
+    count = scene.preset.static_frames if sequence == "static" else scene.preset.dynamic_frames
+    for index in range(count):
+        yield sequence_frame(scene, sequence, index)
+
+
+def sequence_frame(
+    scene: SimulationScene, sequence: str, index: int
+) -> tuple[int, float, TriangleMesh, AppearanceMaps, SubsurfaceModel]:
+    """``(index, timestamp s, mesh in rig world, maps, subsurface model)`` of frame ``index`` of a
+    sequence (``static``: the rest head turned on the chair; ``dynamic``: deformed by the expression rig,
+    the outer haemoglobin lowered under the pressed patch).
+
+    Raises:
+        ValueError: an unknown sequence, or ``index`` outside ``0 .. frames - 1``.
+    """
     preset = scene.preset
+    count = {"static": preset.static_frames, "dynamic": preset.dynamic_frames}.get(sequence)
+    if count is None:
+        raise ValueError(f"argument 'sequence' must be 'static' or 'dynamic'; got {sequence!r}")
+    if not 0 <= int(index) < count:
+        raise ValueError(f"argument 'index': {sequence} frame {index} is not in 0..{count - 1}")
+    index = int(index)
     asset = scene.asset
     if sequence == "static":
-        poses = static_poses(scene)
-        for index, pose in enumerate(poses):
-            yield index, index / FRAME_RATE_HZ, asset.mesh.transformed(pose), scene.maps, scene.subsurface
-        return
-    rig = ExpressionRig(asset.mesh, asset.landmarks)
+        pose = static_poses(scene)[index]
+        return index, index / FRAME_RATE_HZ, asset.mesh.transformed(pose), scene.maps, scene.subsurface
     weights = dynamic_sequence_weights(preset.dynamic_frames)
-    pressed = pressed_patch(scene)
-    for index in range(preset.dynamic_frames):
-        time_s = index * preset.dynamic_frame_step / FRAME_RATE_HZ
-        mesh = rig.deform(weights[index]).transformed(scene.placement)
-        lowered = 0.8 * (1.0 - float(blood_flow_factor(time_s)))
-        c_h_out = (scene.maps.c_h_out * (1.0 - lowered * pressed)).astype(np.float32)
-        maps = with_c_h_out(scene, c_h_out)
-        subsurface = SubsurfaceModel.build(
-            chromophore_maps(maps),
-            scene.raster,
-            scene.calibration.wavelengths_nm,
-            shapes=scene.subsurface.shapes,
-            per_texel_stretch=scene.config.texel_stretch,
-        )
-        yield index, time_s, mesh, maps, subsurface
+    time_s = index * preset.dynamic_frame_step / FRAME_RATE_HZ
+    mesh = ExpressionRig(asset.mesh, asset.landmarks).deform(weights[index]).transformed(scene.placement)
+    lowered = 0.8 * (1.0 - float(blood_flow_factor(time_s)))
+    c_h_out = (scene.maps.c_h_out * (1.0 - lowered * pressed_patch(scene))).astype(np.float32)
+    maps = with_c_h_out(scene, c_h_out)
+    subsurface = SubsurfaceModel.build(
+        chromophore_maps(maps),
+        scene.raster,
+        scene.calibration.wavelengths_nm,
+        shapes=scene.subsurface.shapes,
+        per_texel_stretch=scene.config.texel_stretch,
+    )
+    return index, time_s, mesh, maps, subsurface
 
 
 def static_poses(scene: SimulationScene) -> np.ndarray:

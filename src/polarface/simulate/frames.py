@@ -1,0 +1,263 @@
+"""One frame of a simulation: render, raw sensor frames, files; and the frame as an executor unit.
+
+:func:`render_frame` renders every camera of the rig for one posed or deformed head;
+:func:`write_frame` turns the render into raw frames (noise drawn from
+``numpy.random.default_rng((seed, sequence, frame, camera))``: a frame's noise depends on its index
+only, never on the frames simulated before it) and writes the frame's files: its capture-store frame,
+its ground-truth mesh (and, dynamic, its changing maps) and its observations.
+
+:class:`SimulationFrameUnit` / :func:`run_simulation_unit` is one frame as a unit of
+:mod:`polarface.executors`: it reads what it needs from the simulation folder (the capture store's
+``rig.json``, which carries the exposure) and its configuration, renders the frame and writes its files
+itself; what frames share (the arrays' metadata, the stores' manifests, the "frame done" attributes,
+``simulation.json``) is written by the submitting process (:func:`polarface.simulate.pipeline.simulate`).
+A worker builds the :class:`~polarface.simulate.pipeline.SimulationScene` of a configuration once and
+keeps it for the next frames (:func:`scene_for`); the submitting process lends its own
+(:func:`shared_scene`), so the local executor builds nothing twice.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from polarface.capture.rig import Camera, Rig
+from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
+from polarface.capture.store import CaptureStore
+from polarface.geometry.mesh import TriangleMesh, save_ply
+from polarface.geometry.raycast import RayCaster
+from polarface.geometry.uv_raster import UVRaster, reposition
+from polarface.io import write_exr
+from polarface.render.renderer import render_view, rig_lighting, shading_normals
+from polarface.render.shading import FrameTextures
+from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
+from polarface.simulate.ground_truth import AppearanceMaps
+from polarface.simulate.ground_truth_store import ObservationWriter
+from polarface.simulate.sequences import sequence_frame
+
+if TYPE_CHECKING:
+    from polarface.simulate.pipeline import SimulationConfig, SimulationScene
+
+__all__ = [
+    "RenderedFrame",
+    "SimulationFrameUnit",
+    "exposure_from",
+    "frame_counts",
+    "render_frame",
+    "run_simulation_unit",
+    "scene_for",
+    "shared_scene",
+    "with_exposure",
+    "write_frame",
+]
+
+#: Scenes built (or lent by the submitting process) in this process, by configuration.
+_SCENES: dict[Any, SimulationScene] = {}
+
+
+def _camera_channels(camera: Camera) -> tuple[int, int, int]:
+    return tuple(camera.colour_channels[c] for c in ("R", "G", "B"))  # type: ignore[return-value]
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderedFrame:
+    """The per-camera renders and the geometry of one frame (internal to the simulator)."""
+
+    mesh: TriangleMesh
+    caster: RayCaster  # Embree scene of ``mesh``, reused for the texel visibility
+    views: dict  # camera id -> ViewRender
+    raster: UVRaster
+    shading_normal: np.ndarray
+
+
+def render_frame(
+    scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps, subsurface: SubsurfaceModel
+) -> RenderedFrame:
+    """Render every camera of the rig for one posed/deformed head (noise-free radiance)."""
+    caster = RayCaster(mesh_world)
+    raster = reposition(scene.raster, mesh_world)
+    shading = shading_normals(raster, maps.displacement_mm)
+    lights, intensity = rig_lighting(scene.rig)
+    reference = scene.rig.polarimetric_cameras()[0].pinhole()
+    flux = entering_flux(caster, raster, shading, maps.eta, lights, intensity, reference.up_vector)
+    exitance = texture_space_exitance(flux, subsurface, scene.calibration, blur=scene.config.subsurface_blur)
+    textures = FrameTextures.build(
+        {
+            "eta": maps.eta,
+            "alpha_s": maps.alpha_s,
+            "alpha_ss": maps.alpha_ss,
+            "rho_s": maps.rho_s,
+            "rho_ss": maps.rho_ss,
+        },
+        shading,
+        exitance,
+        raster.mask,
+    )
+    views = {}
+    for camera in scene.rig.cameras:
+        polarimetric = camera.role == "polarimetric"
+        views[camera.id] = render_view(
+            caster,
+            mesh_world,
+            camera.pinhole(),
+            textures,
+            lights,
+            intensity,
+            _camera_channels(camera) if polarimetric else tuple(range(6)),
+            polarization=polarimetric,
+        )
+    return RenderedFrame(mesh_world, caster, views, raster, shading)
+
+
+def _stereo_rgb(s0: np.ndarray, rig: Rig) -> np.ndarray:
+    """RGB of an unfiltered camera from the six half-band channels: mean of each colour's two halves."""
+    upper, lower = rig.polarimetric_cameras()[:2]
+    rgb = [
+        0.5 * (s0[..., upper.colour_channels[c]] + s0[..., lower.colour_channels[c]]) for c in ("R", "G", "B")
+    ]
+    return np.stack(rgb, axis=-1)
+
+
+def _raw_frames(
+    scene: SimulationScene, frame: RenderedFrame, sequence: str, index: int
+) -> dict[str, np.ndarray]:
+    """Noisy (or noise-free) integer raw frames of every camera."""
+    noise = SensorNoise(exposure=float(scene.exposure))
+    raws = {}
+    for camera_number, camera in enumerate(scene.rig.cameras):
+        view = frame.views[camera.id]
+        rng = np.random.default_rng(
+            (scene.config.seed, 0 if sequence == "static" else 1, index, camera_number)
+        )
+        if camera.role == "polarimetric":
+            images = [
+                torch.from_numpy(np.ascontiguousarray(view.images[k])) for k in ("i0", "i45", "i90", "i135")
+            ]
+            # Analyzer intensities are >= 0; clip float rounding (~1e-8) of s0 - s1 at dark pixels.
+            signal = np.clip(mosaic(*images, sensor=camera.sensor).numpy(), 0.0, None)
+            raws[camera.id] = simulate_raw(signal, noise, seed=rng, noiseless=not scene.config.noise)
+        else:
+            rgb = np.clip(_stereo_rgb(view.images["s0"], scene.rig), 0.0, None)
+            channels = [
+                simulate_raw(rgb[..., c], noise, seed=rng, noiseless=not scene.config.noise) for c in range(3)
+            ]
+            raws[camera.id] = np.stack(channels, axis=-1)
+    return raws
+
+
+def exposure_from(frame: RenderedFrame, scene: SimulationScene) -> float:
+    """Exposure putting the 99.5th percentile of the co-polarized image at ``exposure_fill``."""
+    camera = scene.rig.polarimetric_cameras()[0]
+    view = frame.views[camera.id]
+    values = view.images["i0"][view.mask]
+    level = float(np.percentile(values, 99.5)) if values.size else 1.0
+    return scene.config.exposure_fill / max(level, 1e-12)
+
+
+def with_exposure(rig: Rig, exposure: float) -> Rig:
+    """The rig with every camera's exposure set (so demosaiced images come back in radiance units)."""
+    data = rig.model_dump(mode="json")
+    for camera in data["cameras"]:
+        camera["exposure"] = exposure
+    return Rig.model_validate(data)
+
+
+def frame_counts(scene: SimulationScene) -> dict[str, int]:
+    """Frames of each sequence of ``scene``'s preset: ``{"static": N, "dynamic": M}``."""
+    return {"static": scene.preset.static_frames, "dynamic": scene.preset.dynamic_frames}
+
+
+def write_frame(scene: SimulationScene, out: Path, sequence: str, index: int, time_s: float,
+                mesh: TriangleMesh, maps: AppearanceMaps, frame: RenderedFrame) -> None:
+    """Write frame ``index`` of ``sequence`` from its render into the simulation folder ``out``: raw
+    frames into the capture store ``out/SEQUENCE`` (made by the submitting process, sized by
+    :meth:`CaptureStore.reserve_frames`), the mesh (and, dynamic, the maps that change) under
+    ``out/ground_truth``, the observations into ``observations.zarr`` (arrays made by
+    :meth:`ObservationWriter.create_arrays`). What frames share — the store's manifest, the frame's
+    "done" attribute — is left to the submitting process (:meth:`CaptureStore.write_manifest`,
+    :meth:`ObservationWriter.mark_done`, with its one handle on the attributes).
+    """
+    gt = out / "ground_truth"
+    store = CaptureStore.open_writer(out / sequence)
+    store.add_frame(index, time_s, _raw_frames(scene, frame, sequence, index), update_manifest=False)
+    save_ply(gt / sequence / "meshes" / f"{index:06d}.ply", mesh)
+    if sequence == "dynamic":
+        names = list(scene.calibration.channel_names)
+        write_exr(gt / "dynamic" / "maps" / f"{index:06d}_c_h_out.exr", {"Y": maps.c_h_out})
+        write_exr(
+            gt / "dynamic" / "maps" / f"{index:06d}_rho_sss_bar.exr",
+            {n: maps.rho_sss_bar[..., i] for i, n in enumerate(names)},
+        )
+    writer = ObservationWriter(gt / "observations.zarr", scene, frame_counts(scene))
+    writer.write(sequence, index, frame, mark=False)
+
+
+def scene_for(config: SimulationConfig) -> SimulationScene:
+    """The scene of ``config`` in this process: the one lent by :func:`shared_scene`, or built once
+    (:meth:`SimulationScene.build`) and kept for the process's next frames (the last configuration only)."""
+    scene = _SCENES.get(config)
+    if scene is None:
+        from polarface.simulate.pipeline import SimulationScene
+
+        _SCENES.clear()
+        scene = _SCENES[config] = SimulationScene.build(config)
+    return scene
+
+
+@contextlib.contextmanager
+def shared_scene(scene: SimulationScene) -> Iterator[SimulationScene]:
+    """Lend the submitting process's ``scene`` to the units that run in this process (the local
+    executor) while the block runs; forgotten afterwards."""
+    _SCENES.clear()
+    _SCENES[scene.config] = scene
+    try:
+        yield scene
+    finally:
+        _SCENES.clear()
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulationFrameUnit:
+    """One frame of a simulation as an executor unit: where it goes and what it is, not the data.
+
+    Attributes:
+        out: the simulation folder (absolute path; its capture store ``out/SEQUENCE`` exists, with the
+            exposure in its ``rig.json``).
+        config: the simulation's configuration (the worker builds the scene from it).
+        sequence: ``static`` or ``dynamic``.
+        index: the frame's index in the sequence.
+    """
+
+    out: Path
+    config: SimulationConfig
+    sequence: str
+    index: int
+
+
+def run_simulation_unit(unit: SimulationFrameUnit) -> dict[str, float]:
+    """Render one frame (:class:`SimulationFrameUnit`) and write its files (:func:`write_frame`);
+    seconds per step (``scene_s``: building the scene,
+    0 when this process had it, ``render_s``, ``write_s``).
+
+    Raises:
+        ValueError, FileNotFoundError: the frame is not in the sequence, or the store is missing.
+    """
+    started = time.perf_counter()
+    base = scene_for(unit.config)
+    scene_s = time.perf_counter() - started
+    rig = CaptureStore.open_writer(unit.out / unit.sequence).rig
+    scene = dataclasses.replace(base, rig=rig, exposure=float(rig.cameras[0].exposure))
+    started = time.perf_counter()
+    index, time_s, mesh, maps, subsurface = sequence_frame(scene, unit.sequence, unit.index)
+    frame = render_frame(scene, mesh, maps, subsurface)
+    render_s = time.perf_counter() - started
+    started = time.perf_counter()
+    write_frame(scene, unit.out, unit.sequence, index, time_s, mesh, maps, frame)
+    return {"scene_s": scene_s, "render_s": render_s, "write_s": time.perf_counter() - started}
