@@ -5,6 +5,7 @@ exit handler; executors that find it connected use it and leave it open."""
 from __future__ import annotations
 
 import sys
+import time
 
 import pytest
 
@@ -27,3 +28,20 @@ def pickle_by_value(module_name: str) -> None:
     from ray import cloudpickle
 
     cloudpickle.register_pickle_by_value(sys.modules[module_name])
+
+
+def ray_worker_running_a_unit(timeout_s: float, poll_s: float = 0.05):
+    """The first worker of this process's own Ray instance (its descendants: not another session's)
+    found running a unit (its title is ``ray::_run_on_worker``), as a ``psutil.Process``."""
+    import psutil
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for process in psutil.Process().children(recursive=True):
+            try:
+                if process.cmdline()[:1] and process.cmdline()[0].startswith("ray::_run_on_worker"):
+                    return process
+            except psutil.Error:  # exited meanwhile
+                continue
+        time.sleep(poll_s)
+    raise AssertionError("no Ray worker ran a unit")

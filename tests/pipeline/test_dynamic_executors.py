@@ -26,7 +26,7 @@ from polarface.executors import RayExecutor
 from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
 from polarface.pipeline.dynamic import reconstruct_dynamic
 from polarface.simulate.pipeline import SimulationConfig, simulate
-from ray_fixtures import RAY_CPUS, ray_instance  # noqa: F401 (fixture)
+from ray_fixtures import RAY_CPUS, ray_instance, ray_worker_running_a_unit  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.slow
 
@@ -103,19 +103,6 @@ def test_ray_frames_are_identical_to_the_local_executor(tiny, ray_instance, tmp_
     assert record["timings"]["frames"]["1"]["total_s"] == units["1"]["seconds"]
 
 
-def _worker_running_a_unit(timeout_s: float):
-    """The first Ray worker process found running a unit (its title is ``ray::_run_on_worker``)."""
-    import psutil
-
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        for process in psutil.process_iter(["cmdline"]):
-            if (process.info["cmdline"] or [""])[0].startswith("ray::_run_on_worker"):
-                return process
-        time.sleep(0.1)
-    raise AssertionError("no Ray worker ran a unit")
-
-
 def test_a_killed_worker_is_retried_and_the_maps_are_identical(tiny, ray_instance, tmp_path):  # noqa: F811
     sim, _, local = tiny
     result = _copy_with_tracking(tiny, tmp_path / "result")
@@ -123,7 +110,7 @@ def test_a_killed_worker_is_retried_and_the_maps_are_identical(tiny, ray_instanc
     run = threading.Thread(target=lambda: records.append(
         reconstruct_dynamic(result, sim, progress=False, executor=RayExecutor(workers=RAY_CPUS))))
     run.start()
-    victim = _worker_running_a_unit(120)
+    victim = ray_worker_running_a_unit(120)
     time.sleep(2.0)  # mid-frame: the unit has opened its inputs and started writing frames/NNNN
     victim.kill()
     run.join(timeout=600)

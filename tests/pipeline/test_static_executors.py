@@ -31,7 +31,7 @@ from polarface.pipeline.reconstruct import stage_polarimetric, stage_prepare
 from polarface.simulate.pipeline import SimulationConfig, simulate
 from polarface.texture import UnwrapStore
 from polarimetric_reference import row_major_fit
-from ray_fixtures import RAY_CPUS, ray_instance  # noqa: F401 (fixture)
+from ray_fixtures import RAY_CPUS, ray_instance, ray_worker_running_a_unit  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.slow
 
@@ -127,21 +127,6 @@ def test_ray_patches_give_the_local_executor_maps(tiny, ray_instance, tmp_path):
     assert reference["executor"]["name"] == "local" and len(reference["executor"]["units"]) == 16
 
 
-def _kill_a_worker_running_a_unit(timeout_s: float):
-    """SIGKILL the first Ray worker found running a unit (its title is ``ray::_run_on_worker`` while it
-    does), at once: patch 0 runs alone in the first front and takes a good part of a second."""
-    import psutil
-
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        for process in psutil.process_iter(["cmdline"]):
-            if (process.info["cmdline"] or [""])[0].startswith("ray::_run_on_worker"):
-                process.kill()
-                return process
-        time.sleep(0.02)
-    raise AssertionError("no Ray worker ran a unit")
-
-
 def test_a_killed_worker_is_retried_and_the_maps_are_identical(tiny, ray_instance, tmp_path):  # noqa: F811
     sim, prepared, local = tiny
     result = _copy(prepared, tmp_path / "result")
@@ -156,7 +141,8 @@ def test_a_killed_worker_is_retried_and_the_maps_are_identical(tiny, ray_instanc
 
     thread = threading.Thread(target=run)
     thread.start()
-    victim = _kill_a_worker_running_a_unit(120)
+    victim = ray_worker_running_a_unit(120, poll_s=0.02)  # at once: patch 0 runs alone in the first front
+    victim.kill()
     thread.join(timeout=600)
     assert not thread.is_alive() and not errors, errors
     assert not victim.is_running()

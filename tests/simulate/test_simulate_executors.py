@@ -14,7 +14,7 @@ import pytest
 
 from polarface.executors import RayExecutor
 from polarface.simulate.pipeline import SimulationConfig, simulate
-from ray_fixtures import RAY_CPUS, ray_instance  # noqa: F401 (fixture)
+from ray_fixtures import RAY_CPUS, ray_instance, ray_worker_running_a_unit  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.slow
 
@@ -47,30 +47,13 @@ def test_ray_frames_are_the_local_executor_bytes(local, ray_instance, tmp_path):
     assert summary["exposure"] == json.loads((local[0] / "simulation.json").read_text())["exposure"]
 
 
-def _worker_running_a_unit(timeout_s: float):
-    """The first worker of this process's own Ray instance (its descendants: not another session's)
-    found running a unit (its title is ``ray::_run_on_worker``)."""
-    import psutil
-
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        for process in psutil.Process().children(recursive=True):
-            try:
-                if process.cmdline()[:1] and process.cmdline()[0].startswith("ray::_run_on_worker"):
-                    return process
-            except psutil.Error:  # exited meanwhile
-                continue
-        time.sleep(0.05)
-    raise AssertionError("no Ray worker ran a unit")
-
-
 def test_a_killed_worker_is_retried_and_the_files_are_identical(local, ray_instance, tmp_path):  # noqa: F811
     out = tmp_path / "ray"
     summaries = []
     run = threading.Thread(target=lambda: summaries.append(
         simulate(out, CONFIG, progress=False, executor=RayExecutor(workers=RAY_CPUS))))
     run.start()
-    victim = _worker_running_a_unit(300)
+    victim = ray_worker_running_a_unit(300)
     time.sleep(1.0)  # mid-frame: building the scene or rendering, perhaps writing
     victim.kill()
     run.join(timeout=600)
