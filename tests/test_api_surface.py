@@ -35,7 +35,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
     ),
     "polarface.executors": (
         "EXECUTOR_NAMES", "Executor", "LocalExecutor", "RayExecutor", "ThreadSettings", "UNIT_FAILURES",
-        "UnitOutcome", "check_ray_address", "create_executor", "failure_reason", "run_unit",
+        "UnitOutcome", "check_ray_address", "create_executor", "failure_reason", "map_units_with_progress",
+        "run_unit",
     ),
     "polarface.geometry": (
         "CylindricalAtlas", "CylindricalAtlasConfig", "EXPRESSIONS", "ExpressionConfig",

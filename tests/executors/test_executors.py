@@ -14,6 +14,7 @@ from polarface.executors import (
     RayExecutor,
     check_ray_address,
     create_executor,
+    map_units_with_progress,
 )
 
 
@@ -51,6 +52,17 @@ def test_an_unexpected_exception_stops_the_local_run():
     # a unit's own failure types are the executor's choice
     outcome = LocalExecutor().map_units(broken, [1], failures=(TypeError,))[0]
     assert outcome.error == "a bug"
+
+
+def test_map_units_with_progress_counts_every_unit_and_passes_failures_on(capsys):
+    seen = []
+    outcomes = map_units_with_progress(LocalExecutor(), _square_or_fail, [3, 2],
+                                       lambda o: seen.append(o.unit), desc="squares", total=5)
+    assert seen == [3, 2] and [o.value for o in outcomes] == [9, None]
+    bar = capsys.readouterr().err
+    assert "squares" in bar and "5/5" in bar  # the 3 done before count as done
+    with pytest.raises(TypeError):  # the bar is closed and the unexpected error propagates
+        map_units_with_progress(LocalExecutor(), _square_or_fail, ["x"], desc="bad", progress=False)
 
 
 def test_create_executor_checks_its_arguments():

@@ -40,7 +40,7 @@ from polarface.capture.demosaic import DemosaicMethod
 from polarface.capture.manifest import raw_bit_depth_ok
 from polarface.capture.rig import Rig
 from polarface.capture.store import CaptureStore
-from polarface.executors import Executor, LocalExecutor, UnitOutcome
+from polarface.executors import Executor, LocalExecutor, UnitOutcome, map_units_with_progress
 from polarface.io.atomic import write_json_atomic
 from polarface.io.images import read_png
 from polarface.io.storage import PathOrUrl, StoragePath, remove_tree, storage_path
@@ -251,7 +251,6 @@ def _ingest_units(store: CaptureStore, units: list[IngestUnit], executor: Execut
     """
     placements: dict[str, dict[str, Any]] = {}
     failed: dict[int, str] = {}
-    bar = tqdm(total=len(units), desc="ingest", unit="frame", disable=not progress)
 
     def done(outcome: UnitOutcome) -> None:
         placements[str(outcome.unit.frame)] = {**outcome.placement(), **(outcome.value or {})}
@@ -259,12 +258,8 @@ def _ingest_units(store: CaptureStore, units: list[IngestUnit], executor: Execut
             store.write_manifest()
         else:
             failed[outcome.unit.frame] = outcome.error
-        bar.update(1)
 
-    try:
-        executor.map_units(run_ingest_unit, units, on_done=done)
-    finally:
-        bar.close()
+    map_units_with_progress(executor, run_ingest_unit, units, done, desc="ingest", progress=progress)
     if failed:
         reasons = "; ".join(f"frame {frame}: {reason}" for frame, reason in sorted(failed.items()))
         raise ValueError(f"ingest into '{store.root}': {len(failed)} frame(s) failed: {reasons}")

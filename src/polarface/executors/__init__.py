@@ -11,6 +11,7 @@ from polarface.executors.base import (
     ThreadSettings,
     UnitOutcome,
     failure_reason,
+    map_units_with_progress,
     run_unit,
 )
 from polarface.executors.ray_executor import RayExecutor, check_ray_address
@@ -26,6 +27,7 @@ __all__ = [
     "check_ray_address",
     "create_executor",
     "failure_reason",
+    "map_units_with_progress",
     "run_unit",
 ]
 

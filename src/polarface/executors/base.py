@@ -29,6 +29,7 @@ __all__ = [
     "ThreadSettings",
     "UnitOutcome",
     "failure_reason",
+    "map_units_with_progress",
     "run_unit",
 ]
 
@@ -196,3 +197,26 @@ class LocalExecutor:
 
     def __exit__(self, *exc_info: object) -> None:
         self.close()
+
+
+def map_units_with_progress(executor: Executor, fn: Callable[[Any], Any], units: Sequence[Any],
+                            on_done: Callable[[UnitOutcome], None] | None = None, *, desc: str,
+                            total: int | None = None, progress: bool = True,
+                            failures: tuple[type[BaseException], ...] = UNIT_FAILURES) -> list[UnitOutcome]:
+    """:meth:`Executor.map_units` with one tqdm bar (``desc``, counting frames) over ``total`` units
+    (default ``len(units)``; the ``total - len(units)`` done before count as done), advanced after
+    ``on_done`` as each unit finishes and closed whatever happens (``progress`` False: no bar)."""
+    from tqdm import tqdm
+
+    total = len(units) if total is None else int(total)
+    bar = tqdm(total=total, initial=total - len(units), desc=desc, unit="frame", disable=not progress)
+
+    def done(outcome: UnitOutcome) -> None:
+        if on_done is not None:
+            on_done(outcome)
+        bar.update(1)
+
+    try:
+        return executor.map_units(fn, units, failures=failures, on_done=done)
+    finally:
+        bar.close()

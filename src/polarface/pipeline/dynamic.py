@@ -46,10 +46,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from polarface.capture.store import CaptureStore
-from polarface.executors import Executor, LocalExecutor, UnitOutcome
+from polarface.executors import Executor, LocalExecutor, UnitOutcome, map_units_with_progress
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.poses import invert_rigid
 from polarface.geometry.registration import RegistrationConfig
@@ -393,7 +392,6 @@ def reconstruct_dynamic(
             continue
         pending.append(FrameUnit(folder.root, store.root, frame, tuple(all_frames), alignment, config,
                                  device, threads))
-    bar = tqdm(total=len(pending), desc="dynamic: frames", unit="frame", disable=not progress)
 
     def done(outcome: UnitOutcome) -> None:
         frame = outcome.unit.frame
@@ -403,10 +401,9 @@ def reconstruct_dynamic(
         else:
             failed[frame] = outcome.error
             LOGGER.warning("dynamic frame %d failed: %s", frame, outcome.error)
-        bar.update(1)
 
-    executor.map_units(run_frame_unit, pending, on_done=done)
-    bar.close()
+    map_units_with_progress(executor, run_frame_unit, pending, done, desc="dynamic: frames",
+                            progress=progress)
     completed = [f for f in selected if f not in failed and _frame_done(folder.frame(f), config)]
     shared_s = (geometry_s + tracking_s) / len(all_frames)
     totals = [v.get("total_s", 0.0) for k, v in per_frame.items() if int(k) in completed]

@@ -41,10 +41,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from polarface.capture.store import CaptureStore
-from polarface.executors import Executor, LocalExecutor, UnitOutcome
+from polarface.executors import Executor, LocalExecutor, UnitOutcome, map_units_with_progress
 from polarface.geometry.atlas import (
     CylindricalAtlasConfig,
     cylindrical_atlas,
@@ -259,16 +258,12 @@ def run_stereo_units(executor: Executor, units: list[StereoFrameUnit], record, *
     """Run ``units`` on ``executor`` with one progress bar over ``total`` frames (those done before count
     as done); ``record(frame, entry or None, outcome)`` is called in this process as each finishes
     (``entry`` None: the unit failed, ``outcome.error`` says why)."""
-    bar = tqdm(total=total, initial=total - len(units), desc=desc, unit="frame", disable=not progress)
 
     def done(outcome: UnitOutcome) -> None:
         record(outcome.unit.frame, outcome.value if outcome.ok else None, outcome)
-        bar.update(1)
 
-    try:
-        executor.map_units(run_stereo_frame_unit, units, on_done=done)
-    finally:
-        bar.close()
+    map_units_with_progress(executor, run_stereo_frame_unit, units, done, desc=desc, total=total,
+                            progress=progress)
 
 
 #: The configuration that makes the per-frame files; the rest (registration, reference mesh, atlas) is
