@@ -34,6 +34,7 @@ case "$cmd" in
     ;;
   test)
     setup "[dev]"
+    bash tests/tools/install_test_tools.sh "$VENV"
     exec "$VENV/bin/python" -m pytest -n "${POLARFACE_TEST_WORKERS:-2}" "$@"
     ;;
   *)

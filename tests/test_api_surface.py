@@ -38,6 +38,9 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "UnitOutcome", "check_ray_address", "create_executor", "failure_reason", "map_units_with_progress",
         "run_unit",
     ),
+    "polarface.export": (
+        "EXPORT_FORMATS", "ExportFormat", "ExportOptions", "ExportSource", "MissingMapError", "export_format",
+    ),
     "polarface.geometry": (
         "CylindricalAtlas", "CylindricalAtlasConfig", "EXPRESSIONS", "ExpressionConfig",
         "ExpressionRig", "HeadAsset", "HeightNormals", "PinholeCamera", "PointCloud",
@@ -99,10 +102,11 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "zenith_from_specular_dop",
     ),
     "polarface.pipeline": (
-        "ANALYZER_IMAGE_NAMES", "DynamicStageConfig", "GEOMETRY_JSON", "GeometryConfig",
+        "ANALYZER_IMAGE_NAMES", "DynamicStageConfig", "EXPORT_JSON", "GEOMETRY_JSON", "GeometryConfig",
         "GeometryEvaluationConfig", "METRIC_GROUPS", "ReconstructContext", "ReconstructInputs", "STAGES",
         "SkinFitSummary", "SpectraFitOptions", "biophysical_metrics", "check_stereo_pairs",
-        "dynamic_metrics", "estimate_ior_from_folder", "evaluate", "evaluate_biophysical", "fit_spectra_file",
+        "dynamic_metrics", "estimate_ior_from_folder", "evaluate", "evaluate_biophysical", "export_result",
+        "fit_spectra_file",
         "folder_info", "format_info", "frame_stereo", "geometry_metrics", "ground_truth_root",
         "load_stage_inputs", "polarimetric_metrics", "read_analyzer_image", "read_reflectance_csv",
         "reconstruct", "reconstruct_dynamic", "reconstruct_geometry", "reconstruct_summary_line",

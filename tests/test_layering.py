@@ -25,6 +25,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("render",),  # the renderer
     ("simulate",),  # the rig simulator
     ("inverse",),  # inverse stages
+    ("export",),  # files for other tools (Mitsuba, glTF, USD, diffusion kernels)
     ("report",),  # HTML pages
     ("pipeline",),  # orchestration of stages on folders
     ("commands", "cli"),  # the command line

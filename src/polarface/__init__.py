@@ -2,7 +2,7 @@
 
 Implements Ha et al., "Polarimetric BSSRDF Acquisition of Dynamic Faces", ACM TOG 43(6), 2024.
 Data flows one way: optics -> skin -> geometry -> capture -> results -> texture -> render ->
-simulate -> inverse -> report -> pipeline -> commands (the README's "Layout"). See
+simulate -> inverse -> export -> report -> pipeline -> commands (the README's "Layout"). See
 ``docs/conventions.md`` for units, shapes and frames.
 """
 

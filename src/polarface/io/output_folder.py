@@ -179,7 +179,8 @@ def _is_own(folder: StoragePath, command: str, owned: Callable[[StoragePath], bo
     return owned is not None and owned(folder)
 
 
-def _check(target: StoragePath, command: str, resume: bool | None, force: bool, owned) -> bool:
+def _check(target: StoragePath, command: str, resume: bool | None, force: bool, owned,
+           replace_own: bool = True) -> bool:
     """Apply the policy; returns whether the command must write into a temporary sibling (``force``)."""
     if resume and force:
         raise OutputFolderError("arguments '--resume' and '--force' exclude each other")
@@ -198,6 +199,11 @@ def _check(target: StoragePath, command: str, resume: bool | None, force: bool, 
         raise OutputFolderError(
             f"output folder '{target}' is not empty and was not written by 'polarface {command}'; "
             "choose another --out or pass --force to replace it"
+        )
+    if resume is None and not replace_own:
+        raise OutputFolderError(
+            f"output folder '{target}' holds a previous 'polarface {command}' run; pass --force to "
+            "replace it or choose another --out"
         )
     if resume is False:
         raise OutputFolderError(
@@ -233,6 +239,7 @@ def output_folder(
     force: bool = False,
     owned: Callable[[StoragePath], bool] | None = None,
     marker: bool = True,
+    replace_own: bool = True,
 ) -> Iterator[StoragePath]:
     """Lock ``path``, apply the policy (module docstring) and yield the folder the command writes into.
 
@@ -243,6 +250,8 @@ def output_folder(
         force: ``--force``: replace the folder, swapping only after the ``with`` body succeeded.
         owned: recognises the command's own manifest (:func:`json_manifest`).
         marker: write :data:`MARKER` into a new folder (False for jobs that require an empty folder).
+        replace_own: for a command without ``--resume``, write into its own non-empty folder (True) or
+            refuse it unless ``force`` (False: outputs that are never silently overwritten, ``export``).
 
     Yields:
         ``path``, or with ``force`` on a non-empty folder a temporary sibling swapped in on success. A folder
@@ -254,7 +263,7 @@ def output_folder(
     """
     target = storage_path(path)
     with lock_output(target, command):
-        if _check(target, command, resume, force, owned):
+        if _check(target, command, resume, force, owned, replace_own):
             tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{target.name}-", dir=target.parent))
             try:
                 if marker:

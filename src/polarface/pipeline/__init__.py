@@ -23,6 +23,7 @@ from polarface.pipeline.evaluate_geometry import (
     geometry_metrics,
     texel_correspondence,
 )
+from polarface.pipeline.export import EXPORT_JSON, export_result
 from polarface.pipeline.geometry import (
     GEOMETRY_JSON,
     GeometryConfig,
@@ -48,6 +49,7 @@ from polarface.pipeline.skin_fit import (
 
 __all__ = [
     "ANALYZER_IMAGE_NAMES",
+    "EXPORT_JSON",
     "GEOMETRY_JSON",
     "METRIC_GROUPS",
     "STAGES",
@@ -64,6 +66,7 @@ __all__ = [
     "estimate_ior_from_folder",
     "evaluate",
     "evaluate_biophysical",
+    "export_result",
     "fit_spectra_file",
     "folder_info",
     "format_info",

@@ -1,0 +1,68 @@
+"""Export a RESULT for other tools: Mitsuba 3 scene, glTF 2.0 binary, USD stage, diffusion kernels.
+
+Writes ``--out`` (default ``RESULT/exports``): one sub-folder per ``--format`` and ``export.json``
+(files and seconds per format). What each format maps onto what, and what it loses: ``docs/export.md``.
+An existing non-empty ``--out`` is never overwritten without ``--force``; a RESULT lacking a map that a
+format needs is refused before anything is written, naming the missing file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from polarface.commands import add_force_argument, local_folder, store_location
+
+NAME = "export"
+HELP = "export a RESULT: Mitsuba 3 scene, glTF (.glb) + 3D viewer, USD (static + dynamic), diffusion kernels"
+
+
+def _formats(value: str) -> tuple[str, ...]:
+    from polarface.export import EXPORT_FORMATS
+
+    names = tuple(dict.fromkeys(v.strip() for v in value.split(",") if v.strip()))
+    unknown = [n for n in names if n not in EXPORT_FORMATS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(
+            f"unknown format(s) {unknown or [value]}; choose from {', '.join(EXPORT_FORMATS)} "
+            "(several: comma-separated or repeated)"
+        )
+    return names
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Register the command's arguments."""
+    from polarface.export import EXPORT_FORMATS
+
+    parser.add_argument("result", type=store_location, help="RESULT folder (a path or a URL)")
+    parser.add_argument(
+        "--format", dest="formats", type=_formats, action="append", default=None,
+        help=f"format(s): {', '.join(EXPORT_FORMATS)}; comma-separated or repeated (default: all)",
+    )
+    parser.add_argument("--out", type=local_folder, default=None,
+                        help="export folder (default RESULT/exports; a local path)")
+    parser.add_argument("--frames", default=None,
+                        help="dynamic frames to export, e.g. 0-4,7 (default: every frame with maps)")
+    add_force_argument(parser, "an existing export folder")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Export (module docstring); prints ``export.json``'s record."""
+    from pathlib import Path
+
+    from polarface.export import EXPORT_FORMATS, ExportOptions
+    from polarface.io.output_folder import output_folder
+    from polarface.pipeline.export import export_result
+
+    formats = tuple(dict.fromkeys(f for group in args.formats for f in group)) if args.formats else tuple(
+        EXPORT_FORMATS
+    )
+    options = ExportOptions(formats=formats, frames=args.frames)
+    out = args.out if args.out is not None else args.result / "exports"
+    if not isinstance(out, Path):
+        raise ValueError(f"argument '--out': the default RESULT/exports of a RESULT at a URL ('{out}') is "
+                         "not local; give a local --out")
+    with output_folder(out, NAME, force=args.force, replace_own=False) as folder:
+        summary = export_result(args.result, Path(folder), options)
+    print(json.dumps(summary, indent=1))
+    return 0

@@ -1,0 +1,80 @@
+"""``polarface export``: a RESULT folder written for other tools, every requested format in one folder.
+
+Layout of the export folder ``OUT`` (``docs/export.md``): one sub-folder per format (``OUT/mitsuba``,
+``OUT/gltf``, ``OUT/usd``, ``OUT/kernels``; :data:`polarface.export.EXPORT_FORMATS`) and ``OUT/export.json``
+(``format`` = ``"polarface-export"``, ``version``, ``result``, ``frames``, ``formats.<name>``: the writer's
+record with ``files`` and ``seconds``, ``seconds``). Every format's maps are checked before anything is
+written, so a RESULT lacking one is refused with an error naming the missing file.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from polarface.export import EXPORT_FORMATS, ExportOptions, ExportSource
+from polarface.io import write_json_atomic
+from polarface.io.storage import PathOrUrl
+from polarface.pipeline.dynamic import parse_frame_selection
+from polarface.results import ResultFolder
+
+__all__ = ["EXPORT_FORMAT", "EXPORT_JSON", "EXPORT_VERSION", "export_result"]
+
+LOGGER = logging.getLogger(__name__)
+
+#: ``OUT/export.json`` and its ``format`` / ``version`` keys.
+EXPORT_JSON = "export.json"
+EXPORT_FORMAT = "polarface-export"
+EXPORT_VERSION = 1
+
+
+def _open_source(result: PathOrUrl, options: ExportOptions) -> ExportSource:
+    folder = ResultFolder(result)
+    frames = None
+    if options.frames is not None:
+        frames = parse_frame_selection(options.frames, folder.frame_indices())
+    return ExportSource.open(folder, frames)
+
+
+def export_result(result: PathOrUrl, out: Path, options: ExportOptions | None = None) -> dict[str, Any]:
+    """Write ``options.formats`` of the RESULT ``result`` into the local folder ``out``.
+
+    Args:
+        result: a RESULT folder (a path or a URL).
+        out: the export folder (created; the caller applies the output-folder policy).
+        options: formats and frame selection (default: every format, every frame).
+
+    Returns:
+        The ``export.json`` record (module docstring).
+
+    Raises:
+        polarface.export.MissingMapError: a format's map is missing (naming the file), before any write.
+        FileNotFoundError: ``result`` is not a RESULT folder. ValueError: a bad frame selection.
+    """
+    options = options or ExportOptions()
+    started = time.perf_counter()
+    source = _open_source(result, options)
+    formats = [EXPORT_FORMATS[name] for name in options.formats]
+    for spec in formats:
+        (source if spec.frames else ExportSource(source.folder)).require(spec.maps, spec.name)
+    out = Path(out)
+    records: dict[str, Any] = {}
+    for spec in formats:
+        begun = time.perf_counter()
+        folder = out / spec.name
+        folder.mkdir(parents=True, exist_ok=True)
+        LOGGER.info("export %s -> %s", spec.name, folder)
+        record = spec.load_writer()(source if spec.frames else ExportSource(source.folder), folder, options)
+        records[spec.name] = {**record, "seconds": round(time.perf_counter() - begun, 3)}
+    summary = {
+        "format": EXPORT_FORMAT,
+        "version": EXPORT_VERSION,
+        "result": str(source.folder.root),
+        "frames": list(source.frames),
+        "formats": records,
+        "seconds": round(time.perf_counter() - started, 3),
+    }
+    write_json_atomic(out / EXPORT_JSON, summary)
+    return summary
