@@ -9,7 +9,8 @@
      -> DIR/result (geometry/, tracking/, frames/, maps as EXR, previews, report.html); the simulator's
      geometry is used only by the evaluation
   3. evaluation: errors against the simulator's ground truth -> DIR/metrics.json, figures (the
-     geometry error heat map) -> DIR/figures/
+     geometry error heat map) -> DIR/figures/; then every export format (``polarface export``) ->
+     DIR/result/exports (the Mitsuba scene, the glTF and its offline 3D viewer page, USD, kernels)
   4. DIR/index.html: a landing page linking the report, the metrics and the simulated frames, with the
      metrics as a table of value, target and pass, and per parameter the ground truth, the
      reconstruction and the error side by side (DIR/comparison/*.png; frame previews in DIR/frames/).
@@ -56,7 +57,9 @@ _CAPTIONS = {
 def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], None]) -> dict[str, Any]:
     """Simulate, reconstruct and evaluate; each step announced as the equivalent command line."""
     from polarface.io import write_json_atomic
+    from polarface.io.output_folder import output_folder
     from polarface.pipeline.evaluate import evaluate
+    from polarface.pipeline.export import export_result
     from polarface.pipeline.reconstruct import reconstruct
     from polarface.pipeline.reconstruct_inputs import resolve_reconstruct_inputs
     from polarface.simulate.pipeline import SimulationConfig, simulate
@@ -81,6 +84,12 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
     metrics = evaluate(result, sim, figures_dir=figures)
     write_json_atomic(out / "metrics.json", metrics)
     say(json.dumps(metrics, indent=2))
+    exports = result / "exports"
+    say(f"polarface demo: polarface export {result} --out {exports} --force")
+    with output_folder(exports, "export", force=True) as folder:
+        record = export_result(result, Path(folder))
+    say(json.dumps({"out": str(exports), "seconds": record["seconds"],
+                    "formats": {name: entry["seconds"] for name, entry in record["formats"].items()}}))
     return metrics
 
 

@@ -321,6 +321,15 @@ def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any]) 
             "The geometry from the stereo pairs: depth, meshes, registration (result/geometry/report.html)",
         )
     section.link("metrics.json", "The metrics against the ground truth (metrics.json)")
+    exports = out / "result" / "exports"
+    if (exports / "viewer" / "index.html").is_file():
+        section.link("result/exports/viewer/index.html",
+                     "The face in 3D: orbit, maps, polarizer angle, frames "
+                     "(result/exports/viewer/index.html)")
+    if (exports / "export.json").is_file():
+        section.link("result/exports/export.json",
+                     "Exports for Mitsuba 3, glTF, USD and real-time diffusion kernels (result/exports/, "
+                     "docs/export.md)")
     checks = page.section(
         "Errors against the ground truth",
         "Value, target and verdict of each measured quantity (all numbers in metrics.json).",
