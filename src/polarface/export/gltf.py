@@ -185,7 +185,7 @@ def _material_textures(source: ExportSource, raster, tangents: np.ndarray) -> _T
     strength = np.clip(rho_s, 0.0, 1.0)
     colour = np.maximum(rho_s, 0.0) * fresnel_f0(eta) / fresnel_f0(ior) / np.maximum(strength, 1e-6)
     colour = fill(np.where(strength > 0.0, colour, fresnel_f0(eta) / fresnel_f0(ior)))
-    colour_factor = float(colour.max())
+    colour_factor = max(float(colour.max()), 1e-6)
     height = np.where(valid, source.scalar_map("displacement_mm"), 0.0)
     shading = shading_normals(dataclasses.replace(raster, mask=valid), height)
     normal = fill_empty_texels(tangent_space_normals(raster, source.mesh, tangents, shading), raster.mask)
