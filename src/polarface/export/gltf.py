@@ -36,7 +36,7 @@ from polarface.export.gltf_glb import ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, GlbBui
 from polarface.export.source import ExportSource
 from polarface.io import atomic_path
 
-__all__ = ["GLB_NAME", "LOST", "fresnel_f0", "write_gltf"]
+__all__ = ["GLB_NAME", "LOST", "fresnel_f0", "tangent_space_normals", "write_gltf"]
 
 #: The file written into the format's folder.
 GLB_NAME = "face.glb"
