@@ -84,7 +84,7 @@ EXPORT_FORMATS: dict[str, ExportFormat] = {
         "gltf",
         "glTF 2.0 binary (.glb) of the static result with a PBR material (KHR_materials_specular, "
         "KHR_materials_ior) and an offline 3D viewer page",
-        _POLARIMETRIC,
+        ("eta", "alpha_s", "rho_s", "displacement_mm", layout.RHO_SSS_BAR, layout.MASK),
         frames=False,
         writer="polarface.export.gltf:write_gltf",
     ),
