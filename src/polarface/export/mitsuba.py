@@ -41,7 +41,13 @@ from polarface.render.colour import linear_rgb_from_channels
 from polarface.render.shading import fill_empty_texels
 from polarface.results import layout
 
-__all__ = ["MITSUBA_LOST", "SHEET_DISTANCE_MM", "SHEET_HALF_SIZE_MM", "write_mitsuba_scene"]
+__all__ = [
+    "MITSUBA_LOST",
+    "SHEET_DISTANCE_MM",
+    "SHEET_HALF_SIZE_MM",
+    "scene_placement",
+    "write_mitsuba_scene",
+]
 
 #: Distance (mm) of each LED's polarizer sheet from the LED, along the direction to the face centre.
 SHEET_DISTANCE_MM = 5.0
@@ -57,6 +63,19 @@ MITSUBA_LOST = (
     "upsamples RGB to spectra",
     "camera distortion and skew: Mitsuba's perspective sensor is an ideal pinhole with square pixels",
 )
+
+
+def scene_placement(source: ExportSource) -> np.ndarray:
+    """``(4, 4)`` model -> rig-world transform of the exported head.
+
+    A RESULT whose geometry came from the stereo stage (it holds ``geometry/``) has the rig world at its
+    reference frame as model frame (``docs/geometry.md``): identity. Otherwise (known geometry, the
+    bundled head's model frame) polarface's rest placement facing the polarimetric module,
+    :func:`polarface.geometry.head_asset.head_placement`.
+    """
+    if (source.folder.root / "geometry" / "mesh.obj").is_file():
+        return np.eye(4)
+    return head_placement()
 
 
 def write_mitsuba_scene(source: ExportSource, out: Path, options: ExportOptions) -> dict[str, Any]:
@@ -83,13 +102,11 @@ def write_mitsuba_scene(source: ExportSource, out: Path, options: ExportOptions)
     mask = source.mask
     if not mask.any():
         raise ValueError(f"'{source.map_file(layout.MASK)}': the mask is empty")
-    placement = head_placement()
+    placement = scene_placement(source)
     mesh_world = mitsuba_mesh(source.mesh.transformed(placement))
     raster = reposition(rasterize_uv(source.mesh, mask.shape), source.mesh.transformed(placement))
     texture_mask = mask & raster.mask
-    constants = {
-        name: float(np.median(source.scalar_map(name)[texture_mask])) for name in ("eta", "alpha_s")
-    }
+    constants = {name: float(np.median(source.scalar_map(name)[texture_mask])) for name in ("eta", "alpha_s")}
     constants["eta"] = max(constants["eta"], 1.0 + 1e-4)
     constants["alpha_s"] = min(max(constants["alpha_s"], 1e-3), 1.0)
     files = _write_textures(source, out, raster, mesh_world, texture_mask)
@@ -102,11 +119,11 @@ def write_mitsuba_scene(source: ExportSource, out: Path, options: ExportOptions)
         ElementTree.ElementTree(scene).write(tmp, encoding="utf-8", xml_declaration=True)
     lost = [*MITSUBA_LOST]
     lost += [
-        f"{name} map: the constant {value:.6g} (median over the mask)"
-             for name, value in constants.items()]
+        f"{name} map: the constant {value:.6g} (median over the mask)" for name, value in constants.items()
+    ]
     lost += [f"camera {c['id']}: {note}" for c in cameras for note in c["lost"]]
     mapping = {
-        "units": "mm (rig world; positions of the RESULT's mesh.obj under the render placement)",
+        "units": "mm (rig world: the RESULT's mesh.obj under 'placement', model -> rig world)",
         "placement": placement.tolist(),
         "cameras": cameras,
         "lights": lights,
@@ -126,6 +143,7 @@ def write_mitsuba_scene(source: ExportSource, out: Path, options: ExportOptions)
         "integrator": "stokes(volpath, max_depth=2)",
         "default_sensor": cameras[0]["id"],
         "constants": constants,
+        "placement": placement.tolist(),
         "lost": lost,
     }
 

@@ -60,7 +60,7 @@ def render_mitsuba_parts(
     if not mi.is_polarized:
         raise ValueError(f"argument 'variant': '{mi.variant()}' is not a polarized Mitsuba variant")
     scene_xml = Path(scene_xml)
-    resolver = mi.Thread.thread().file_resolver()
+    resolver = mi.file_resolver()
     resolver.prepend(str(scene_xml.parent.resolve()))
     out = {}
     for part, dropped in (("sss", "specular_reflectance"), ("s", "diffuse_reflectance")):
@@ -96,11 +96,11 @@ def polarface_parts(source: ExportSource, constants: dict[str, float]) -> dict[s
     """polarface's renders of the first polarimetric camera: ``{"exported", "full"}`` -> ``{"sss", "s",
     "mask"}`` (module docstring), Stokes ``(H, W, 3, 4)`` float32 and the hit mask ``(H, W)`` bool.
 
-    ``constants``: the exported ``eta`` and ``alpha_s`` (the writer's record).
+    ``constants``: the exported ``eta``, ``alpha_s`` and ``placement`` (the writer's record).
     """
     appearance = ResultAppearance.load(source.folder)
     rig = appearance.rig
-    full = render_result_view(appearance)
+    full = render_result_view(appearance, pose=np.asarray(constants["placement"]))
     camera, caster, mesh_world = full.camera, full.caster, full.mesh_world
     lights, intensity = full.lights, full.intensity
     out: dict[str, dict[str, np.ndarray]] = {}
@@ -183,7 +183,8 @@ def compare_mitsuba_scene(
     and the LED polarizers decide) of each part, against both polarface references.
     """
     scene_dir = Path(scene_dir)
-    constants = json.loads((scene_dir / "cameras.json").read_text())["constants"]
+    mapping = json.loads((scene_dir / "cameras.json").read_text())
+    constants = {**mapping["constants"], "placement": mapping["placement"]}
     references = polarface_parts(source, constants)
     mitsuba = render_mitsuba_parts(scene_dir / "scene.xml", spp=spp, variant=variant)
     face = ndimage.binary_erosion(references["full"]["mask"], iterations=erode)
