@@ -207,3 +207,16 @@ def test_read_sog_names_the_file(tmp_path):
         folder.map_path("sog", ".json").write_text(text)
         with pytest.raises(ValueError, match=rf"sog\.json' .*{match}"):
             folder.read_sog()
+
+
+def test_rest_placement_follows_where_the_geometry_came_from(tmp_path):
+    from polarface.geometry.head_asset import head_placement
+
+    folder = ResultFolder(tmp_path / "r")
+    folder.write_result_header(["c0", "c1", "c2", "c3", "c4", "c5"], (8, 8), 1.0)
+    folder.record_stage("prepare", {"geometry": None, "mesh": "given.obj"})
+    assert not folder.stereo_geometry()
+    assert np.allclose(folder.rest_placement(), head_placement())
+    folder.record_stage("prepare", {"geometry": str(tmp_path / "r" / "geometry")})
+    assert folder.stereo_geometry() and folder.frame(3).stereo_geometry()
+    assert np.array_equal(folder.rest_placement(), np.eye(4))

@@ -65,7 +65,7 @@ def fresnel_f0(eta: np.ndarray | float) -> np.ndarray:
 
 def _model_rotation(source: ExportSource) -> tuple[np.ndarray, str]:
     """``(3, 3)`` rotation model frame -> glTF axes and a sentence saying why."""
-    if source.folder.stage_record("prepare").get("geometry"):
+    if source.folder.stereo_geometry():
         return np.diag([1.0, -1.0, -1.0]), (
             "stereo geometry: the model frame is the rig world of the reference frame (y down, the face "
             "towards -z), rotated 180 deg about x into glTF's +y up, face towards +z"

@@ -32,7 +32,6 @@ import numpy as np
 from polarface.export.formats import ExportOptions
 from polarface.export.mitsuba_maps import mitsuba_mesh, rgb_albedo, tangent_space_normals
 from polarface.export.source import ExportSource
-from polarface.geometry.head_asset import head_placement
 from polarface.geometry.mesh import save_ply
 from polarface.geometry.uv_raster import rasterize_uv, reposition
 from polarface.io import atomic_path, write_exr, write_json_atomic
@@ -66,16 +65,10 @@ MITSUBA_LOST = (
 
 
 def scene_placement(source: ExportSource) -> np.ndarray:
-    """``(4, 4)`` model -> rig-world transform of the exported head.
-
-    A RESULT whose geometry came from the stereo stage (it holds ``geometry/``) has the rig world at its
-    reference frame as model frame (``docs/geometry.md``): identity. Otherwise (known geometry, the
-    bundled head's model frame) polarface's rest placement facing the polarimetric module,
-    :func:`polarface.geometry.head_asset.head_placement`.
-    """
-    if (source.folder.root / "geometry" / "mesh.obj").is_file():
-        return np.eye(4)
-    return head_placement()
+    """``(4, 4)`` model -> rig-world transform of the exported head: polarface's render placement
+    (:meth:`polarface.results.ResultFolder.rest_placement`: identity for stereo geometry, whose model frame
+    is the rig world of its reference frame; else the bundled head's rest placement)."""
+    return source.folder.rest_placement()
 
 
 def write_mitsuba_scene(source: ExportSource, out: Path, options: ExportOptions) -> dict[str, Any]:

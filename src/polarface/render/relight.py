@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from polarface.geometry.head_asset import head_placement
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster, rasterize_uv, reposition
 from polarface.optics.image_formation import subsurface_exit_stokes
@@ -134,8 +133,8 @@ def render_result_view(
     Args:
         appearance: :class:`ResultAppearance`.
         camera_id: a camera of the rig (default: the first polarimetric camera).
-        pose: ``(4, 4)`` model -> rig-world transform (default: the simulator's rest placement facing
-            the polarimetric module, :func:`polarface.geometry.head_asset.head_placement`).
+        pose: ``(4, 4)`` model -> rig-world transform (default: ``appearance.placement``, the head facing
+            the polarimetric module: identity for stereo geometry, else the simulator's rest placement).
         edits: chromophore scale factors (:func:`parse_edits`).
         strip_width_mm: if given, light enters only within this band (mm) around the plane through the
             head centre spanned by the camera's up and viewing axes (shifted by ``strip_offset_mm``
@@ -147,7 +146,7 @@ def render_result_view(
     rig = appearance.rig
     camera = rig.camera(camera_id) if camera_id else rig.polarimetric_cameras()[0]
     pinhole = camera.pinhole()
-    transform = head_placement() if pose is None else np.asarray(pose, dtype=np.float64)
+    transform = appearance.placement if pose is None else np.asarray(pose, dtype=np.float64)
     if transform.shape != (4, 4) or not np.isfinite(transform).all():
         raise ValueError(f"argument 'pose' must be a finite 4x4 matrix; got shape {transform.shape}")
     if strip_width_mm is not None and not strip_width_mm > 0:

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from polarface.geometry.head_asset import head_placement
 from polarface.io.storage import PathOrUrl, StoragePath, storage_path
 from polarface.results import layout
 from polarface.results.folder import ResultFolder
@@ -44,6 +45,8 @@ class ResultAppearance:
         rig: the capture rig (cameras, lights, spectral calibration).
         shapes: SoG shapes (:class:`polarface.skin.heterogeneous.ProfileShapes`, ``(L, 9)``) or None
             (then fitted at the median texel).
+        placement: ``(4, 4)`` float64 model -> rig-world transform at which the head faces the
+            polarimetric module (:meth:`ResultFolder.rest_placement`; the renderer's default pose).
     """
 
     maps: dict[str, np.ndarray]
@@ -51,6 +54,7 @@ class ResultAppearance:
     mesh: Any
     rig: Any
     shapes: Any
+    placement: np.ndarray = dataclasses.field(default_factory=head_placement)
 
     @classmethod
     def load(cls, result_dir: PathOrUrl | ResultFolder) -> ResultAppearance:
@@ -79,7 +83,7 @@ class ResultAppearance:
                 )
         sog = folder.read_sog()
         shapes = _checked_sog_shapes(sog, folder.map_path("sog", ".json")) if sog is not None else None
-        return cls(maps, mask, folder.read_mesh(), rig, shapes)
+        return cls(maps, mask, folder.read_mesh(), rig, shapes, folder.rest_placement())
 
 
 def _checked_sog_shapes(payload: Any, path: StoragePath):

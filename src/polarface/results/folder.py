@@ -384,6 +384,21 @@ class ResultFolder:
 
         return save_obj(self.root / layout.MESH_OBJ, mesh)
 
+    def stereo_geometry(self) -> bool:
+        """Whether the mesh came from the stereo geometry stage (``stages.prepare.geometry`` of the
+        sequence's ``result.json`` is set): its model frame is then the rig world of the reference frame
+        (y down, the face towards -z; ``docs/geometry.md``), not the bundled head's frame."""
+        root = self.sequence or self
+        return bool(root.stage_record("prepare").get("geometry"))
+
+    def rest_placement(self) -> np.ndarray:
+        """``(4, 4)`` float64 model -> rig-world transform at which the RESULT's head faces the polarimetric
+        module: identity for stereo geometry (:meth:`stereo_geometry`), else the simulator's rest placement
+        of the bundled head (:func:`polarface.geometry.head_asset.head_placement`)."""
+        from polarface.geometry.head_asset import head_placement
+
+        return np.eye(4) if self.stereo_geometry() else head_placement()
+
     # ---- dynamic sequences -------------------------------------------------------------------
     def frame(self, index: int) -> ResultFolder:
         """The per-frame folder ``frames/NNNN`` (same API; rig and rest mesh shared with this one)."""
