@@ -77,7 +77,8 @@ def _scaled_16bit(values: np.ndarray, scale: float) -> np.ndarray:
     return np.clip(values / scale, 0.0, 1.0)
 
 
-def _time_textures(source: ExportSource, raster: UVRaster, out: Path, folder: str, tag: str) -> dict[str, str]:
+def _time_textures(source: ExportSource, raster: UVRaster, out: Path, folder: str, tag: str
+                   ) -> dict[str, str]:
     """Write the albedo, normal and C_h,out textures of ``source`` as ``folder/<name><tag>.png``."""
     mask = source.mask
     names = {"albedo": "albedo_srgb", "normal": "normal_tangent", "c_h_out": "c_h_out"}
@@ -148,11 +149,16 @@ def _extent(vertices: np.ndarray):
     return _vec3(np.stack([vertices.min(axis=0), vertices.max(axis=0)]))
 
 
-def _write_geometry_layer(path: Path, rest, frames: dict[int, _FrameData]) -> None:
-    """``/Face/Mesh``: static values as defaults, one time sample per frame."""
+def _write_geometry_layer(path: Path, rest, frames: dict[int, _FrameData], rate: float) -> None:
+    """``/Face/Mesh``: static values as defaults, one time sample per frame.
+
+    The layer's ``timeCodesPerSecond`` must equal the root layer's: USD rescales the time samples of a
+    sublayer whose rate differs (time codes would no longer be frame indices)."""
     from pxr import Sdf, Usd, UsdGeom, Vt
 
     stage = Usd.Stage.CreateNew(str(path))
+    stage.SetTimeCodesPerSecond(rate)
+    stage.SetFramesPerSecond(rate)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 0.001)
     face = UsdGeom.Xform.Define(stage, _FACE)
@@ -248,11 +254,11 @@ def _write_root_layer(path: Path, static: dict[str, Any], textures: dict[str, st
     material = _write_material(stage, static, textures, frames)
     mesh = stage.OverridePrim(_MESH)
     UsdShade.MaterialBindingAPI.Apply(mesh).Bind(material)
+    stage.SetTimeCodesPerSecond(timing["time_codes_per_second"])
+    stage.SetFramesPerSecond(timing["time_codes_per_second"])
     if frames:
         stage.SetStartTimeCode(float(min(frames)))
         stage.SetEndTimeCode(float(max(frames)))
-        stage.SetTimeCodesPerSecond(timing["time_codes_per_second"])
-        stage.SetFramesPerSecond(timing["time_codes_per_second"])
     stage.GetRootLayer().customLayerData = {
         "polarface:result": str(source.folder.root),
         "polarface:timestamps_s": {f"frame_{k}": v for k, v in timing["timestamps_s"].items()},
@@ -285,7 +291,7 @@ def write_usd(source: ExportSource, out: Path, options: ExportOptions) -> dict[s
         results = pool.map(lambda f: _frame_data(source, f, rest, raster, out), source.frames)
         frames = dict(zip(source.frames, results, strict=True))
     timing = _timing(source)
-    _write_geometry_layer(out / USD_GEOMETRY_LAYER, rest, frames)
+    _write_geometry_layer(out / USD_GEOMETRY_LAYER, rest, frames, timing["time_codes_per_second"])
     _write_root_layer(out / USD_ROOT_LAYER, static, textures, frames, timing, source)
     files = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
     return {
