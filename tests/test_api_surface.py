@@ -39,7 +39,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "run_unit",
     ),
     "polarface.export": (
-        "EXPORT_FORMATS", "ExportFormat", "ExportOptions", "ExportSource", "MissingMapError", "export_format",
+        "DiffusionKernels", "EXPORT_FORMATS", "ExportFormat", "ExportOptions", "ExportSource",
+        "MissingMapError", "export_format", "load_kernels",
     ),
     "polarface.geometry": (
         "CylindricalAtlas", "CylindricalAtlasConfig", "EXPRESSIONS", "ExpressionConfig",

@@ -7,13 +7,16 @@ what each loses: ``docs/export.md``.
 """
 
 from polarface.export.formats import EXPORT_FORMATS, ExportFormat, ExportOptions, export_format
+from polarface.export.kernels import DiffusionKernels, load_kernels
 from polarface.export.source import ExportSource, MissingMapError
 
 __all__ = [
     "EXPORT_FORMATS",
+    "DiffusionKernels",
     "ExportFormat",
     "ExportOptions",
     "ExportSource",
     "MissingMapError",
     "export_format",
+    "load_kernels",
 ]

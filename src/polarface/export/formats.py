@@ -29,10 +29,12 @@ class ExportOptions:
     Attributes:
         formats: format names of :data:`EXPORT_FORMATS`, written in this order.
         frames: dynamic frame selection (``"0-4,7"``; None: every frame with maps).
+        kernel_clusters: texel clusters (k-means on the chromophores) of the ``kernels`` format.
     """
 
     formats: tuple[str, ...] = ("mitsuba", "gltf", "usd", "kernels")
     frames: str | None = None
+    kernel_clusters: int = 8
 
     def __post_init__(self) -> None:
         if not self.formats:
@@ -40,6 +42,8 @@ class ExportOptions:
         unknown = [f for f in self.formats if f not in EXPORT_FORMATS]
         if unknown:
             raise ValueError(f"argument 'formats': unknown {unknown}; choose from {sorted(EXPORT_FORMATS)}")
+        if int(self.kernel_clusters) < 1:
+            raise ValueError(f"argument 'kernel_clusters' must be >= 1; got {self.kernel_clusters}")
 
 
 @dataclasses.dataclass(frozen=True)
