@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 
 from polarface.export import EXPORT_FORMATS, ExportOptions, ExportSource, MissingMapError
-from polarface.export.gltf import fresnel_f0
 from polarface.export.gltf_glb import ARRAY_BUFFER, GlbBuilder
 from polarface.pipeline import export_result
 
@@ -27,6 +26,17 @@ EXPLAINED_WARNINGS: dict[str, str] = {}
 
 _DTYPES = {5121: np.uint8, 5123: np.uint16, 5125: np.uint32, 5126: np.float32}
 _WIDTHS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+
+
+def _normal_incidence_reflectance(eta):
+    """Unpolarized Fresnel reflectance at normal incidence from polarface's optics (mean of R_s, R_p)."""
+    import torch
+
+    from polarface.optics.fresnel import fresnel_reflectance
+
+    eta = torch.as_tensor(np.asarray(eta, dtype=np.float64))
+    r_s, r_p = fresnel_reflectance(torch.ones_like(eta), eta)
+    return (0.5 * (r_s + r_p)).numpy()
 
 
 class Glb:
@@ -181,8 +191,8 @@ def test_texture_sizes_roughness_ior_and_specular(exported):
         glb.image(spec["specularColorTexture"]["index"])[rows, cols, 0])
     rho_s = source.scalar_map("rho_s")[rows, cols]
     np.testing.assert_allclose(strength, np.clip(rho_s, 0, 1), atol=0.5 / 255 + 1e-9)
-    f0_gltf = fresnel_f0(extensions["KHR_materials_ior"]["ior"]) * colour * strength
-    f0_polarface = rho_s * fresnel_f0(eta[rows, cols])
+    f0_gltf = _normal_incidence_reflectance(extensions["KHR_materials_ior"]["ior"]) * colour * strength
+    f0_polarface = rho_s * _normal_incidence_reflectance(eta[rows, cols])
     assert np.median(np.abs(f0_gltf / f0_polarface - 1)) < 0.01
     assert np.percentile(np.abs(f0_gltf - f0_polarface), 99) < 2e-3
 

@@ -34,9 +34,10 @@ import numpy as np
 from polarface.export.formats import ExportOptions
 from polarface.export.gltf_glb import ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, GlbBuilder
 from polarface.export.source import ExportSource
+from polarface.export.texture_images import fresnel_f0
 from polarface.io import atomic_path
 
-__all__ = ["GLB_NAME", "LOST", "fresnel_f0", "tangent_space_normals", "write_gltf"]
+__all__ = ["GLB_NAME", "LOST", "tangent_space_normals", "write_gltf"]
 
 #: The file written into the format's folder.
 GLB_NAME = "face.glb"
@@ -55,12 +56,6 @@ LOST = (
 
 _SAMPLER = {"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}  # linear, mip-mapped
 _MM_TO_M = 1e-3
-
-
-def fresnel_f0(eta: np.ndarray | float) -> np.ndarray:
-    """Normal-incidence Fresnel reflectance ``((eta - 1) / (eta + 1))^2`` of a dielectric (glTF's F0)."""
-    eta = np.asarray(eta, dtype=np.float64)
-    return ((eta - 1.0) / (eta + 1.0)) ** 2
 
 
 def _model_rotation(source: ExportSource) -> tuple[np.ndarray, str]:

@@ -20,6 +20,7 @@ __all__ = [
     "BORDER_TEXELS",
     "albedo_srgb_image",
     "fill_outside_mask",
+    "fresnel_f0",
     "normal_map_image",
     "specular_f0",
     "tangent_space_normals",
@@ -89,11 +90,17 @@ def normal_map_image(displacement_mm: np.ndarray, mask: np.ndarray, raster: UVRa
     return 0.5 * tangent_space_normals(displacement_mm, mask, raster) + 0.5
 
 
+def fresnel_f0(eta: np.ndarray | float) -> np.ndarray:
+    """Normal-incidence Fresnel reflectance ``((eta - 1) / (eta + 1))^2`` of a dielectric (glTF's and
+    UsdPreviewSurface's F0), float64."""
+    eta = np.asarray(eta, dtype=np.float64)
+    return ((eta - 1.0) / (eta + 1.0)) ** 2
+
+
 def specular_f0(rho_s: np.ndarray, eta: np.ndarray) -> np.ndarray:
     """Specular reflectance at normal incidence ``rho_s ((eta - 1) / (eta + 1))^2`` (dimensionless).
 
     polarface's specular lobe is ``rho_s F(theta_d; eta) D G / (4 cos_i cos_o)`` (GGX ``D``, ``G``;
     :mod:`polarface.optics.pbssrdf`), so this is its albedo times Fresnel at ``theta_d = 0``.
     """
-    eta = np.asarray(eta, dtype=np.float64)
-    return np.asarray(rho_s, dtype=np.float64) * ((eta - 1.0) / (eta + 1.0)) ** 2
+    return np.asarray(rho_s, dtype=np.float64) * fresnel_f0(eta)
