@@ -39,7 +39,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "run_unit",
     ),
     "polarface.export": (
-        "EXPORT_FORMATS", "ExportFormat", "ExportOptions", "ExportSource", "MissingMapError", "export_format",
+        "EXPORT_FORMATS", "ExportFormat", "ExportOptions", "ExportSource", "MissingMapError", "ViewerData",
+        "build_viewer_data", "export_format",
     ),
     "polarface.geometry": (
         "CylindricalAtlas", "CylindricalAtlasConfig", "EXPRESSIONS", "ExpressionConfig",
@@ -127,6 +128,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
     ),
     "polarface.report": (
         "HtmlPage", "ImageItem", "Section", "biophysical_section", "dynamic_section", "write_report",
+        "write_viewer",
     ),
     "polarface.results": (
         "CHROMOPHORE_MAPS", "CHROMOPHORE_PREVIEWS", "DIAGNOSTIC_MAPS", "DiagnosticMap",
