@@ -11,7 +11,8 @@
   8-bit RGB PNG with square-root companding (:data:`STOKES_ENCODING`);
 * **frames**: per dynamic frame the tracked mesh's positions and normals in the glb's vertex order
   (vertices matched by UV, positions mapped by the affine model -> glb transform fitted on the static
-  mesh) and its base-colour and ``c_h_out`` textures.
+  mesh) and its base-colour and ``c_h_out`` textures (texels outside the frame's mask keep the static
+  result's values).
 """
 
 from __future__ import annotations
@@ -127,17 +128,19 @@ def _png(rgb: np.ndarray) -> bytes:
 def _colour_mapped(values: np.ndarray, mask: np.ndarray, vmin: float, vmax: float) -> bytes:
     from matplotlib import colormaps
 
-    scaled = np.clip((values - vmin) / max(vmax - vmin, 1e-12), 0.0, 1.0)
+    scaled = np.clip((np.nan_to_num(values) - vmin) / max(vmax - vmin, 1e-12), 0.0, 1.0)
     rgb = colormaps[_CMAP](np.where(mask, scaled, 0.0))[..., :3]
     rgb[~mask] = 0.0
     return _png(rgb)
 
 
 def _base_colour(rho_sss_bar: np.ndarray, mask: np.ndarray, rig) -> bytes:
-    from polarface.render.colour import encode_srgb, linear_rgb_from_channels
+    """sRGB of the unfiltered-camera RGB of ``rho_sss_bar``; texels outside ``mask`` take the nearest
+    valid value (as the glb's base colour, so that swapping it in changes nothing off the face)."""
+    from polarface.render import encode_srgb, fill_empty_texels, linear_rgb_from_channels
 
-    rgb = encode_srgb(linear_rgb_from_channels(rho_sss_bar, rig))
-    return _png(np.where(mask[..., None], rgb, 0.0))
+    linear = linear_rgb_from_channels(rho_sss_bar, rig)
+    return _png(encode_srgb(fill_empty_texels(linear, mask) if mask.any() else linear))
 
 
 def _maps(source: ExportSource) -> list[ViewerMap]:
@@ -151,7 +154,7 @@ def _maps(source: ExportSource) -> list[ViewerMap]:
         inside = values[mask & np.isfinite(values)]
         lo, hi = np.percentile(inside, [1, 99]).tolist() if inside.size else (0.0, 1.0)
         hi = hi if hi > lo else lo + 1e-6
-        png = _colour_mapped(np.nan_to_num(values), mask, lo, hi)
+        png = _colour_mapped(values, mask, lo, hi)
         maps.append(ViewerMap(name, f"{name} ({unit})", png, lo, hi, _CMAP))
     return maps
 
@@ -163,6 +166,15 @@ def _companded(values: np.ndarray, scale: float, signed: bool) -> bytes:
     return _png(np.sqrt(np.clip(x, 0.0, 1.0)))
 
 
+def _placement(source: ExportSource) -> np.ndarray | None:
+    """Model -> rig world of the render: identity for a RESULT whose mesh came from the stereo stage
+    (``geometry/mesh.obj``: its model frame is the rig world of the reference frame, ``docs/geometry.md``),
+    else None (the renderer's rest placement of the bundled head's model frame)."""
+    if (source.folder.root / layout.GEOMETRY_DIR / "mesh.obj").is_file():
+        return np.eye(4)
+    return None
+
+
 def _stokes(source: ExportSource) -> dict[str, Any]:
     """The static result at the first polarimetric camera as companded ``S0, S1, S2`` PNGs."""
     from polarface.render.colour import linear_rgb_from_channels
@@ -171,7 +183,7 @@ def _stokes(source: ExportSource) -> dict[str, Any]:
 
     appearance = ResultAppearance.load(source.folder)
     camera = appearance.rig.polarimetric_cameras()[0]
-    view = render_result_view(appearance, camera.id)
+    view = render_result_view(appearance, camera.id, _placement(source))
     rgb = {k: linear_rgb_from_channels(v, appearance.rig) for k, v in view.images.items()}
     s0, s1, s2 = rgb["i0"] + rgb["i90"], rgb["i0"] - rgb["i90"], rgb["i45"] - rgb["i135"]
     mask = view.mask & np.isfinite(s0).all(-1)
@@ -281,12 +293,15 @@ def _frame(source: ExportSource, index: int, alignment, static: dict[str, Viewer
     positions = (mesh.vertices[order] @ linear.T + offset).astype(np.float32)
     normals = mesh.normals[order] @ np.linalg.inv(linear)
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    base = _base_colour(frame.channel_map(layout.RHO_SSS_BAR), frame.mask, source.rig)
-    textures = {layout.RHO_SSS_BAR: base}
+    # texels the frame did not fit (its mask off) keep the static result's values
+    own = frame.mask[..., None]
+    rho = np.where(own, frame.channel_map(layout.RHO_SSS_BAR), source.channel_map(layout.RHO_SSS_BAR))
+    textures = {layout.RHO_SSS_BAR: _base_colour(rho, frame.mask | source.mask, source.rig)}
     for name in _PER_FRAME_MAPS:
         if name in static and frame.map_file(name).is_file():
             entry = static[name]
-            textures[name] = _colour_mapped(frame.scalar_map(name), frame.mask, entry.vmin, entry.vmax)
+            values = np.where(frame.mask, frame.scalar_map(name), source.scalar_map(name))
+            textures[name] = _colour_mapped(values, frame.mask | source.mask, entry.vmin, entry.vmax)
     return ViewerFrame(index, source.timestamp_s(index), positions,
                        np.round(normals * 127).astype(np.int8), textures)
 
