@@ -189,7 +189,7 @@ def test_viewer_page_loads_and_draws_in_chromium(viewer_export, tmp_path):
         # the page's I(theta) from the decoded Stokes PNGs vs the renderer's analyzer images
         expected = payload["stokes"]["analyzer_means"]
         for angle in ("0", "45", "90", "135"):
-            np.testing.assert_allclose(status["polarizer_means"][angle], expected[angle], rtol=0.03)
+            np.testing.assert_allclose(status["polarizer_means"][angle], expected[angle], rtol=0.01)
         first = _view_pixels(browser.screenshot(tmp_path / "static.png"))
         background = np.array([0x30, 0x34, 0x3A]) / 255.0
         drawn = np.abs(first - background).max(-1) > 0.03
