@@ -210,3 +210,23 @@ def test_viewer_page_loads_and_draws_in_chromium(viewer_export, tmp_path):
         status = browser.evaluate(_STATUS)
         assert status["errors"] == [], status["errors"]
         assert browser.console_errors() == []
+
+
+def test_viewer_of_a_static_result_without_stokes_loads(viewer_export, tiny_export, tmp_path):
+    """No frames and no polarizer render: the sliders are disabled, the page still gets ready."""
+    _need_chromium()
+    from polarface.export import build_viewer_data
+    from polarface.report import write_viewer
+
+    _, result = tiny_export
+    data = build_viewer_data(ExportSource.open(result, frames=[]), viewer_export / "gltf" / "face.glb",
+                             stokes=False)
+    record = write_viewer(tmp_path / "viewer", data)
+    assert record["frames"] == 0 and not record["stokes"] and record["notes"]
+    with ChromiumPipe(tmp_path / "profile") as browser:
+        browser.navigate((tmp_path / "viewer" / "index.html").as_uri())
+        status = browser.wait_for(_SETTLED)
+        assert status["errors"] == [] and status["state"] == "ready" and status["frames"] == 0, status
+        assert browser.evaluate("document.getElementById('frame').disabled && "
+                                "document.getElementById('theta').disabled")
+        assert browser.console_errors() == []

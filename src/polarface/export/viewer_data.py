@@ -335,7 +335,12 @@ def build_viewer_data(source: ExportSource, glb_path: Path, *, stokes: bool = Tr
                 frames.append(_frame(source, index, alignment, by_name))
             else:
                 notes.append(f"frame {index}: no mesh.obj or rho_sss_bar map; left out of the frame slider")
-    rendered = _stokes(source) if stokes else None
-    if rendered is None:
+    rendered = None
+    if not stokes:
         notes.append("no Stokes render (stokes=False)")
+    else:
+        try:
+            rendered = _stokes(source)
+        except ValueError as exc:  # e.g. a rig without the two polarimetric cameras the render needs
+            notes.append(f"no Stokes render: {exc}")
     return ViewerData(glb, maps, rendered, frames, notes)
