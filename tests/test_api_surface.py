@@ -40,7 +40,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
     ),
     "polarface.export": (
         "DiffusionKernels", "EXPORT_FORMATS", "ExportFormat", "ExportOptions", "ExportSource",
-        "MissingMapError", "export_format", "load_kernels",
+        "MissingMapError", "ViewerData", "build_viewer_data", "export_format", "load_kernels",
     ),
     "polarface.geometry": (
         "CylindricalAtlas", "CylindricalAtlasConfig", "EXPRESSIONS", "ExpressionConfig",
@@ -128,6 +128,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
     ),
     "polarface.report": (
         "HtmlPage", "ImageItem", "Section", "biophysical_section", "dynamic_section", "write_report",
+        "write_viewer",
     ),
     "polarface.results": (
         "CHROMOPHORE_MAPS", "CHROMOPHORE_PREVIEWS", "DIAGNOSTIC_MAPS", "DiagnosticMap",

@@ -9,6 +9,7 @@ what each loses: ``docs/export.md``.
 from polarface.export.formats import EXPORT_FORMATS, ExportFormat, ExportOptions, export_format
 from polarface.export.kernels import DiffusionKernels, load_kernels
 from polarface.export.source import ExportSource, MissingMapError
+from polarface.export.viewer_data import ViewerData, build_viewer_data
 
 __all__ = [
     "EXPORT_FORMATS",
@@ -17,6 +18,8 @@ __all__ = [
     "ExportOptions",
     "ExportSource",
     "MissingMapError",
+    "ViewerData",
+    "build_viewer_data",
     "export_format",
     "load_kernels",
 ]

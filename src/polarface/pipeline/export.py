@@ -1,10 +1,11 @@
 """``polarface export``: a RESULT folder written for other tools, every requested format in one folder.
 
 Layout of the export folder ``OUT`` (``docs/export.md``): one sub-folder per format (``OUT/mitsuba``,
-``OUT/gltf``, ``OUT/usd``, ``OUT/kernels``; :data:`polarface.export.EXPORT_FORMATS`) and ``OUT/export.json``
+``OUT/gltf``, ``OUT/usd``, ``OUT/kernels``; :data:`polarface.export.EXPORT_FORMATS`), ``OUT/viewer`` (the
+offline 3D viewer page, written whenever ``gltf`` is; :func:`write_export_viewer`) and ``OUT/export.json``
 (``format`` = ``"polarface-export"``, ``version``, ``result``, ``frames``, ``formats.<name>``: the writer's
-record with ``files`` and ``seconds``, ``seconds``). Every format's maps are checked before anything is
-written, so a RESULT lacking one is refused with an error naming the missing file.
+record with ``files`` and ``seconds``, ``formats.viewer`` likewise; ``seconds``). Every format's maps are
+checked before anything is written, so a RESULT lacking one is refused with an error naming the missing file.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from polarface.io.storage import PathOrUrl
 from polarface.pipeline.dynamic import parse_frame_selection
 from polarface.results import ResultFolder
 
-__all__ = ["EXPORT_FORMAT", "EXPORT_JSON", "EXPORT_VERSION", "export_result"]
+__all__ = ["EXPORT_FORMAT", "EXPORT_JSON", "EXPORT_VERSION", "export_result", "write_export_viewer"]
 
 LOGGER = logging.getLogger(__name__)
 
@@ -36,6 +37,25 @@ def _open_source(result: PathOrUrl, options: ExportOptions) -> ExportSource:
     if options.frames is not None:
         frames = parse_frame_selection(options.frames, folder.frame_indices())
     return ExportSource.open(folder, frames)
+
+
+def write_export_viewer(source: ExportSource, out: Path, gltf_record: dict[str, Any]) -> dict[str, Any]:
+    """Write the viewer page ``out/viewer`` of the glb that the gltf writer put in ``out/gltf``.
+
+    Returns:
+        The ``viewer`` record of ``export.json``: files (relative to ``out/viewer``), maps, frames,
+        notes, bytes, seconds.
+    """
+    from polarface.export.viewer_data import build_viewer_data
+    from polarface.report.viewer import write_viewer
+
+    begun = time.perf_counter()
+    glb = next((f for f in gltf_record.get("files", []) if str(f).endswith(".glb")), "face.glb")
+    folder = out / "viewer"
+    LOGGER.info("export viewer -> %s", folder)
+    data = build_viewer_data(source, out / "gltf" / glb)
+    record = write_viewer(folder, data, title=str(source.folder.root))
+    return {**record, "seconds": round(time.perf_counter() - begun, 3)}
 
 
 def export_result(result: PathOrUrl, out: Path, options: ExportOptions | None = None) -> dict[str, Any]:
@@ -68,6 +88,8 @@ def export_result(result: PathOrUrl, out: Path, options: ExportOptions | None = 
         LOGGER.info("export %s -> %s", spec.name, folder)
         record = spec.load_writer()(source if spec.frames else ExportSource(source.folder), folder, options)
         records[spec.name] = {**record, "seconds": round(time.perf_counter() - begun, 3)}
+        if spec.name == "gltf":
+            records["viewer"] = write_export_viewer(source, out, record)
     summary = {
         "format": EXPORT_FORMAT,
         "version": EXPORT_VERSION,

@@ -19,6 +19,7 @@ import numpy as np
 from polarface.io import colormap_png
 from polarface.report.html import HtmlPage, ImageItem
 from polarface.results import DIAGNOSTIC_MAPS, POLARIMETRIC_MAPS, ResultFolder
+from polarface.results.layout import EXPORTS_DIR
 
 __all__ = ["write_report"]
 
@@ -210,6 +211,10 @@ def write_report(
         page.section(
             "Geometry", "Mesh, poses and per-frame meshes reconstructed from the rig's stereo pairs."
         ).link("geometry/report.html", "Open the geometry report (geometry/report.html)")
+    if (folder.root / EXPORTS_DIR / "viewer" / "index.html").is_file():
+        page.section(
+            "3D viewer", "The exported glTF in 3D with its maps, a polarizer and the dynamic frames."
+        ).link(f"{EXPORTS_DIR}/viewer/index.html", f"Open the 3D viewer ({EXPORTS_DIR}/viewer/index.html)")
     _add_map_section(page, folder, stage, maps, mask)
     _add_loss_section(page, folder)
     _add_view_sections(page, folder, maps)
