@@ -56,7 +56,8 @@ class ExportFormat:
         maps: the RESULT maps it needs (``maps/<name>.exr``; ``mask`` is ``maps/mask.png``, ``sog`` is
             ``maps/sog.json``), for the static result and for every exported dynamic frame when
             ``frames`` is set.
-        frames: whether it exports the dynamic frames too.
+        frames: whether it exports the dynamic frames too (their maps are then required as well; every
+            writer gets the same source, whose ``frames`` a static format ignores).
         writer: ``"module:function"``; the function is ``(source, out, options) -> record`` where ``out``
             is the format's (empty, local) folder and ``record`` a JSON-able dict with ``files`` (paths
             relative to ``out``) and any notes.

@@ -61,8 +61,10 @@ class ExportSource:
             chosen = sorted(set(frames))
         return cls(folder, tuple(chosen))
 
+    @functools.cache  # noqa: B019 (one source per export: the formats share each frame's reads)
     def frame(self, index: int) -> ExportSource:
-        """The source of one dynamic frame (``frames/NNNN``: its maps and tracked ``mesh.obj``)."""
+        """The source of one dynamic frame (``frames/NNNN``: its maps and tracked ``mesh.obj``), the same
+        object on every call, so its maps and mesh are read once for all formats."""
         return ExportSource(self.folder.frame(index))
 
     # ---- checks ------------------------------------------------------------------------------
@@ -75,15 +77,15 @@ class ExportSource:
             return self.folder.map_path(name, ".json")
         return self.folder.map_path(name)
 
-    def require(self, names: Iterable[str], format_name: str) -> None:
+    def require(self, names: Iterable[str], format_name: str, *, frames: bool = True) -> None:
         """Refuse, naming every missing file, a source without the maps ``names`` (and ``mesh.obj`` and
-        ``rig.json``) that ``format_name`` needs; the same for each of :attr:`frames`.
+        ``rig.json``) that ``format_name`` needs; with ``frames``, the same for each of :attr:`frames`.
 
         Raises:
             MissingMapError: a map or file is missing.
         """
         names = tuple(names)
-        sources = [self, *(self.frame(f) for f in self.frames)]
+        sources = [self, *(self.frame(f) for f in self.frames if frames)]
         missing = []
         for source in sources:
             files = [source.map_file(n) for n in names]

@@ -166,15 +166,6 @@ def _companded(values: np.ndarray, scale: float, signed: bool) -> bytes:
     return _png(np.sqrt(np.clip(x, 0.0, 1.0)))
 
 
-def _placement(source: ExportSource) -> np.ndarray | None:
-    """Model -> rig world of the render: identity for a RESULT whose mesh came from the stereo stage
-    (``geometry/mesh.obj``: its model frame is the rig world of the reference frame, ``docs/geometry.md``),
-    else None (the renderer's rest placement of the bundled head's model frame)."""
-    if (source.folder.root / layout.GEOMETRY_DIR / "mesh.obj").is_file():
-        return np.eye(4)
-    return None
-
-
 def _stokes(source: ExportSource) -> dict[str, Any]:
     """The static result at the first polarimetric camera as companded ``S0, S1, S2`` PNGs."""
     from polarface.render.colour import linear_rgb_from_channels
@@ -183,7 +174,7 @@ def _stokes(source: ExportSource) -> dict[str, Any]:
 
     appearance = ResultAppearance.load(source.folder)
     camera = appearance.rig.polarimetric_cameras()[0]
-    view = render_result_view(appearance, camera.id, _placement(source))
+    view = render_result_view(appearance, camera.id)  # at appearance.placement (ResultFolder.rest_placement)
     rgb = {k: linear_rgb_from_channels(v, appearance.rig) for k, v in view.images.items()}
     s0, s1, s2 = rgb["i0"] + rgb["i90"], rgb["i0"] - rgb["i90"], rgb["i45"] - rgb["i135"]
     mask = view.mask & np.isfinite(s0).all(-1)

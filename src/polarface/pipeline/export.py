@@ -78,7 +78,7 @@ def export_result(result: PathOrUrl, out: Path, options: ExportOptions | None = 
     source = _open_source(result, options)
     formats = [EXPORT_FORMATS[name] for name in options.formats]
     for spec in formats:
-        (source if spec.frames else ExportSource(source.folder)).require(spec.maps, spec.name)
+        source.require(spec.maps, spec.name, frames=spec.frames)
     out = Path(out)
     records: dict[str, Any] = {}
     for spec in formats:
@@ -86,7 +86,7 @@ def export_result(result: PathOrUrl, out: Path, options: ExportOptions | None = 
         folder = out / spec.name
         folder.mkdir(parents=True, exist_ok=True)
         LOGGER.info("export %s -> %s", spec.name, folder)
-        record = spec.load_writer()(source if spec.frames else ExportSource(source.folder), folder, options)
+        record = spec.load_writer()(source, folder, options)  # one source: each map is read once
         records[spec.name] = {**record, "seconds": round(time.perf_counter() - begun, 3)}
         if spec.name == "gltf":
             records["viewer"] = write_export_viewer(source, out, record)
