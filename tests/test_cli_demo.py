@@ -72,6 +72,10 @@ def test_demo_pipeline_tiny_end_to_end(tmp_path):
     record = json.loads((out / "result" / "result.json").read_text(encoding="utf-8"))
     options = record["fingerprint"]["options"]
     assert (options["optimizer"], options["iterations"]) == ("rmsprop", 150)
+    # every export format, and the 3D viewer linked from the landing page
+    exports = json.loads((out / "result" / "exports" / "export.json").read_text(encoding="utf-8"))
+    assert {"mitsuba", "gltf", "viewer", "usd", "kernels"} <= set(exports["formats"])
+    assert "result/exports/viewer/index.html" in page
 
 
 def test_sphere_demo_never_deletes_user_data(tmp_path, capsys):
