@@ -35,6 +35,7 @@ import math
 import os
 import resource
 import time
+from collections.abc import Sequence
 
 import numba
 import numpy as np
@@ -320,13 +321,19 @@ def _repeat_rates(run, samples: int, seconds: float, repeats: int, min_iteration
 
 
 def _timed_rates(
-    bench: BenchmarkProblem, device: torch.device, seconds: float, repeats: int, min_iterations: int
+    bench: BenchmarkProblem,
+    device: torch.device,
+    seconds: float,
+    repeats: int,
+    min_iterations: int,
+    names: Sequence[str],
 ) -> dict[str, dict]:
-    """Workload name -> :func:`_repeat_rates` (NaN rates for workloads that do not run on ``device``)."""
+    """Workload name -> :func:`_repeat_rates` (NaN rates for workloads that do not run on ``device`` or
+    are not in ``names``)."""
     out = {}
     workloads = _timed_workloads(bench, device)
     for name in TIMED:
-        if name not in workloads:
+        if name not in workloads or name not in names:
             out[name] = {"median": math.nan, "min": math.nan, "max": math.nan, "wall_s": math.nan}
             continue
         run, problem, threads = workloads[name]
@@ -396,6 +403,7 @@ def run_benchmark(
     device: str | torch.device = "cpu",
     seconds: float = 3.0,
     repeats: int = 5,
+    workloads: Sequence[str] | None = None,
 ) -> dict:
     """Time every workload of :data:`TIMED` and the eager baseline (module docstring); returns a
     JSON-able dict.
@@ -407,6 +415,7 @@ def run_benchmark(
         device: torch device of the torch workload (the fused ones run on the CPU only).
         seconds: timed wall seconds per workload, over all repeats (iteration counts are calibrated).
         repeats: timed repeats per workload (the rates' median and spread are reported).
+        workloads: names of :data:`TIMED` to time (default: all; the others get NaN rates).
 
     Returns:
         ``fused_kernel_texel_view_iterations_per_s`` (median rate of ``fused_objective``: what the
@@ -421,8 +430,12 @@ def run_benchmark(
     bench = benchmark_problem(side, frames, device=device)
     setup_s = time.perf_counter() - started
     problem = bench.problems["torch"]
-    workloads = _timed_rates(bench, torch.device(device), float(seconds), int(repeats), int(iterations))
-    fused, torch_rates = workloads["fused_objective"], workloads["torch_objective"]
+    names = list(TIMED) if workloads is None else list(workloads)
+    unknown = [n for n in names if n not in TIMED]
+    if unknown:
+        raise ValueError(f"argument 'workloads' must name workloads of {list(TIMED)}; got {unknown}")
+    rates = _timed_rates(bench, torch.device(device), float(seconds), int(repeats), int(iterations), names)
+    fused, torch_rates = rates["fused_objective"], rates["torch_objective"]
     fused_rate, torch_rate = fused["median"], torch_rates["median"]
     best_rate = fused_rate if fused_rate == fused_rate else torch_rate
     eager_rate, eager_s = _eager_rate(problem, bench.views, baseline_texels)
@@ -445,7 +458,7 @@ def run_benchmark(
         "eager_s": eager_s,
         "seconds_per_workload": float(seconds),
         "repeats": int(repeats),
-        "workloads": workloads,
+        "workloads": rates,
         "timed": dict(TIMED),
         "load_average": [load_before, os.getloadavg()[0]],
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
