@@ -18,9 +18,11 @@ Measures
   patch. Each graph node is one add/sub/mul/div/sqrt; equal nodes inside one vectorised loop body
   (per phase, per light) are merged (as LLVM's CSE does), and only nodes that reach the kernel's
   outputs are counted (as its dead-code elimination does). Not counted: min/max, compares and selects,
-  negations, the gather/scatter copies. Bytes: the compulsory traffic per sample
-  (:class:`~polarface.inverse.polarimetric.fused.FusedSamples`: view index, light bitmask, 9
-  observations) plus the per-texel parameters, position, gradient and loss shared by its views;
+  negations, the gather/scatter copies. (Check: the traced sample's loss equals the compiled kernel's
+  on a one-sample patch to 1e-16 relative, so the trace runs the kernel's own arithmetic.) Bytes: the
+  compulsory traffic per sample (:class:`~polarface.inverse.polarimetric.fused.FusedSamples`: view
+  index, light bitmask, 9 observations) plus the per-texel parameters, position, gradient and loss
+  shared by its views;
 * the kernel's achieved rate (``polarface bench``'s ``fused_kernel_only`` and ``fused_objective``
   workloads: calibrated seconds, median of repeats);
 

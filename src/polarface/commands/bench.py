@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--frames", type=int, default=24, help="static frames (2 views each; default 24 = demo)"
     )
     parser.add_argument(
-        "--iterations", type=int, default=5, help="at least this many iterations per timed repeat (default 5)"
+        "--iterations", type=int, default=1, help="at least this many iterations per timed repeat (default 1)"
     )
     parser.add_argument(
         "--seconds",

@@ -398,7 +398,7 @@ def _eager_rate(problem: PatchProblem, views: list[ViewSpec], baseline_texels: i
 def run_benchmark(
     side: int = 48,
     frames: int = 24,
-    iterations: int = 5,
+    iterations: int = 1,
     baseline_texels: int = 4,
     device: str | torch.device = "cpu",
     seconds: float = 3.0,
