@@ -317,6 +317,8 @@ def _repeat_rates(run, samples: int, seconds: float, repeats: int, min_iteration
         "wall_s": wall,
         "cpu_s": cpu,
         "cpu_per_wall": cpu / wall if wall > 0 else math.nan,
+        # per CPU-second of this process (all its threads): steadier than wall rates on a shared machine
+        "per_cpu_second": samples * iterations * repeats / cpu if cpu > 0 else math.nan,
     }
 
 
