@@ -233,7 +233,7 @@ CAL = (
 )
 CAL3 = CAL.replace("left01.jpg", "left0[123].jpg")
 DEMO = "demo --sphere --out {ws}/out"
-BENCH = "bench --side 8 --frames 1 --iterations 1 --baseline-texels 1 --threads 1"
+BENCH = "bench --side 8 --frames 1 --iterations 1 --baseline-texels 1 --threads 1 --seconds 0.05 --repeats 1"
 IOR = "ior {ior}"
 
 
@@ -583,6 +583,8 @@ def _simulate_demo_bench_rows() -> list[Row]:
         "--iterations": ("0", "-1"),
         "--baseline-texels": ("0", "-3"),
         "--threads": ("0", "-1"),
+        "--seconds": ("0", "-1", "nan", "inf"),
+        "--repeats": ("0", "-2"),
     }.items():
         rows += [row(f"bench{arg}={v}", f"{BENCH} {arg} {v}", arg.lstrip("-")) for v in values]
     return rows
@@ -774,6 +776,8 @@ def _reconstruct_rows() -> list[Row]:
         "--refine-lobes": ("-1",),
         "--holdout-every": ("-1",),
         "--threads": ("0", "-1"),
+        "--seconds": ("0", "-1", "nan", "inf"),
+        "--repeats": ("0", "-2"),
     }.items():
         name = arg.lstrip("-").split("-")[0]
         rows += [row(f"reconstruct{arg}={v}", f"{SIMR} {arg} {v}", name) for v in values]
@@ -914,6 +918,8 @@ def _biophysical_rows() -> list[Row]:
         "--shape-rounds": ("-1",),
         "--gamut-tolerance": ("-0.1", "nan"),
         "--threads": ("0", "-1"),
+        "--seconds": ("0", "-1", "nan", "inf"),
+        "--repeats": ("0", "-2"),
     }.items():
         rows += [
             row(f"biophysical{arg}={v}", f"{BIO} {arg} {v}", arg.lstrip("-").split("-")[0]) for v in values

@@ -194,6 +194,10 @@ def test_bench_smoke(capsys):
                 "1",
                 "--threads",
                 "1",
+                "--seconds",
+                "0.05",
+                "--repeats",
+                "2",
                 "--json",
             ]
         )
@@ -205,6 +209,13 @@ def test_bench_smoke(capsys):
         > result["eager_baseline_texel_view_iterations_per_s"]
     )
     assert result["torch_vectorised_texel_view_iterations_per_s"] > 0 and result["speedup"] > 1
+    # every workload: a median within its repeats' spread, at least --iterations per repeat
+    for rates in result["workloads"].values():
+        assert rates["min"] <= rates["q25"] <= rates["median"] <= rates["q75"] <= rates["max"]
+        assert len(rates["rates"]) == result["repeats"] == 2 and rates["iterations_per_repeat"] >= 1
+    headline = result["fused_kernel_texel_view_iterations_per_s"]
+    assert headline == result["workloads"]["fused_objective"]["median"]
+    assert len(result["load_average"]) == 2
     # --threads holds for the command only (other work in this process keeps its thread counts)
     assert (torch.get_num_threads(), numba.get_num_threads()) == before
     assert main(["bench", "--side", "2"]) == 2

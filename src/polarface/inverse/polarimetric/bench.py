@@ -4,26 +4,38 @@
 :data:`~polarface.inverse.polarimetric.engines.POLARIMETRIC_ENGINES` without any file: a spherical-cap
 texture patch (``side x side`` texels, head-sized, 1 m in front of :func:`polarface.capture.rig.paper_rig`)
 seen by both polarimetric cameras over ``frames`` chair yaws (the demo preset: 24 frames = 48 views),
-with observations rendered by the model itself. :func:`run_benchmark` times
+with observations rendered by the model itself. :func:`run_benchmark` times the workloads of
+:data:`TIMED` on the whole patch:
 
-* each engine that runs on the device (the fused kernel, :mod:`polarface.inverse.polarimetric.kernel`,
-  numba, analytic gradients, and the vectorised torch autograd reference): one optimiser iteration
-  (forward, backward, RMSprop step) of :func:`polarface.inverse.polarimetric.optimise.optimise_patch`
-  on the whole patch each;
-* the baseline: the same losses written the straightforward way (the style of the authors' release):
-  a Python loop over texels, each evaluating :func:`polarface.optics.render_polarimetric` for its views
-  one light at a time, its own backward and optimiser step;
+* ``fused_objective``: one evaluation of the total loss and its gradient on the packed raw variables
+  (:class:`polarface.inverse.polarimetric.step.FusedObjective`: numba forward, the fused kernel of
+  :mod:`polarface.inverse.polarimetric.kernel`, numba regularisers and chain rule) — what the default
+  L-BFGS fit calls about 1.05 times per iteration; its rate is the headline ``fused_kernel`` rate;
+* ``fused_kernel_only``: the fused kernel alone
+  (:func:`~polarface.inverse.polarimetric.fused.fused_loss_and_grad`, data loss and its gradient; the
+  number benchmarks/bench_roofline.py sets against this CPU's bounds);
+* ``fused_rmsprop_step``: whole RMSprop steps as the stereo-geometry default runs them
+  (:func:`~polarface.inverse.polarimetric.optimise.optimise_patch` with ``optimizer="rmsprop"``);
+* ``torch_objective``: loss and autograd backward of the vectorised torch reference (what L-BFGS calls
+  on non-CPU devices);
 
-and reports texel-view iterations per second for each, the speed-up of the fastest over the baseline
-and the peak RSS.
+each for about ``seconds`` of wall time: a calibrated iteration count per repeat (after a warm-up that
+includes the JIT compile), ``repeats`` repeats, and their median, min/max and interquartile range (a
+shared machine makes single short timings swing by tens of percent). The baseline is the same losses
+written the straightforward way (the style of the authors' release): a Python loop over texels, each
+evaluating :func:`polarface.optics.render_polarimetric` for its views one light at a time, its own
+backward and optimiser step (two steps per texel: it is ~1e3 times slower). Rates are texel-view
+iterations per second: samples (texel x view) times iterations over wall seconds.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import resource
 import time
+from collections.abc import Sequence
 
 import numba
 import numpy as np
@@ -31,7 +43,7 @@ import torch
 
 from polarface.inverse.polarimetric.config import PolarimetricConfig, initial_raw
 from polarface.inverse.polarimetric.engines import POLARIMETRIC_ENGINES
-from polarface.inverse.polarimetric.fused import build_fused_samples
+from polarface.inverse.polarimetric.fused import build_fused_samples, fused_loss_and_grad
 from polarface.inverse.polarimetric.losses import data_losses
 from polarface.inverse.polarimetric.model import (
     SampleBatch,
@@ -41,9 +53,20 @@ from polarface.inverse.polarimetric.model import (
 )
 from polarface.inverse.polarimetric.optimise import optimise_patch
 from polarface.inverse.polarimetric.problem import PatchProblem
+from polarface.inverse.polarimetric.step import FusedObjective, pack_raw
 from polarface.texture import TexelGeometry, ViewSpec, build_views, texel_geometry
 
-__all__ = ["BenchmarkProblem", "benchmark_problem", "run_benchmark"]
+__all__ = ["PAPER_A100_RATE", "TIMED", "BenchmarkProblem", "benchmark_problem", "run_benchmark"]
+
+#: Timed workloads (module docstring): name -> what one iteration is.
+TIMED = {
+    "fused_objective": "FusedObjective: loss + analytic gradient of the whole patch (one L-BFGS evaluation)",
+    "fused_kernel_only": "fused_loss_and_grad: the data-loss kernel alone (forward + analytic gradient)",
+    "fused_rmsprop_step": "optimise_patch(optimizer='rmsprop'): objective + RMSprop update, all numba",
+    "torch_objective": "PatchProblem.loss + autograd backward of the torch reference",
+}
+#: The paper's rate on an A100: 150 epochs x 2048^2 texels x 200 frames in 180 min (texel-view its / s).
+PAPER_A100_RATE = 150 * 2048 * 2048 * 200 / (180 * 60)
 
 
 @dataclasses.dataclass
@@ -208,35 +231,121 @@ def _eager_texel_step(samples: list[dict], params: dict[str, torch.Tensor], opti
     optimizer.step()
 
 
-def _engine_rate(
-    problem: PatchProblem, raw: dict[str, torch.Tensor], iterations: int, device: torch.device
-) -> tuple[float, float]:
-    """``(texel-view iterations per second, seconds)`` of ``iterations`` optimiser steps on ``problem``."""
-    optimise_patch(problem, raw, PolarimetricConfig(iterations=1))  # warm-up (and JIT compile)
-    tick = time.perf_counter()
-    optimise_patch(problem, raw, PolarimetricConfig(iterations=int(iterations), warmup=1))
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-    seconds = time.perf_counter() - tick
-    return problem.batch.count * iterations / seconds, seconds
+def _timed_workloads(bench: BenchmarkProblem, device: torch.device) -> dict[str, tuple]:
+    """Workload name -> ``(run(n), problem, torch threads)`` for each workload of :data:`TIMED` that runs
+    on ``device``; ``run(n)`` does ``n`` iterations of it."""
+    config = PolarimetricConfig()
+    workloads: dict[str, tuple] = {}
+    if POLARIMETRIC_ENGINES["fused"].supports(device):
+        fused_problem = bench.problems["fused"]
+        objective = FusedObjective(fused_problem, config, np.dtype(np.float32))
+        packed = pack_raw(bench.raw).astype(np.float64)  # as the fused L-BFGS holds them
+        grad = np.zeros(packed.shape)
+        objective(packed, grad)  # fills objective.params for the kernel-only workload
+
+        def fused_objective(n: int) -> None:
+            for _ in range(n):
+                objective(packed, grad)
+
+        samples = objective.samples
+
+        def fused_kernel(n: int) -> None:
+            for _ in range(n):
+                fused_loss_and_grad(samples, objective.params, objective.data_weights, objective.scale)
+
+        def fused_rmsprop(n: int) -> None:
+            rmsprop = dataclasses.replace(config, optimizer="rmsprop", iterations=n)
+            optimise_patch(fused_problem, bench.raw, rmsprop)
+
+        # as in the fit: the kernel's threads are numba's; torch (L-BFGS's update) runs on one thread
+        workloads["fused_objective"] = (fused_objective, fused_problem, 1)
+        workloads["fused_kernel_only"] = (fused_kernel, fused_problem, 1)
+        workloads["fused_rmsprop_step"] = (fused_rmsprop, fused_problem, 1)
+    torch_problem = bench.problems["torch"]
+    leaves = {k: v.detach().clone().requires_grad_(True) for k, v in bench.raw.items()}
+
+    def torch_objective(n: int) -> None:
+        for _ in range(n):
+            for leaf in leaves.values():
+                leaf.grad = None
+            total, _ = torch_problem.loss(leaves)
+            total.backward()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+
+    workloads["torch_objective"] = (torch_objective, torch_problem, torch.get_num_threads())
+    return workloads
 
 
-def _engine_rates(bench: BenchmarkProblem, iterations: int, device: torch.device) -> dict[str, tuple]:
-    """Engine name -> ``(rate, seconds)`` (NaN for engines that do not run on ``device``)."""
-    rates = {}
-    for name, engine in POLARIMETRIC_ENGINES.items():
-        if not engine.supports(device):
-            rates[name] = (math.nan, math.nan)
+def _calibrated_iterations(run, seconds_per_repeat: float, min_iterations: int) -> int:
+    """Iterations of ``run`` that take about ``seconds_per_repeat`` (at least ``min_iterations``), from
+    doubling trial runs of up to about a quarter of it."""
+    run(1)  # warm-up (JIT compile, caches)
+    n, elapsed = 1, 0.0
+    while True:
+        tick = time.perf_counter()
+        run(n)
+        elapsed = time.perf_counter() - tick
+        if elapsed >= 0.25 * seconds_per_repeat or n >= 1 << 20:
+            break
+        n *= 2
+    return max(int(min_iterations), math.ceil(seconds_per_repeat * n / max(elapsed, 1e-9)))
+
+
+def _repeat_rates(run, samples: int, seconds: float, repeats: int, min_iterations: int) -> dict:
+    """Median and spread of the texel-view iteration rate of ``run`` over ``repeats`` timed repeats of
+    about ``seconds / repeats`` each (:func:`_calibrated_iterations`)."""
+    iterations = _calibrated_iterations(run, seconds / repeats, min_iterations)
+    rates, wall, cpu = [], 0.0, 0.0
+    for _ in range(repeats):
+        cpu_tick, tick = time.process_time(), time.perf_counter()
+        run(iterations)
+        elapsed = time.perf_counter() - tick
+        cpu += time.process_time() - cpu_tick
+        wall += elapsed
+        rates.append(samples * iterations / elapsed)
+    q25, median, q75 = np.percentile(rates, [25, 50, 75])
+    return {
+        "median": float(median),
+        "min": float(min(rates)),
+        "max": float(max(rates)),
+        "q25": float(q25),
+        "q75": float(q75),
+        "rates": [float(r) for r in rates],
+        "repeats": int(repeats),
+        "iterations_per_repeat": int(iterations),
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "cpu_per_wall": cpu / wall if wall > 0 else math.nan,
+        # per CPU-second of this process (all its threads): steadier than wall rates on a shared machine
+        "per_cpu_second": samples * iterations * repeats / cpu if cpu > 0 else math.nan,
+    }
+
+
+def _timed_rates(
+    bench: BenchmarkProblem,
+    device: torch.device,
+    seconds: float,
+    repeats: int,
+    min_iterations: int,
+    names: Sequence[str],
+) -> dict[str, dict]:
+    """Workload name -> :func:`_repeat_rates` (NaN rates for workloads that do not run on ``device`` or
+    are not in ``names``)."""
+    out = {}
+    workloads = _timed_workloads(bench, device)
+    for name in TIMED:
+        if name not in workloads or name not in names:
+            out[name] = {"median": math.nan, "min": math.nan, "max": math.nan, "wall_s": math.nan}
             continue
+        run, problem, threads = workloads[name]
         previous = torch.get_num_threads()
-        if engine.fused_samples:
-            # as in the fit: the kernel's threads are numba's; torch's per-texel glue runs on one thread
-            torch.set_num_threads(1)
+        torch.set_num_threads(threads)
         try:
-            rates[name] = _engine_rate(bench.problems[name], bench.raw, iterations, device)
+            out[name] = _repeat_rates(run, problem.batch.count, seconds, repeats, min_iterations)
         finally:
             torch.set_num_threads(previous)
-    return rates
+    return out
 
 
 def _eager_texel_inputs(problem: PatchProblem, views: list[ViewSpec], texel: int) -> tuple[list[dict], dict]:
@@ -291,17 +400,45 @@ def _eager_rate(problem: PatchProblem, views: list[ViewSpec], baseline_texels: i
 def run_benchmark(
     side: int = 48,
     frames: int = 24,
-    iterations: int = 5,
+    iterations: int = 1,
     baseline_texels: int = 4,
     device: str | torch.device = "cpu",
+    seconds: float = 3.0,
+    repeats: int = 5,
+    workloads: Sequence[str] | None = None,
 ) -> dict:
-    """Time every engine and the eager baseline (module docstring); returns a JSON-able dict."""
+    """Time every workload of :data:`TIMED` and the eager baseline (module docstring); returns a
+    JSON-able dict.
+
+    Args:
+        side, frames: the patch (:func:`benchmark_problem`).
+        iterations: at least this many iterations per timed repeat.
+        baseline_texels: texels of the eager baseline (2 iterations each).
+        device: torch device of the torch workload (the fused ones run on the CPU only).
+        seconds: timed wall seconds per workload, over all repeats (iteration counts are calibrated).
+        repeats: timed repeats per workload (the rates' median and spread are reported).
+        workloads: names of :data:`TIMED` to time (default: all; the others get NaN rates).
+
+    Returns:
+        ``fused_kernel_texel_view_iterations_per_s`` (median rate of ``fused_objective``: what the
+        default L-BFGS fit evaluates per iteration), ``torch_vectorised_texel_view_iterations_per_s``
+        (median of ``torch_objective``), ``eager_baseline_texel_view_iterations_per_s``, ``speedup``
+        (fastest over eager), ``workloads`` (name -> median, min, max, q25, q75, per-repeat rates,
+        iterations per repeat, wall and CPU seconds), ``load_average`` (1-minute, before and after),
+        peak RSS and the run's sizes.
+    """
+    load_before = os.getloadavg()[0]
     started = time.perf_counter()
     bench = benchmark_problem(side, frames, device=device)
     setup_s = time.perf_counter() - started
     problem = bench.problems["torch"]
-    rates = _engine_rates(bench, iterations, torch.device(device))
-    (fused_rate, fused_s), (torch_rate, torch_s) = rates["fused"], rates["torch"]
+    names = list(TIMED) if workloads is None else list(workloads)
+    unknown = [n for n in names if n not in TIMED]
+    if unknown:
+        raise ValueError(f"argument 'workloads' must name workloads of {list(TIMED)}; got {unknown}")
+    rates = _timed_rates(bench, torch.device(device), float(seconds), int(repeats), int(iterations), names)
+    fused, torch_rates = rates["fused_objective"], rates["torch_objective"]
+    fused_rate, torch_rate = fused["median"], torch_rates["median"]
     best_rate = fused_rate if fused_rate == fused_rate else torch_rate
     eager_rate, eager_s = _eager_rate(problem, bench.views, baseline_texels)
     return {
@@ -310,16 +447,22 @@ def run_benchmark(
         "texels": int(problem.texel_count),
         "views": len(bench.views),
         "samples": problem.batch.count,
-        "iterations": int(iterations),
+        "iterations": int(fused.get("iterations_per_repeat", iterations)),
         "numba_threads": numba.get_num_threads(),
         "fused_kernel_texel_view_iterations_per_s": fused_rate,
         "torch_vectorised_texel_view_iterations_per_s": torch_rate,
         "eager_baseline_texel_view_iterations_per_s": eager_rate,
         "speedup": best_rate / eager_rate if eager_rate > 0 else math.nan,
-        "paper_a100_rate": 150 * 2048 * 2048 * 200 / (180 * 60),
+        "paper_a100_rate": PAPER_A100_RATE,
         "setup_s": setup_s,
-        "fused_s": fused_s,
-        "torch_s": torch_s,
+        "fused_s": fused["wall_s"],
+        "torch_s": torch_rates["wall_s"],
         "eager_s": eager_s,
+        "seconds_per_workload": float(seconds),
+        "repeats": int(repeats),
+        "workloads": rates,
+        "timed": dict(TIMED),
+        "load_average": [load_before, os.getloadavg()[0]],
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
     }
+
