@@ -8,16 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pxr import Usd, UsdGeom, UsdShade  # usd-core: a dependency of polarface (the export's reader here)
 
-pxr = pytest.importorskip("pxr", reason="usd-core is not installed")
-from pxr import Usd, UsdGeom, UsdShade  # noqa: E402
-
-from polarface.export import ExportOptions, ExportSource, MissingMapError  # noqa: E402
-from polarface.export.texture_images import tangent_space_normals  # noqa: E402
-from polarface.geometry import rasterize_uv  # noqa: E402
-from polarface.io import read_png  # noqa: E402
-from polarface.pipeline import export_result  # noqa: E402
-from polarface.render import encode_srgb, linear_rgb_from_channels  # noqa: E402
+from polarface.export import ExportOptions, ExportSource, MissingMapError
+from polarface.export.texture_images import tangent_space_normals
+from polarface.geometry import rasterize_uv
+from polarface.io import read_png
+from polarface.pipeline import export_result
+from polarface.render import encode_srgb, linear_rgb_from_channels
 
 
 @pytest.fixture(scope="module")
@@ -159,3 +157,17 @@ def test_a_result_without_a_frame_map_is_refused_by_name(tiny_export, tmp_path):
     with pytest.raises(MissingMapError, match=r"'usd' needs .*frames/0001/maps/displacement_mm\.exr"):
         export_result(copy, tmp_path / "out", ExportOptions(formats=("usd",)))
     assert not (tmp_path / "out" / "usd").exists()
+
+
+def test_a_static_result_has_no_time_samples(tiny_export, tmp_path):
+    _, result = tiny_export
+    from polarface.export.usd import write_usd
+
+    source = ExportSource.open(result, frames=[])
+    record = write_usd(source, tmp_path, ExportOptions(formats=("usd",)))
+    stage = Usd.Stage.Open(str(tmp_path / record["root"]))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/Mesh"))
+    assert list(mesh.GetPointsAttr().GetTimeSamples()) == []
+    np.testing.assert_allclose(np.asarray(mesh.GetPointsAttr().Get()), source.mesh.vertices, atol=1e-3)
+    for path in record["files"]:
+        assert (tmp_path / path).is_file(), path
