@@ -36,8 +36,13 @@ import torch
 from polarface.inverse.polarimetric.config import PolarimetricConfig, maps_from_raw
 from polarface.inverse.polarimetric.engines import resolve_engine
 from polarface.inverse.polarimetric.init import apply_closed_form_starts
+from polarface.inverse.polarimetric.model import SampleBatch
 from polarface.inverse.polarimetric.optimise import optimise_patch
-from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
+from polarface.inverse.polarimetric.problem import (
+    PatchProblem,
+    build_patch_fused_samples,
+    build_patch_samples,
+)
 from polarface.inverse.polarimetric.refine import refine_patch_lobes
 from polarface.texture import UnwrapStore
 
@@ -199,26 +204,33 @@ def _fit_region(unwrap: UnwrapStore, unit: PatchUnit, device: torch.device, fuse
     hrows, hcols, (ir, ic) = haloed_slices(unit.rows, unit.cols, config.halo, unwrap.resolution)
     views = unwrap.views
     fitting = [i for i, view in enumerate(views) if not view.held_out]
-    built = build_patch_samples(unwrap, hrows, hcols, fitting, views, dtype=dtype, device=device, fused=fused)
-    batch, geometry = built[0], built[1]
-    if batch is None:
+    # the fused engine fits, and starts, on its compact samples; the per-sample-and-light reference batch
+    # is built only where something needs it (the torch engine, the lobe refinement)
+    reference: SampleBatch | None = None
+    if fused and config.refine_lobes_iterations <= 0:
+        packed, geometry = build_patch_fused_samples(unwrap, hrows, hcols, fitting, views, dtype=dtype)
+    else:
+        built = build_patch_samples(unwrap, hrows, hcols, fitting, views, dtype=dtype, device=device,
+                                    fused=fused)
+        reference, geometry, packed = built[0], built[1], (built[2] if fused else None)
+    if packed is None and reference is None:
         return PatchResult(unit.index)
-    problem = PatchProblem(batch, geometry, config, unit.scale, dtype, device, built[2] if fused else None)
+    problem = PatchProblem(None if fused else reference, geometry, config, unit.scale, dtype, device, packed)
     # copies: arrays a unit arrives with may be read-only (Ray's object store)
     patch_raw = {k: torch.as_tensor(np.array(v), dtype=dtype, device=device) for k, v in unit.raw.items()}
     todo = ~np.asarray(unit.initialised, bool)
     if todo.any():
-        apply_closed_form_starts(batch, patch_raw, todo, problem.normals, config, dtype, device)
-    sample_count, seen_texels = batch.count, batch.texel.cpu().numpy()
-    # the reference batch serves the closed-form starts and the lobe refinement only
-    reference = batch if config.refine_lobes_iterations > 0 else None
-    if fused:
-        problem.batch = batch = None
+        starts_from = packed if packed is not None else reference
+        apply_closed_form_starts(starts_from, patch_raw, todo, problem.normals, config, dtype, device)
+    if packed is not None:
+        sample_count, seen_texels = packed.count, np.flatnonzero(np.diff(packed.offsets))
+    else:
+        sample_count, seen_texels = reference.count, reference.texel.cpu().numpy()
     curve: list[float] = []
     tick = time.perf_counter()
     result = optimise_patch(problem, patch_raw, config, curve)
     optimise_s, refine_s = time.perf_counter() - tick, 0.0
-    if reference is not None:  # Levenberg-Marquardt on the four lobe maps
+    if config.refine_lobes_iterations > 0:  # Levenberg-Marquardt on the four lobe maps
         tick = time.perf_counter()
         with torch.no_grad():
             normal = problem.normals(maps_from_raw(result, config)["displacement_mm"][..., 0])
