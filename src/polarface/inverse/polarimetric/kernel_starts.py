@@ -136,6 +136,7 @@ def _albedo_kernel(offsets, position, sample_view, sample_lit, observed, view_ce
         num_s = np.zeros(grid_count)
         den_s = np.zeros(grid_count)
         spec = np.zeros((grid_count, 3))
+        exit_g1 = np.zeros(grid_count)
         flux = np.zeros(3)
         rest = np.zeros(3)
         lw = np.zeros(3)
@@ -186,6 +187,8 @@ def _albedo_kernel(offsets, position, sample_view, sample_lit, observed, view_ce
                 )
                 front = cos_o > 0.0
                 gss_o, _, _ = _g1_over_cos(cos_o, alpha_ss, alpha2_ss)
+                for j in range(grid_count):
+                    exit_g1[j], _, _ = _g1_over_cos(cos_o, alpha_grid[j], alpha_grid[j] * alpha_grid[j])
                 flux[:] = 0.0
                 rest[:] = 0.0
                 spec[:, :] = 0.0
@@ -222,8 +225,7 @@ def _albedo_kernel(offsets, position, sample_view, sample_lit, observed, view_ce
                         alpha2 = alpha * alpha
                         d_s, _, _ = _ggx(cos_h, alpha, alpha2)
                         gs_i, _, _ = _g1_over_cos(cos_i, alpha, alpha2)
-                        gs_o, _, _ = _g1_over_cos(cos_o, alpha, alpha2)
-                        lobe = scaled * (d_s * gs_i * gs_o)
+                        lobe = scaled * (d_s * gs_i * exit_g1[j])
                         for c in range(3):
                             spec[j, c] += lw[c] * lobe
                 _, t_minus_o = _transmission(cos_o, eta)
