@@ -3,7 +3,9 @@ row-major loop of ``polarface.inverse.polarimetric.fit`` up to commit 96424f7): 
 wavefront schedule must reproduce bit for bit (importable: ``tests`` is on pytest's ``pythonpath``).
 
 Patches run one after the other in row-major order and read and write one shared state in place (the
-haloed region's tensors share memory with it), as the old loop did; fused engine on the CPU, float32.
+haloed region's tensors share memory with it), as the old loop did; fused engine on the CPU, float32. One
+change since: the closed-form starts are those of the fused engine (on its fused samples), as in the fit;
+the store is read uncached (the fit reads through a chunk cache).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ def _fit_patch(unwrap, rows, cols, fitting, views, config, scale, raw, initialis
     patch_raw = {k: torch.as_tensor(v[hrows, hcols], dtype=dtype, device=device) for k, v in raw.items()}
     todo = ~initialised[hrows, hcols]
     if todo.any():
-        apply_closed_form_starts(batch, patch_raw, todo, problem.normals, config, dtype, device)
+        apply_closed_form_starts(fused, patch_raw, todo, problem.normals, config, dtype, device)
     problem.batch = None
     result = optimise_patch(problem, patch_raw, config, curve)
     for k, v in result.items():

@@ -22,6 +22,14 @@ positions) is stored in the *model* frame: for rigid poses the texel positions a
 those of the rest mesh and only the per-view vectors move (exact, and H-dependent normals need no
 per-view recomputation). Texture layout: :mod:`polarface.geometry.uv_raster` (row 0 = v 1).
 
+Chunk cache (opt-in: ``UnwrapStore.open(path, cache_bytes=N)``, read-only stores): a haloed texture
+patch straddles up to 3 x 3 chunks per view, most of which its neighbours read too; with the cache each
+decoded chunk (per array, view and chunk position) is kept, least recently used first out, until the
+decoded chunks held reach ``N`` bytes, so a region's reads decode only the chunks not yet held. Memory is
+bounded by ``N`` whatever the number of views (the hit rate is what falls with many views: the static
+fit's wavefront reuses every chunk when the cache holds about four chunk rows of its fitting views,
+:mod:`polarface.inverse.polarimetric.patch_units`). Reads through the cache equal uncached reads.
+
 Where: a local path or an fsspec URL (``memory://``, ``s3://bucket/key``;
 :func:`polarface.io.storage.storage_path`), opened through zarr's local or fsspec store; each chunk is
 written in one piece (a rename locally, one object put on a URL), so a rewritten view never leaves half
@@ -31,6 +39,7 @@ a chunk.
 from __future__ import annotations
 
 import dataclasses
+from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 
 import numpy as np
@@ -81,12 +90,45 @@ def texel_geometry(raster: UVRaster) -> TexelGeometry:
     )
 
 
-class UnwrapStore:
-    """Reader/writer of an unwrapped capture (layout in the module docstring)."""
+class _ChunkCache:
+    """Decoded chunks, key -> array, least recently used evicted first beyond ``max_bytes`` in all."""
 
-    def __init__(self, path: PathOrUrl, root) -> None:
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = int(max_bytes)
+        self.bytes = 0
+        self.entries: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self.hits = 0
+        self.misses = 0
+
+    def get(self, key: tuple) -> np.ndarray | None:
+        value = self.entries.get(key)
+        if value is None:
+            self.misses += 1
+            return None
+        self.hits += 1
+        self.entries.move_to_end(key)
+        return value
+
+    def put(self, key: tuple, value: np.ndarray) -> None:
+        if value.nbytes > self.max_bytes:
+            return
+        old = self.entries.pop(key, None)
+        self.bytes += value.nbytes - (old.nbytes if old is not None else 0)
+        self.entries[key] = value
+        while self.bytes > self.max_bytes:
+            _, evicted = self.entries.popitem(last=False)
+            self.bytes -= evicted.nbytes
+
+
+class UnwrapStore:
+    """Reader/writer of an unwrapped capture (layout in the module docstring); ``cache_bytes > 0``: reads
+    go through a chunk cache of that many bytes (read-only stores only; module docstring)."""
+
+    def __init__(self, path: PathOrUrl, root, cache_bytes: int = 0) -> None:
         self.path = storage_path(path)
         self.root = root
+        self._cache = _ChunkCache(cache_bytes) if int(cache_bytes) > 0 else None
+        self._arrays: dict[str, object] = {}
 
     # ----------------------------------------------------------------------------- creation
     @classmethod
@@ -137,20 +179,34 @@ class UnwrapStore:
         return cls(path, root)
 
     @classmethod
-    def open(cls, path: PathOrUrl, mode: str = "r") -> UnwrapStore:
+    def open(cls, path: PathOrUrl, mode: str = "r", cache_bytes: int = 0) -> UnwrapStore:
         """Open an unwrap store at a local path or a URL.
 
+        Args:
+            mode: zarr's open mode (``r``: read only). cache_bytes: > 0: reads of :meth:`read` and
+                :meth:`geometry` go through a chunk cache holding at most this many bytes of decoded
+                chunks (module docstring); only with ``mode="r"``.
+
         Raises:
-            FileNotFoundError: nothing is there. ValueError: it is not an unwrap store, or the URL's
-                protocol is unknown or its package missing.
+            FileNotFoundError: nothing is there. ValueError: it is not an unwrap store, the URL's
+                protocol is unknown or its package missing, or a cache on a writable store.
         """
         path = storage_path(path)
+        if int(cache_bytes) > 0 and mode != "r":
+            raise ValueError(f"argument 'cache_bytes' needs mode 'r' (a read-only store); got mode '{mode}'")
         if not path.exists():
             raise FileNotFoundError(f"unwrap store '{path}' does not exist")
         root = open_zarr_group(path, mode)
         if root.attrs.get("format") != _FORMAT:
             raise ValueError(f"'{path}' is not a polarface unwrap store")
-        return cls(path, root)
+        return cls(path, root, cache_bytes)
+
+    @property
+    def cache_counts(self) -> dict[str, int]:
+        """Chunk cache ``hits``, ``misses`` (chunks decoded) and ``bytes`` held (zeros without a cache)."""
+        cache = self._cache
+        return {"hits": cache.hits, "misses": cache.misses, "bytes": cache.bytes} if cache else \
+            {"hits": 0, "misses": 0, "bytes": 0}  # fmt: skip
 
     # ----------------------------------------------------------------------------- metadata
     @property
@@ -175,6 +231,8 @@ class UnwrapStore:
 
     def geometry(self, rows: slice = slice(None), cols: slice = slice(None)) -> TexelGeometry:
         names = [f.name for f in dataclasses.fields(TexelGeometry)]
+        if self._cache is not None:
+            return TexelGeometry(*(self._cached_region(f"texel/{n}", rows, cols, None) for n in names))
         return TexelGeometry(*(np.asarray(self.root[f"texel/{n}"][rows, cols]) for n in names))
 
     # ----------------------------------------------------------------------------- data
@@ -203,6 +261,9 @@ class UnwrapStore:
                 np.zeros((0, height, width), bool),
                 np.zeros((0, height, width, light_count), bool),
             )
+        if self._cache is not None:
+            chosen = np.arange(len(self.views)) if views is None else selection
+            return tuple(self._cached_region(name, rows, cols, chosen) for name in ("obs", "valid", "lit"))
         if views is None:
             return (
                 np.asarray(self.root["obs"][:, rows, cols]),
@@ -213,6 +274,62 @@ class UnwrapStore:
         valid = np.stack([np.asarray(self.root["valid"][int(v), rows, cols]) for v in selection])
         lit = np.stack([np.asarray(self.root["lit"][int(v), rows, cols]) for v in selection])
         return obs, valid, lit
+
+    def _array(self, name: str):
+        """The zarr array ``name`` (opened once per store object)."""
+        if name not in self._arrays:
+            self._arrays[name] = self.root[name]
+        return self._arrays[name]
+
+    def _cached_region(self, name: str, rows: slice, cols: slice, views: np.ndarray | None) -> np.ndarray:
+        """``array[views, rows, cols]`` (``views`` None: an array without a view axis) assembled from
+        cached decoded chunks; the chunks not held are read, per chunk position, in one call."""
+        array = self._array(name)
+        height, width = self.resolution
+        r0, r1, _ = rows.indices(height)
+        c0, c1, _ = cols.indices(width)
+        offset = 0 if views is None else 1
+        chunk_h, chunk_w = array.chunks[offset], array.chunks[offset + 1]
+        lead = () if views is None else (len(views),)
+        out = np.empty((*lead, max(r1 - r0, 0), max(c1 - c0, 0), *array.shape[offset + 2 :]), array.dtype)
+        ids = [None] if views is None else [int(v) for v in views]
+        for i in range(r0 // chunk_h, (r1 - 1) // chunk_h + 1 if r1 > r0 else 0):
+            for j in range(c0 // chunk_w, (c1 - 1) // chunk_w + 1 if c1 > c0 else 0):
+                blocks = self._chunk_blocks(array, name, ids, i, j)
+                br = slice(max(r0, i * chunk_h) - i * chunk_h, min(r1, (i + 1) * chunk_h) - i * chunk_h)
+                bc = slice(max(c0, j * chunk_w) - j * chunk_w, min(c1, (j + 1) * chunk_w) - j * chunk_w)
+                orow = slice(i * chunk_h + br.start - r0, i * chunk_h + br.stop - r0)
+                ocol = slice(j * chunk_w + bc.start - c0, j * chunk_w + bc.stop - c0)
+                if views is None:
+                    out[orow, ocol] = blocks[0][br, bc]
+                else:
+                    for index, block in enumerate(blocks):
+                        out[index, orow, ocol] = block[br, bc]
+        return out
+
+    def _chunk_blocks(self, array, name: str, ids: list, i: int, j: int) -> list[np.ndarray]:
+        """The decoded chunk ``(i, j)`` of ``array`` for each view of ``ids`` (``[None]``: no view axis),
+        from the cache, the missing ones read in one call and cached."""
+        cache = self._cache
+        keys = [(name, v, i, j) for v in ids]
+        blocks = [cache.get(key) for key in keys]
+        missing = [index for index, block in enumerate(blocks) if block is None]
+        if missing:
+            height, width = array.shape[(0 if ids[0] is None else 1) : (2 if ids[0] is None else 3)]
+            chunk_h, chunk_w = array.chunks[(0 if ids[0] is None else 1) : (2 if ids[0] is None else 3)]
+            window = (slice(i * chunk_h, min((i + 1) * chunk_h, height)),
+                      slice(j * chunk_w, min((j + 1) * chunk_w, width)))  # fmt: skip
+            if ids[0] is None:
+                read = [np.asarray(array[window])]
+            else:
+                selection = (np.array([ids[index] for index in missing], dtype=np.int64), *window)
+                read = list(np.asarray(array.get_orthogonal_selection(selection)))
+            for index, block in zip(missing, read, strict=True):
+                block = np.ascontiguousarray(block)
+                block.flags.writeable = False
+                blocks[index] = block
+                cache.put(keys[index], block)
+        return blocks
 
     def patches(self, patch: int | None = None) -> Iterator[tuple[slice, slice]]:
         """Row/column slices of the texture patches that contain atlas texels (row-major order)."""

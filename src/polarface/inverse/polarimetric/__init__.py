@@ -58,7 +58,11 @@ from polarface.inverse.polarimetric.model import (
     render_samples,
 )
 from polarface.inverse.polarimetric.optimise import optimise_patch
-from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
+from polarface.inverse.polarimetric.problem import (
+    PatchProblem,
+    build_patch_fused_samples,
+    build_patch_samples,
+)
 from polarface.inverse.polarimetric.refine import (
     LobeRefinement,
     refine_lobes,
@@ -85,6 +89,7 @@ __all__ = [
     "SamplePrediction",
     "benchmark_problem",
     "build_fused_samples",
+    "build_patch_fused_samples",
     "build_patch_samples",
     "data_losses",
     "dynamic_regularisers",

@@ -59,6 +59,7 @@ from polarface.inverse.polarimetric.patch_units import (
     haloed_slices,
     patch_fronts,
     run_patch_unit,
+    shared_unwrap,
     torch_fit_settings,
 )
 from polarface.texture import UnwrapStore
@@ -77,7 +78,9 @@ class PolarimetricFit:
         mask: ``(Ht, Wt)`` bool texels seen by at least ``config.min_views`` fitting views, at least
             ``config.boundary_margin`` texels inside the region of such texels.
         loss_curve: mean total loss per iteration (averaged over patches).
-        timings: seconds per phase; throughput: texel-view iterations per second of the optimisation.
+        timings: seconds: ``fit_s`` (all), and summed over the patches (where they ran) ``optimise_s``,
+            ``refine_s``, ``read_s``, ``samples_s``, ``starts_s``; throughput: texel-view iterations per
+            second of the optimisation.
         sample_count: samples (texel x view) fitted; patches: number of patches.
         view_count: ``(Ht, Wt)`` int32 fitting views that see each texel (a reliability map).
         units: per patch index (a string), where and how long it ran (:meth:`UnitOutcome.placement`;
@@ -157,7 +160,7 @@ def fit_polarimetric(
     spec = "auto" if isinstance(device, str) and device == "auto" else str(torch.device(device))
     resolve_engine(engine, resolve_device(spec))  # a bad engine or device is refused here
     options = _PatchOptions(str(unwrap.path), config or PolarimetricConfig(), spec, engine, threads)
-    with torch_fit_settings(threads):
+    with torch_fit_settings(threads), shared_unwrap(options.unwrap):
         return _fit(unwrap, options, checkpoint, progress, stop_after_patches, on_patch,
                     executor or LocalExecutor())
 
@@ -279,13 +282,17 @@ def _pending_curves(indices: np.ndarray, lengths: np.ndarray, values: np.ndarray
 @dataclasses.dataclass
 class _Tally:
     """Running totals of a fit: samples fitted, optimiser seconds and work (samples x iterations),
-    lobe-refinement seconds, and the ``(Ht, Wt)`` bool texels seen by a fitted patch."""
+    seconds of the lobe refinement, of reading the store, of building samples and of the closed-form
+    starts, and the ``(Ht, Wt)`` bool texels seen by a fitted patch."""
 
     seen: np.ndarray
     samples: int = 0
     optimise_s: float = 0.0
     work: float = 0.0
     refine_s: float = 0.0
+    read_s: float = 0.0
+    samples_s: float = 0.0
+    starts_s: float = 0.0
 
     def add(self, result: PatchResult, rows: slice, cols: slice, iterations: int) -> None:
         """Add one patch's counters."""
@@ -293,6 +300,9 @@ class _Tally:
         self.work += result.samples * int(iterations)
         self.optimise_s += result.optimise_s
         self.refine_s += result.refine_s
+        self.read_s += result.read_s
+        self.samples_s += result.samples_s
+        self.starts_s += result.starts_s
         if result.seen is not None:
             self.seen[rows, cols] |= result.seen
 
@@ -405,8 +415,9 @@ def _fit(
     mask_seen, view_count = _coverage(unwrap, config)
     curve_mean = [v / max(len(patches), 1) for v in state.curve]
     timings = {
-        "fit_s": time.perf_counter() - started, "optimise_s": tally.optimise_s, "refine_s": tally.refine_s
-    }
+        "fit_s": time.perf_counter() - started, "optimise_s": tally.optimise_s, "refine_s": tally.refine_s,
+        "read_s": tally.read_s, "samples_s": tally.samples_s, "starts_s": tally.starts_s,
+    }  # fmt: skip
     throughput = tally.work / tally.optimise_s if tally.optimise_s > 0 else 0.0
     return PolarimetricFit(
         _to_maps(state.raw, config), mask_seen, curve_mean, timings, throughput, tally.samples, len(patches),

@@ -1,7 +1,10 @@
 """Closed-form per-texel starts of the static polarimetric fit (eta, rho_sss_bar, alpha_s, rho_s).
 
 Evaluated on one patch's samples with :func:`polarface.inverse.polarimetric.model.render_samples`
-(vectorised; per-texel sums with ``index_add``). See :mod:`polarface.inverse.polarimetric.fit`.
+(vectorised; per-texel sums with ``index_add``): the torch reference. The fused engine evaluates the same
+sums on its compact samples in numba (:mod:`polarface.inverse.polarimetric.kernel_starts`), without the
+per-sample-and-light batch; :func:`apply_closed_form_starts` takes either. See
+:mod:`polarface.inverse.polarimetric.fit`.
 """
 
 from __future__ import annotations
@@ -12,9 +15,13 @@ import numpy as np
 import torch
 
 from polarface.inverse.polarimetric.config import PolarimetricConfig, maps_from_raw
+from polarface.inverse.polarimetric.fused import FusedSamples
+from polarface.inverse.polarimetric.kernel_starts import fused_albedo_starts, fused_eta_costs
 from polarface.inverse.polarimetric.model import SampleBatch, _cos2_sin2, _transmission, render_samples
 
 __all__ = ["apply_closed_form_starts", "init_albedos", "init_eta", "nan_median_filter"]
+
+_ALPHA_GRID = (0.15, 0.25, 0.35, 0.45, 0.55, 0.65, 0.8)  # alpha_s values of the albedo starts' grid
 
 
 def nan_median_filter(values: torch.Tensor, window: int = 5) -> torch.Tensor:
@@ -32,7 +39,7 @@ def init_albedos(
     normal: torch.Tensor,
     params: dict[str, torch.Tensor],
     texel_count: int,
-    alpha_grid: tuple[float, ...] = (0.15, 0.25, 0.35, 0.45, 0.55, 0.65, 0.8),
+    alpha_grid: tuple[float, ...] = _ALPHA_GRID,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-texel closed-form starts: rho_sss_bar ``(T, 6)`` (linear least squares on I_sss at
     the initial eta), then ``rho_s`` and ``alpha_s`` ``(T,)``: for each alpha_s of ``alpha_grid`` the
@@ -139,8 +146,42 @@ def init_eta(
     return torch.where(seen, best, torch.nan)
 
 
+def _eta_starts(samples: SampleBatch | FusedSamples, normal: torch.Tensor, texel_count: int,
+                eta_range: tuple[float, float], steps: int = 36) -> torch.Tensor:
+    """:func:`init_eta` on either kind of samples (fused: the numba sums of
+    :func:`polarface.inverse.polarimetric.kernel_starts.fused_eta_costs`, same grid, same tie rule)."""
+    if isinstance(samples, SampleBatch):
+        return init_eta(samples, normal, texel_count, eta_range, steps)
+    lo, hi = eta_range
+    grid = torch.linspace(lo + 0.02, hi - 0.02, steps, dtype=normal.dtype, device=normal.device)
+    costs = fused_eta_costs(samples, normal.detach().cpu().numpy(), grid.cpu().numpy())
+    best = grid[torch.as_tensor(costs.argmin(axis=1), device=normal.device)]
+    return torch.where(_seen(samples, texel_count, normal.device), best, torch.nan)
+
+
+def _albedo_starts(samples: SampleBatch | FusedSamples, normal: torch.Tensor, params: dict[str, torch.Tensor],
+                   texel_count: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`init_albedos` on either kind of samples (fused:
+    :func:`polarface.inverse.polarimetric.kernel_starts.fused_albedo_starts`)."""
+    if isinstance(samples, SampleBatch):
+        return init_albedos(samples, normal, params, texel_count, _ALPHA_GRID)
+    columns = [params[k][:, 0] for k in ("eta", "alpha_ss", "rho_ss", "alpha_s")]
+    texel_params = torch.stack(columns, dim=1).detach().cpu().numpy()
+    starts = fused_albedo_starts(samples, normal.detach().cpu().numpy(), texel_params, np.array(_ALPHA_GRID))
+    return tuple(torch.as_tensor(v, dtype=normal.dtype, device=normal.device) for v in starts)
+
+
+def _seen(samples: SampleBatch | FusedSamples, texel_count: int, device: torch.device) -> torch.Tensor:
+    """``(T,)`` bool texels with samples."""
+    if isinstance(samples, SampleBatch):
+        seen = torch.zeros(texel_count, dtype=torch.bool, device=device)
+        seen[samples.texel] = True
+        return seen
+    return torch.as_tensor(np.diff(samples.offsets) > 0, device=device)
+
+
 def apply_closed_form_starts(
-    batch: SampleBatch,
+    samples: SampleBatch | FusedSamples,
     patch_raw: dict[str, torch.Tensor],
     todo: np.ndarray,
     normals: Callable[[torch.Tensor], torch.Tensor],
@@ -152,7 +193,11 @@ def apply_closed_form_starts(
     of one patch's texels flagged in ``todo`` with their closed-form starts.
 
     Args:
-        batch: the patch's samples; patch_raw: name -> ``(h, w, c)`` raw variables (``dtype``, ``device``)
+        samples: the patch's samples: a :class:`SampleBatch` (the torch reference, :func:`init_eta` and
+            :func:`init_albedos`) or the fused engine's
+            :class:`~polarface.inverse.polarimetric.fused.FusedSamples` (the same sums in numba, float64:
+            :mod:`polarface.inverse.polarimetric.kernel_starts`; no per-sample-and-light batch needed);
+        patch_raw: name -> ``(h, w, c)`` raw variables (``dtype``, ``device``)
             of :func:`polarface.inverse.polarimetric.config.maps_from_raw`; todo: ``(h, w)`` bool texels
             not yet started; normals: ``H (h, w)`` (mm) -> ``(h w, 3)`` unit normals of the patch
             (:meth:`polarface.inverse.polarimetric.problem.PatchProblem.normals`).
@@ -163,16 +208,15 @@ def apply_closed_form_starts(
     normal0 = normals(maps0["displacement_mm"][..., 0])
     todo_t = torch.as_tensor(todo, device=device)
     if config.init_eta_search:
-        eta0 = init_eta(batch, normal0, h * w, config.eta_range).reshape(h, w)
+        eta0 = _eta_starts(samples, normal0, h * w, config.eta_range).reshape(h, w)
         eta0 = nan_median_filter(eta0, 5)[..., None]
         e_lo, e_hi = config.eta_range
         new_eta = torch.logit(((eta0 - e_lo) / (e_hi - e_lo)).to(dtype))
         use = todo_t[..., None] & torch.isfinite(new_eta)
         patch_raw["eta"] = torch.where(use, new_eta, patch_raw["eta"])
         flat0["eta"] = maps_from_raw(patch_raw, config)["eta"].reshape(h * w, 1)
-    rho_sss, rho_s, alpha_s0 = init_albedos(batch, normal0, flat0, h * w)
-    seen0 = torch.zeros(h * w, dtype=torch.bool, device=device)
-    seen0[batch.texel] = True
+    rho_sss, rho_s, alpha_s0 = _albedo_starts(samples, normal0, flat0, h * w)
+    seen0 = _seen(samples, h * w, device)
     masked = torch.where(seen0, alpha_s0, torch.nan).reshape(h, w)
     smooth = nan_median_filter(masked, 5).reshape(-1)
     alpha_s0 = torch.where(torch.isfinite(smooth), smooth, alpha_s0)

@@ -21,6 +21,12 @@ the patch's slices, the options and the small haloed state; :func:`run_patch_uni
 patch writes (:class:`PatchResult`) and changes nothing else, so a unit can be run again after its worker
 died. Nothing in a patch's fit is random (``torch.manual_seed(config.seed)`` is set per unit all the
 same); torch's thread count and denormal flushing are set per unit (:func:`torch_fit_settings`).
+
+Reads: inside :func:`shared_unwrap` (the fit holds it around its fronts) the units of this process that
+read that store share one store object with a chunk cache of :data:`UNWRAP_CACHE_BYTES`
+(:mod:`polarface.texture.unwrap_store`), so a patch does not decode again the chunks its neighbours
+decoded; elsewhere (a Ray worker) each unit opens the store itself, uncached. The maps do not depend on
+it (cached reads equal uncached ones).
 """
 
 from __future__ import annotations
@@ -36,18 +42,25 @@ import torch
 from polarface.inverse.polarimetric.config import PolarimetricConfig, maps_from_raw
 from polarface.inverse.polarimetric.engines import resolve_engine
 from polarface.inverse.polarimetric.init import apply_closed_form_starts
+from polarface.inverse.polarimetric.model import SampleBatch
 from polarface.inverse.polarimetric.optimise import optimise_patch
-from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
+from polarface.inverse.polarimetric.problem import (
+    PatchProblem,
+    build_patch_fused_samples,
+    build_patch_samples,
+)
 from polarface.inverse.polarimetric.refine import refine_patch_lobes
 from polarface.texture import UnwrapStore
 
 __all__ = [
     "STARTED_VARIABLES",
+    "UNWRAP_CACHE_BYTES",
     "PatchResult",
     "PatchUnit",
     "haloed_slices",
     "patch_fronts",
     "run_patch_unit",
+    "shared_unwrap",
     "torch_fit_settings",
 ]
 
@@ -55,6 +68,28 @@ __all__ = [
 STARTED_VARIABLES = ("rho_sss_bar", "rho_s", "eta", "alpha_s")
 
 _FLUSH_DEPTH = [0]  # nesting depth of torch_fit_settings (the outermost one sets and clears flushing)
+
+#: Bytes of decoded chunks that the store shared by the units of a fit keeps (:func:`shared_unwrap`):
+#: the static wavefront on a 512 x 512 texture with 36 fitting views reuses every chunk with it (about
+#: four chunk rows of ~6.6 MB chunk positions); with more views it stays this size and reuses less.
+UNWRAP_CACHE_BYTES = 256 << 20
+_SHARED: dict[str, UnwrapStore] = {}  # store path -> the cached store of the fit running (shared_unwrap)
+
+
+@contextlib.contextmanager
+def shared_unwrap(path: str, cache_bytes: int = UNWRAP_CACHE_BYTES) -> Iterator[UnwrapStore]:
+    """While open, :func:`run_patch_unit` in this process reads the unwrap store at ``path`` through one
+    read-only store object with a chunk cache of ``cache_bytes`` (released on exit; nested: the outer
+    one's). The store must not be written meanwhile."""
+    key = str(path)
+    if key in _SHARED:
+        yield _SHARED[key]
+        return
+    _SHARED[key] = UnwrapStore.open(path, cache_bytes=cache_bytes)
+    try:
+        yield _SHARED[key]
+    finally:
+        del _SHARED[key]
 
 
 @contextlib.contextmanager
@@ -162,6 +197,9 @@ class PatchResult:
         samples: samples (texel x view) fitted.
         seen: ``(rows, cols)`` bool interior texels with samples (None: none).
         optimise_s, refine_s: seconds of the optimiser and of the lobe refinement.
+        read_s, samples_s, starts_s: seconds of reading the store, of building the samples and of the
+            closed-form starts (the fused engine's split; the reference batch's reading counts as
+            building).
     """
 
     index: int
@@ -173,6 +211,9 @@ class PatchResult:
     seen: np.ndarray | None = None
     optimise_s: float = 0.0
     refine_s: float = 0.0
+    read_s: float = 0.0
+    samples_s: float = 0.0
+    starts_s: float = 0.0
 
 
 def run_patch_unit(unit: PatchUnit) -> PatchResult:
@@ -187,7 +228,7 @@ def run_patch_unit(unit: PatchUnit) -> PatchResult:
 
     device = resolve_device(unit.device)
     engine = resolve_engine(unit.engine, device)
-    unwrap = UnwrapStore.open(unit.unwrap)
+    unwrap = _SHARED.get(str(unit.unwrap)) or UnwrapStore.open(unit.unwrap)
     with torch_fit_settings(unit.threads):
         torch.manual_seed(unit.config.seed)
         return _fit_region(unwrap, unit, device, engine.fused_samples)
@@ -199,26 +240,39 @@ def _fit_region(unwrap: UnwrapStore, unit: PatchUnit, device: torch.device, fuse
     hrows, hcols, (ir, ic) = haloed_slices(unit.rows, unit.cols, config.halo, unwrap.resolution)
     views = unwrap.views
     fitting = [i for i, view in enumerate(views) if not view.held_out]
-    built = build_patch_samples(unwrap, hrows, hcols, fitting, views, dtype=dtype, device=device, fused=fused)
-    batch, geometry = built[0], built[1]
-    if batch is None:
+    # the fused engine fits, and starts, on its compact samples; the per-sample-and-light reference batch
+    # is built only where something needs it (the torch engine, the lobe refinement)
+    reference: SampleBatch | None = None
+    split: dict[str, float] = {}
+    if fused and config.refine_lobes_iterations <= 0:
+        packed, geometry = build_patch_fused_samples(unwrap, hrows, hcols, fitting, views, dtype=dtype,
+                                                     timings=split)
+    else:
+        tick = time.perf_counter()
+        built = build_patch_samples(unwrap, hrows, hcols, fitting, views, dtype=dtype, device=device,
+                                    fused=fused)
+        reference, geometry, packed = built[0], built[1], (built[2] if fused else None)
+        split["samples_s"] = time.perf_counter() - tick
+    if packed is None and reference is None:
         return PatchResult(unit.index)
-    problem = PatchProblem(batch, geometry, config, unit.scale, dtype, device, built[2] if fused else None)
+    problem = PatchProblem(None if fused else reference, geometry, config, unit.scale, dtype, device, packed)
     # copies: arrays a unit arrives with may be read-only (Ray's object store)
     patch_raw = {k: torch.as_tensor(np.array(v), dtype=dtype, device=device) for k, v in unit.raw.items()}
     todo = ~np.asarray(unit.initialised, bool)
+    tick = time.perf_counter()
     if todo.any():
-        apply_closed_form_starts(batch, patch_raw, todo, problem.normals, config, dtype, device)
-    sample_count, seen_texels = batch.count, batch.texel.cpu().numpy()
-    # the reference batch serves the closed-form starts and the lobe refinement only
-    reference = batch if config.refine_lobes_iterations > 0 else None
-    if fused:
-        problem.batch = batch = None
+        starts_from = packed if packed is not None else reference
+        apply_closed_form_starts(starts_from, patch_raw, todo, problem.normals, config, dtype, device)
+    split["starts_s"] = time.perf_counter() - tick
+    if packed is not None:
+        sample_count, seen_texels = packed.count, np.flatnonzero(np.diff(packed.offsets))
+    else:
+        sample_count, seen_texels = reference.count, reference.texel.cpu().numpy()
     curve: list[float] = []
     tick = time.perf_counter()
     result = optimise_patch(problem, patch_raw, config, curve)
     optimise_s, refine_s = time.perf_counter() - tick, 0.0
-    if reference is not None:  # Levenberg-Marquardt on the four lobe maps
+    if config.refine_lobes_iterations > 0:  # Levenberg-Marquardt on the four lobe maps
         tick = time.perf_counter()
         with torch.no_grad():
             normal = problem.normals(maps_from_raw(result, config)["displacement_mm"][..., 0])
@@ -230,5 +284,6 @@ def _fit_region(unwrap: UnwrapStore, unit: PatchUnit, device: torch.device, fuse
     starts = {k: patch_raw[k].cpu().numpy()[todo] for k in STARTED_VARIABLES} if todo.any() else None
     return PatchResult(
         unit.index, {k: v[ir, ic].cpu().numpy() for k, v in result.items()}, todo if todo.any() else None,
-        starts, curve, int(sample_count), seen[ir, ic], optimise_s, refine_s,
+        starts, curve, int(sample_count), seen[ir, ic], optimise_s, refine_s, split.get("read_s", 0.0),
+        split.get("samples_s", 0.0), split["starts_s"],
     )  # fmt: skip

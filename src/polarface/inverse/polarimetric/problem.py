@@ -10,6 +10,8 @@ reparameterised variables of :mod:`polarface.inverse.polarimetric.config`.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import torch
 
@@ -25,7 +27,7 @@ from polarface.inverse.polarimetric.losses import data_losses, laplacian_penalty
 from polarface.inverse.polarimetric.model import SampleBatch, precompute_samples, render_samples
 from polarface.texture import TexelGeometry, UnwrapStore, ViewSpec
 
-__all__ = ["PatchProblem", "build_patch_samples"]
+__all__ = ["PatchProblem", "build_patch_fused_samples", "build_patch_samples"]
 
 
 def _patch_arrays(unwrap: UnwrapStore, rows: slice, cols: slice, view_indices: list[int]):
@@ -37,8 +39,62 @@ def _patch_arrays(unwrap: UnwrapStore, rows: slice, cols: slice, view_indices: l
     return geometry, v_idx, r_idx, c_idx, obs[v_idx, r_idx, c_idx], lit[v_idx, r_idx, c_idx]
 
 
+_VIEW_FIELDS = (
+    "camera_center", "camera_up", "reference_up", "light_positions", "light_intensity", "channels"
+)  # fmt: skip
+
+
 def _view_table(views: list[ViewSpec], attribute: str) -> np.ndarray:
     return np.array([getattr(v, attribute) for v in views])
+
+
+def _fused_samples(geometry: TexelGeometry, arrays: tuple, view_indices: list[int], views: list[ViewSpec],
+                   dtype: torch.dtype) -> FusedSamples:
+    """:class:`FusedSamples` of the visible samples of :func:`_patch_arrays` (``arrays``: its last five)."""
+    v_idx, r_idx, c_idx, obs, lit = arrays
+    chosen = [views[i] for i in view_indices]
+    table = {name: _view_table(chosen, name) for name in _VIEW_FIELDS}
+    return build_fused_samples(
+        geometry.position.reshape(-1, 3),
+        r_idx * geometry.mask.shape[1] + c_idx,
+        v_idx,
+        lit,
+        obs,
+        table["camera_center"],
+        table["camera_up"],
+        table["reference_up"],
+        table["light_positions"],
+        table["light_intensity"],
+        table["channels"],
+        dtype=np.float64 if dtype == torch.float64 else np.float32,
+    )
+
+
+def build_patch_fused_samples(
+    unwrap: UnwrapStore,
+    rows: slice,
+    cols: slice,
+    view_indices: list[int],
+    views: list[ViewSpec],
+    *,
+    dtype: torch.dtype = torch.float32,
+    timings: dict[str, float] | None = None,
+) -> tuple[FusedSamples | None, TexelGeometry]:
+    """The fused kernel's samples of a texture region for the given views (None when nothing is
+    visible) and the region's geometry: :func:`build_patch_samples` ``(fused=True)`` without its
+    per-sample-and-light :class:`~polarface.inverse.polarimetric.model.SampleBatch`, which the fused
+    engine needs only for the lobe refinement (same samples, same order). ``timings``: where given, the
+    seconds of reading the store (``read_s``) and of packing the samples (``samples_s``) are added to it."""
+    tick = time.perf_counter()
+    geometry, *arrays = _patch_arrays(unwrap, rows, cols, view_indices)
+    read = time.perf_counter()
+    packed = None
+    if arrays[0].size:
+        packed = _fused_samples(geometry, tuple(arrays), view_indices, views, dtype)
+    if timings is not None:
+        timings["read_s"] = timings.get("read_s", 0.0) + read - tick
+        timings["samples_s"] = timings.get("samples_s", 0.0) + time.perf_counter() - read
+    return packed, geometry
 
 
 def build_patch_samples(
@@ -62,9 +118,7 @@ def build_patch_samples(
         return (None, geometry, None) if fused else (None, geometry)
     width = geometry.mask.shape[1]
     chosen = [views[i] for i in view_indices]
-    table = {name: _view_table(chosen, name) for name in (
-        "camera_center", "camera_up", "reference_up", "light_positions", "light_intensity", "channels"
-    )}  # fmt: skip
+    table = {name: _view_table(chosen, name) for name in _VIEW_FIELDS}
     batch = precompute_samples(
         geometry.position[r_idx, c_idx],
         r_idx * width + c_idx,
@@ -82,29 +136,17 @@ def build_patch_samples(
     )
     if not fused:
         return batch, geometry
-    packed = build_fused_samples(
-        geometry.position.reshape(-1, 3),
-        r_idx * width + c_idx,
-        v_idx,
-        lit,
-        obs,
-        table["camera_center"],
-        table["camera_up"],
-        table["reference_up"],
-        table["light_positions"],
-        table["light_intensity"],
-        table["channels"],
-        dtype=np.float64 if dtype == torch.float64 else np.float32,
-    )
+    packed = _fused_samples(geometry, (v_idx, r_idx, c_idx, obs, lit), view_indices, views, dtype)
     return batch, geometry, packed
 
 
 class PatchProblem:
-    """Everything needed to evaluate the loss of one patch (parameters as raw leaf tensors)."""
+    """Everything needed to evaluate the loss of one patch (parameters as raw leaf tensors); ``batch`` may
+    be None when ``fused`` samples are given (the fused engine evaluates the data loss on them)."""
 
     def __init__(
         self,
-        batch: SampleBatch,
+        batch: SampleBatch | None,
         geometry: TexelGeometry,
         config: PolarimetricConfig,
         scale: float,
