@@ -74,7 +74,11 @@ from polarface.inverse.polarimetric.fused import fused_data_loss, pack_parameter
 from polarface.inverse.polarimetric.losses import LossWeights, data_losses, laplacian_penalty
 from polarface.inverse.polarimetric.model import render_samples
 from polarface.inverse.polarimetric.optimise import optimise_patch
-from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
+from polarface.inverse.polarimetric.problem import (
+    PatchProblem,
+    build_patch_fused_samples,
+    build_patch_samples,
+)
 from polarface.texture import UnwrapStore
 
 __all__ = [
@@ -331,16 +335,20 @@ def _fit_patch(
     """Fit one patch (interior ``rows x cols`` plus a halo) and write its interior into ``state.start``."""
     dtype = torch.float32
     hrows, hcols, interior = haloed_slices(rows, cols, config.halo, unwrap.resolution)
-    built = build_patch_samples(
-        unwrap, hrows, hcols, fitting, unwrap.views, dtype=dtype, device=device, fused=engine.fused_samples
-    )
-    batch, geometry = built[0], built[1]
-    if batch is None:
-        return
-    fused = built[2] if engine.fused_samples else None
+    if engine.fused_samples:  # the fused samples alone (no per-sample-and-light reference batch)
+        fused, geometry = build_patch_fused_samples(unwrap, hrows, hcols, fitting, unwrap.views, dtype=dtype)
+        batch = None
+        if fused is None:
+            return
+        count = fused.count
+    else:
+        batch, geometry = build_patch_samples(unwrap, hrows, hcols, fitting, unwrap.views, dtype=dtype,
+                                              device=device)[:2]
+        fused = None
+        if batch is None:
+            return
+        count = batch.count
     problem = PatchProblem(batch, geometry, config, scale, dtype, device, fused)
-    if fused is not None:
-        problem.batch = None  # the fused samples carry the data; free the reference batch
     tensor = lambda a: torch.as_tensor(a[hrows, hcols], dtype=dtype, device=device)  # noqa: E731
     patch = DynamicPatchProblem(
         problem,
@@ -352,8 +360,8 @@ def _fit_patch(
     start = {k: tensor(state.start[k]) for k in DYNAMIC_VARIABLES}
     result = optimise_patch(patch, start, config, state.curve, fused_steps=False, variables=DYNAMIC_VARIABLES)
     state.optimise_s += time.perf_counter() - tick
-    state.samples += batch.count
-    state.work += batch.count * int(config.iterations)
+    state.samples += count
+    state.work += count * int(config.iterations)
     for name, value in result.items():
         state.start[name][rows, cols] = value[interior].cpu().numpy()
 
