@@ -113,7 +113,6 @@ class SubsurfaceModel:
             mask=torch.from_numpy(mask.astype(np.float32)),
         )
 
-
     def updated(
         self,
         chromophores: dict[str, np.ndarray],
