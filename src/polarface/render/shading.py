@@ -228,7 +228,9 @@ def lobe_stokes(
         visible: ``(N, K)`` bool shadow-ray visibility of each module.
         intensity: ``(1, C)`` radiant intensity of every module (``(1, 1)`` broadcasts over channels),
             or ``(K, C)`` one row per module.
-        stokes: ``(N, C, 4)`` the Stokes to add to (e.g. the subsurface term).
+        stokes: ``(N, C, 4)`` the Stokes to add to (e.g. the subsurface term), or ``(N, C, S)`` with
+            ``S < 4``: only the first ``S`` components are accumulated (``S = 1``: ``s0`` of an RGB
+            camera; each component is the same sum as in the full vector).
         light_stokes: incident Stokes vector of the LEDs (default: the image formation's default).
         skip_unlit: skip modules that no fragment sees (they add zero).
     """
@@ -256,6 +258,6 @@ def lobe_stokes(
             diffused_exitance=no_exitance,
             **extra,
         )
-        stokes = stokes + lit * images.stokes
+        stokes = stokes + lit * images.stokes[..., : stokes.shape[-1]]
     return stokes
 

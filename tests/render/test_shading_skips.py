@@ -1,4 +1,5 @@
-"""Shadow rays only above the shading horizon (:func:`polarface.render.shading.lit_above_horizon`)."""
+"""Work the renderer skips changes nothing: shadow rays only above the shading horizon
+(:func:`polarface.render.shading.lit_above_horizon`), ``s0`` alone for RGB cameras (:func:`lobe_stokes`)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from polarface.geometry.head_asset import load_head_asset
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import rasterize_uv
 from polarface.render.renderer import rig_lighting, shading_normals
-from polarface.render.shading import lit_above_horizon
+from polarface.render.shading import FragmentMaterial, lit_above_horizon, lobe_stokes
 from polarface.render.subsurface import entering_flux, visible_entry_flux
 
 
@@ -47,3 +48,22 @@ def test_horizon_culling_changes_no_entry_flux(small_rig):
     out = entering_flux(caster, raster, shading, np.full(mask.shape, 1.4), lights, float(intensity),
                         np.array([0.0, -1.0, 0.0]))
     assert np.array_equal(out[mask], flux[1][:, 0].numpy().astype(np.float32))
+
+
+def test_lobe_stokes_s0_alone_is_the_full_vectors_s0():
+    rng = np.random.default_rng(5)
+    count = 500
+    normal = torch.from_numpy(rng.normal(size=(count, 3)) + np.array([0.0, 0.0, -3.0])).float()
+    normal = normal / normal.norm(dim=-1, keepdim=True)
+    position = torch.from_numpy(rng.uniform(-50, 50, size=(count, 3)) + np.array([0.0, 0.0, 1000.0])).float()
+    column = lambda low, high: torch.from_numpy(rng.uniform(low, high, size=(count, 1))).float()  # noqa: E731
+    material = FragmentMaterial(normal, normal, column(1.3, 1.5), column(0.1, 0.5), column(0.2, 0.6),
+                                column(0.0, 1.0), column(0.0, 1.0), column(0.0, 1.0).expand(count, 6))
+    centre, up = torch.zeros(3), torch.tensor([0.0, -1.0, 0.0])
+    lights = rng.uniform(-300, 300, size=(4, 3)) * np.array([1.0, 1.0, 0.0])
+    visible = rng.random((count, 4)) < 0.7
+    start = torch.from_numpy(rng.random((count, 6, 4))).float()
+    full = lobe_stokes(material, position, centre, up, lights, visible, torch.ones(1, 1), start)
+    s0 = lobe_stokes(material, position, centre, up, lights, visible, torch.ones(1, 1), start[..., :1])
+    assert s0.shape == (count, 6, 1)
+    assert torch.equal(s0[..., 0], full[..., 0])
