@@ -1,15 +1,21 @@
-"""Simulator throughput: render time per preset and peak memory, and the docs figure of one frame.
+"""Simulator throughput: render time per preset and peak memory, the per-frame split, and the docs
+figure of one frame.
 
 Usage:
-    python benchmarks/bench_simulate.py --preset tiny [--out DIR] [--figure docs/images/simulated_frame.png]
+    python benchmarks/bench_simulate.py --preset demo [--static-frames 4] [--threads 1] [--out DIR]
+        [--figure docs/images/simulated_frame.png]
 
-Prints setup time, seconds per static/dynamic frame, total and peak RSS (numbers, not a timed test).
+Prints setup time, seconds per static/dynamic frame, total wall and CPU seconds, the load average, peak
+RSS, and the mean seconds per frame of each stage (``polarface.simulate.frames.FRAME_STAGES``, read
+from ``simulation.json``) per sequence (numbers, not a timed test). The machine's load changes these:
+compare runs taken in the same conditions, interleaved.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -55,32 +61,63 @@ def figure(sim_dir: Path, path: Path) -> None:
     plt.close(fig)
 
 
+def frame_split(summary: dict) -> dict[str, dict[str, float]]:
+    """Mean seconds per frame of every recorded stage, per sequence, from ``simulation.json``'s units
+    (the frame's ``seconds`` as ``frame_s``; stages a frame did not record are left out)."""
+    per_sequence: dict[str, dict[str, list[float]]] = {}
+    for key, unit in summary.get("executor", {}).get("units", {}).items():
+        sequence = key.partition("/")[0]
+        values = per_sequence.setdefault(sequence, {})
+        for name, value in unit.items():
+            if (name.endswith("_s") or name == "seconds") and isinstance(value, int | float):
+                values.setdefault("frame_s" if name == "seconds" else name, []).append(float(value))
+    return {
+        sequence: {name: round(float(np.mean(v)), 3) for name, v in values.items()}
+        for sequence, values in per_sequence.items()
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--preset", default="tiny", choices=("tiny", "demo", "full"))
     parser.add_argument("--out", default=None, help="simulation folder (default: a temporary one)")
     parser.add_argument("--figure", default=None, help="write the one-frame figure here")
     parser.add_argument("--sequences", default="static,dynamic")
+    parser.add_argument("--static-frames", type=int, default=None, help="static frames (default: preset's)")
+    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     args = parser.parse_args()
+
+    import torch
 
     from polarface.simulate.pipeline import SimulationConfig, simulate
     from polarface.simulate.presets import get_preset
 
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out or Path(tmp) / "sim")
         sequences = tuple(s for s in args.sequences.split(",") if s)
-        started = time.perf_counter()
-        summary = simulate(out, SimulationConfig(preset=args.preset, sequences=sequences), progress=True)
-        wall = time.perf_counter() - started
+        config = SimulationConfig(preset=args.preset, sequences=sequences, static_frames=args.static_frames)
+        load_before = os.getloadavg()
+        started, cpu_started = time.perf_counter(), time.process_time()
+        summary = simulate(out, config, progress=True)
+        wall, cpu = time.perf_counter() - started, time.process_time() - cpu_started
         preset = get_preset(args.preset)
+        static_frames = args.static_frames or preset.static_frames
         timings = summary["timings"]
         report = {
             "preset": args.preset,
+            "static_frames": static_frames,
+            "dynamic_frames": preset.dynamic_frames,
+            "torch_threads": torch.get_num_threads(),
             "wall_s": round(wall, 1),
+            "cpu_s": round(cpu, 1),
+            "load_average_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
             "setup_s": round(timings["setup_s"], 1),
-            "s_per_static_frame": round(timings.get("static_s", 0.0) / preset.static_frames, 2),
+            "s_per_static_frame": round(timings.get("static_s", 0.0) / static_frames, 2),
             "s_per_dynamic_frame": round(timings.get("dynamic_s", 0.0) / max(preset.dynamic_frames, 1), 2),
             "peak_rss_mb": round(summary["peak_rss_mb"], 0),
+            "per_frame_split_s": frame_split(summary),
         }
         print(json.dumps(report, indent=2))
         if args.figure:

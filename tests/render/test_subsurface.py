@@ -88,3 +88,26 @@ def test_channel_exitance_without_blur_is_local(model):
     # Uniform light on homogeneous skin: the blur changes nothing away from the border.
     np.testing.assert_allclose(blurred[24:40, 24:40], local[24:40, 24:40], rtol=2e-3)
     assert (local > 0).all() and (local < 2.0).all()
+
+
+def test_updated_equals_a_full_build(patch):
+    """Recomputing the totals of the changed texels only gives the full build's model bit for bit."""
+    _, raster = patch
+    calibration = default_spectral_calibration()
+    rng = np.random.default_rng(3)
+    chromophores = {
+        name: (value * (1.0 + 0.2 * rng.standard_normal(raster.mask.shape))).astype(np.float32)
+        for name, value in (("c_m", 0.05), ("beta_m", 0.05), ("c_h_in", 0.03), ("c_h_out", 0.05))
+    }
+    base = SubsurfaceModel.build(chromophores, raster, calibration.wavelengths_nm)
+    changed = np.zeros(raster.mask.shape, bool)
+    changed[10:30, 20:50] = True
+    changed &= raster.mask
+    pressed_c_h_out = np.where(changed, 0.3 * chromophores["c_h_out"], chromophores["c_h_out"])
+    pressed = {**chromophores, "c_h_out": pressed_c_h_out.astype(np.float32)}
+    full = SubsurfaceModel.build(pressed, raster, calibration.wavelengths_nm, shapes=base.shapes)
+    partial = base.updated(pressed, changed)
+    for a, b in zip(full.totals, partial.totals, strict=True):
+        assert torch.equal(a, b)
+    assert not torch.equal(full.totals.r_out_f, base.totals.r_out_f)  # the change is seen
+    assert base.updated(pressed, np.zeros_like(changed)) is base

@@ -31,6 +31,7 @@ from polarface.render.shading import (
     facing_shading_normal,
     fill_empty_texels,
     fragment_material,
+    lit_above_horizon,
     lobe_stokes,
 )
 from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
@@ -66,6 +67,7 @@ __all__ = [
     "fragment_material",
     "linear_rgb_from_channels",
     "linear_srgb_to_lab",
+    "lit_above_horizon",
     "lobe_stokes",
     "mueller_images",
     "parse_edits",

@@ -83,10 +83,10 @@ def rig_lighting(rig) -> tuple[np.ndarray, float]:
 
 def analyzer_images(stokes: torch.Tensor, polarization: bool) -> dict[str, torch.Tensor]:
     """Analyzer images ``(N, C)`` of Stokes ``(N, C, 4)`` (camera frame): ``i0``, ``i45``, ``i90``,
-    ``i135`` behind linear analyzers, or ``s0`` for an RGB camera."""
-    s0, s1, s2 = stokes[..., 0], stokes[..., 1], stokes[..., 2]
+    ``i135`` behind linear analyzers, or ``s0`` for an RGB camera (``(N, C, S)``, any ``S >= 1``)."""
     if not polarization:
-        return {"s0": s0}
+        return {"s0": stokes[..., 0]}
+    s0, s1, s2 = stokes[..., 0], stokes[..., 1], stokes[..., 2]
     return {
         "i0": 0.5 * (s0 + s1),
         "i45": 0.5 * (s0 + s2),
@@ -154,7 +154,8 @@ def render_view(
         with trusted_inputs():  # validated once above; skip per-call value checks in the hot loop
             # Subsurface: exit Fresnel transmission with its polarization applied to the exitance.
             exit_stokes = subsurface_exit_stokes(material.normal, position, centre, up, material.eta)
-            stokes = material.exitance[..., None] * exit_stokes
+            # an RGB camera records s0 only: accumulate that component alone (the same sums)
+            stokes = material.exitance[..., None] * exit_stokes[..., : 4 if polarization else 1]
             # Specular and single scattering: spectrally flat (white-normalised LEDs), so one channel
             # is computed and broadcast; each LED module times its shadow-ray visibility.
             stokes = lobe_stokes(material, position, centre, up, lights, visible, unit_intensity, stokes)

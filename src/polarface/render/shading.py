@@ -24,6 +24,7 @@ import torch
 from scipy import ndimage
 
 from polarface._validation import trusted_inputs
+from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import sample_texture
 from polarface.optics.image_formation import render_polarimetric
 from polarface.optics.pbssrdf import SURFACE_PARAMETER_NAMES
@@ -35,6 +36,7 @@ __all__ = [
     "facing_shading_normal",
     "fill_empty_texels",
     "fragment_material",
+    "lit_above_horizon",
     "lobe_stokes",
 ]
 
@@ -163,6 +165,47 @@ def fragment_material(
     )
 
 
+def lit_above_horizon(
+    caster: RayCaster,
+    points: np.ndarray,
+    geometric_normal: np.ndarray,
+    shading_normal: np.ndarray,
+    light_positions: np.ndarray,
+    *,
+    margin: float = 1e-4,
+) -> np.ndarray:
+    """``(N, K)`` bool shadow-ray visibility of ``K`` LED modules from ``N`` surface points, as
+    :meth:`RayCaster.shadow_rays`, with rays cast only towards the modules above the horizon of each
+    point's shading normal.
+
+    A module below it (``n_shading . w_i < -margin``, in float64) gets no ray and is reported unlit:
+    what it would add is zero whatever its visibility — the entry flux of
+    :func:`polarface.optics.subsurface_entry_flux` (``max(n . w_i, 0)``) and the specular and
+    single-scattering lobes of :func:`lobe_stokes` (their front test ``n . w_i > 0``) — so the
+    entering flux and the rendered Stokes are the same as with every ray cast. ``margin`` covers the
+    float32 rounding of a cosine (~1e-7). Worth it where many modules are below the horizon (every
+    texel of the head: about a third of the rays); a camera's fragments face its nearby modules.
+
+    Args:
+        caster: ray caster of the posed mesh; points: ``(N, 3)`` mm on it.
+        geometric_normal: ``(N, 3)`` unit face normals (the side of the shadow rays' offset).
+        shading_normal: ``(N, 3)`` unit shading normals (float32 or float64).
+        light_positions: ``(K, 3)`` mm.
+    """
+    points = np.asarray(points, np.float64)
+    lights = np.asarray(light_positions, np.float64)
+    to_light = lights[None, :, :] - points[:, None, :]  # (N, K, 3)
+    cosine = np.einsum("nc,nkc->nk", np.asarray(shading_normal, np.float64), to_light)
+    above = cosine > -margin * np.linalg.norm(to_light, axis=-1)
+    rows, modules = np.nonzero(above)
+    visible = np.zeros(above.shape, bool)
+    if rows.size:
+        visible[rows, modules] = caster.shadow_rays(
+            points[rows], np.asarray(geometric_normal, np.float64)[rows], lights[modules], pairwise=False
+        )
+    return visible
+
+
 def lobe_stokes(
     material: FragmentMaterial,
     position: torch.Tensor,
@@ -185,7 +228,9 @@ def lobe_stokes(
         visible: ``(N, K)`` bool shadow-ray visibility of each module.
         intensity: ``(1, C)`` radiant intensity of every module (``(1, 1)`` broadcasts over channels),
             or ``(K, C)`` one row per module.
-        stokes: ``(N, C, 4)`` the Stokes to add to (e.g. the subsurface term).
+        stokes: ``(N, C, 4)`` the Stokes to add to (e.g. the subsurface term), or ``(N, C, S)`` with
+            ``S < 4``: only the first ``S`` components are accumulated (``S = 1``: ``s0`` of an RGB
+            camera; each component is the same sum as in the full vector).
         light_stokes: incident Stokes vector of the LEDs (default: the image formation's default).
         skip_unlit: skip modules that no fragment sees (they add zero).
     """
@@ -213,6 +258,6 @@ def lobe_stokes(
             diffused_exitance=no_exitance,
             **extra,
         )
-        stokes = stokes + lit * images.stokes
+        stokes = stokes + lit * images.stokes[..., : stokes.shape[-1]]
     return stokes
 

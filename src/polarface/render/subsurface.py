@@ -30,6 +30,7 @@ import torch
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster
 from polarface.optics.image_formation import subsurface_entry_flux
+from polarface.render.shading import lit_above_horizon
 from polarface.skin.heterogeneous import ProfileShapes, fit_layer_shapes, render_layered_subsurface
 from polarface.skin.layers import (
     CHROMOPHORE_NAMES,
@@ -112,6 +113,34 @@ class SubsurfaceModel:
             mask=torch.from_numpy(mask.astype(np.float32)),
         )
 
+    def updated(
+        self,
+        chromophores: dict[str, np.ndarray],
+        texels: np.ndarray,
+        constants: SkinLayerConstants = SkinLayerConstants(),  # noqa: B008 - frozen dataclass
+    ) -> SubsurfaceModel:
+        """This model with the layer totals of the ``texels`` ``(Ht, Wt)`` bool (inside the atlas)
+        recomputed from ``chromophores`` (maps as in :meth:`build`); every other texel keeps its totals.
+
+        The totals are per texel, so where ``chromophores`` equal the maps this model was built from the
+        result is the model :meth:`build` makes of ``chromophores`` with this model's shapes, raster and
+        stretch (bit for bit), at the cost of ``texels`` only (a dynamic frame changes a few percent).
+        """
+        texels = np.asarray(texels, bool)
+        if not texels.any():
+            return self
+        params = [
+            torch.from_numpy(np.asarray(chromophores[k][texels], np.float64)) for k in CHROMOPHORE_NAMES
+        ]
+        per_texel = layer_totals(*layer_optics(*params, self.wavelengths_nm, constants), constants)
+        where = torch.from_numpy(texels)
+        totals = []
+        for full, value in zip(self.totals, per_texel, strict=True):
+            full = full.clone()
+            full[:, where] = value.T.float()
+            totals.append(full)
+        return dataclasses.replace(self, totals=LayerTotals(*totals))
+
 
 def _local_r_bar(totals: LayerTotals) -> torch.Tensor:
     r_out_f, t_out_f, r_out_b, t_out_b, r_in_f = totals
@@ -150,7 +179,9 @@ def entering_flux(
     intensity = torch.full((lights.shape[0], 1), float(light_intensity), dtype=torch.float64)
     for start in range(0, points.shape[0], chunk):
         stop = min(start + chunk, points.shape[0])
-        visible = caster.shadow_rays(points[start:stop], geometric[start:stop], lights)  # (n, K)
+        visible = lit_above_horizon(
+            caster, points[start:stop], geometric[start:stop], normals[start:stop], lights
+        )  # (n, K)
         phi = visible_entry_flux(
             torch.from_numpy(normals[start:stop]),
             torch.from_numpy(points[start:stop]),

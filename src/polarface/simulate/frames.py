@@ -46,6 +46,7 @@ if TYPE_CHECKING:
     from polarface.simulate.pipeline import SimulationConfig, SimulationScene
 
 __all__ = [
+    "FRAME_STAGES",
     "RenderedFrame",
     "SimulationFrameUnit",
     "exposure_from",
@@ -58,6 +59,18 @@ __all__ = [
     "write_frame",
 ]
 
+#: Stages of a frame, in order, as the keys of the seconds :func:`run_simulation_unit` returns:
+#: ``frame_state_s`` (the frame's mesh, and, dynamic, its maps and subsurface model:
+#: :func:`polarface.simulate.sequences.sequence_frame`), ``geometry_s`` (ray caster, posed raster,
+#: shading normals), ``entering_flux_s`` (texel shadow rays and entry flux), ``diffusion_s``
+#: (texture-space subsurface blur), ``views_polarimetric_s`` / ``views_stereo_s`` (the camera renders),
+#: ``raw_noise_s`` (mosaic, shot and read noise), ``capture_store_s`` (raw PNGs and derived arrays),
+#: ``ground_truth_files_s`` (mesh, dynamic maps), ``observations_s`` (texel visibility and
+#: ``observations.zarr``).
+FRAME_STAGES = (
+    "frame_state_s", "geometry_s", "entering_flux_s", "diffusion_s", "views_polarimetric_s", "views_stereo_s",
+    "raw_noise_s", "capture_store_s", "ground_truth_files_s", "observations_s",
+)
 #: Scenes built (or lent by the submitting process) in this process, by configuration.
 _SCENES: dict[Any, SimulationScene] = {}
 
@@ -77,17 +90,39 @@ class RenderedFrame:
     shading_normal: np.ndarray
 
 
+class _StageClock:
+    """Adds the seconds since the previous :meth:`lap` to ``timings[name]`` (None: records nothing)."""
+
+    def __init__(self, timings: dict[str, float] | None) -> None:
+        self.timings = timings
+        self.last = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        if self.timings is not None:
+            self.timings[name] = self.timings.get(name, 0.0) + now - self.last
+        self.last = now
+
+
 def render_frame(
-    scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps, subsurface: SubsurfaceModel
+    scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps, subsurface: SubsurfaceModel,
+    timings: dict[str, float] | None = None,
 ) -> RenderedFrame:
-    """Render every camera of the rig for one posed/deformed head (noise-free radiance)."""
+    """Render every camera of the rig for one posed/deformed head (noise-free radiance).
+
+    ``timings``: adds the seconds of each stage (:data:`FRAME_STAGES`, render part) to it.
+    """
+    clock = _StageClock(timings)
     caster = RayCaster(mesh_world)
     raster = reposition(scene.raster, mesh_world)
     shading = shading_normals(raster, maps.displacement_mm)
     lights, intensity = rig_lighting(scene.rig)
     reference = scene.rig.polarimetric_cameras()[0].pinhole()
+    clock.lap("geometry_s")
     flux = entering_flux(caster, raster, shading, maps.eta, lights, intensity, reference.up_vector)
+    clock.lap("entering_flux_s")
     exitance = texture_space_exitance(flux, subsurface, scene.calibration, blur=scene.config.subsurface_blur)
+    clock.lap("diffusion_s")
     textures = FrameTextures.build(
         {
             "eta": maps.eta,
@@ -113,6 +148,7 @@ def render_frame(
             _camera_channels(camera) if polarimetric else tuple(range(6)),
             polarization=polarimetric,
         )
+        clock.lap("views_polarimetric_s" if polarimetric else "views_stereo_s")
     return RenderedFrame(mesh_world, caster, views, raster, shading)
 
 
@@ -175,7 +211,8 @@ def frame_counts(scene: SimulationScene) -> dict[str, int]:
 
 
 def write_frame(scene: SimulationScene, out: Path, sequence: str, index: int, time_s: float,
-                mesh: TriangleMesh, maps: AppearanceMaps, frame: RenderedFrame) -> None:
+                mesh: TriangleMesh, maps: AppearanceMaps, frame: RenderedFrame,
+                timings: dict[str, float] | None = None) -> None:
     """Write frame ``index`` of ``sequence`` from its render into the simulation folder ``out``: raw
     frames into the capture store ``out/SEQUENCE`` (made by the submitting process, sized by
     :meth:`CaptureStore.reserve_frames`), the mesh (and, dynamic, the maps that change) under
@@ -183,10 +220,15 @@ def write_frame(scene: SimulationScene, out: Path, sequence: str, index: int, ti
     :meth:`ObservationWriter.create_arrays`). What frames share — the store's manifest, the frame's
     "done" attribute — is left to the submitting process (:meth:`CaptureStore.write_manifest`,
     :meth:`ObservationWriter.mark_done`, with its one handle on the attributes).
+    ``timings``: adds the seconds of each stage (:data:`FRAME_STAGES`, write part) to it.
     """
+    clock = _StageClock(timings)
     gt = out / "ground_truth"
     store = CaptureStore.open_writer(out / sequence)
-    store.add_frame(index, time_s, _raw_frames(scene, frame, sequence, index), update_manifest=False)
+    raws = _raw_frames(scene, frame, sequence, index)
+    clock.lap("raw_noise_s")
+    store.add_frame(index, time_s, raws, update_manifest=False)
+    clock.lap("capture_store_s")
     save_ply(gt / sequence / "meshes" / f"{index:06d}.ply", mesh)
     if sequence == "dynamic":
         names = list(scene.calibration.channel_names)
@@ -195,8 +237,10 @@ def write_frame(scene: SimulationScene, out: Path, sequence: str, index: int, ti
             gt / "dynamic" / "maps" / f"{index:06d}_rho_sss_bar.exr",
             {n: maps.rho_sss_bar[..., i] for i, n in enumerate(names)},
         )
+    clock.lap("ground_truth_files_s")
     writer = ObservationWriter(gt / "observations.zarr", scene, frame_counts(scene))
     writer.write(sequence, index, frame, mark=False)
+    clock.lap("observations_s")
 
 
 def scene_for(config: SimulationConfig) -> SimulationScene:
@@ -243,8 +287,8 @@ class SimulationFrameUnit:
 
 def run_simulation_unit(unit: SimulationFrameUnit) -> dict[str, float]:
     """Render one frame (:class:`SimulationFrameUnit`) and write its files (:func:`write_frame`);
-    seconds per step (``scene_s``: building the scene,
-    0 when this process had it, ``render_s``, ``write_s``).
+    seconds per step (``scene_s``: building the scene, 0 when this process had it, ``render_s``,
+    ``write_s``) and per stage of the frame (:data:`FRAME_STAGES`).
 
     Raises:
         ValueError, FileNotFoundError: the frame is not in the sequence, or the store is missing.
@@ -254,10 +298,12 @@ def run_simulation_unit(unit: SimulationFrameUnit) -> dict[str, float]:
     scene_s = time.perf_counter() - started
     rig = CaptureStore.open_writer(unit.out / unit.sequence).rig
     scene = dataclasses.replace(base, rig=rig, exposure=float(rig.cameras[0].exposure))
+    stages: dict[str, float] = {}
     started = time.perf_counter()
     index, time_s, mesh, maps, subsurface = sequence_frame(scene, unit.sequence, unit.index)
-    frame = render_frame(scene, mesh, maps, subsurface)
+    stages["frame_state_s"] = time.perf_counter() - started
+    frame = render_frame(scene, mesh, maps, subsurface, stages)
     render_s = time.perf_counter() - started
     started = time.perf_counter()
-    write_frame(scene, unit.out, unit.sequence, index, time_s, mesh, maps, frame)
-    return {"scene_s": scene_s, "render_s": render_s, "write_s": time.perf_counter() - started}
+    write_frame(scene, unit.out, unit.sequence, index, time_s, mesh, maps, frame, stages)
+    return {"scene_s": scene_s, "render_s": render_s, "write_s": time.perf_counter() - started, **stages}

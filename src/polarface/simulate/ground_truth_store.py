@@ -50,10 +50,12 @@ def texel_visibility(
         & (pixels[:, 1] >= -0.5)
         & (pixels[:, 1] <= camera.height - 0.5)
     )
-    hits = caster.first_hits(np.repeat(centre[None], len(points), axis=0), directions)
-    unoccluded = hits.hit & (np.abs(hits.distance - distance) < 0.5)
+    candidate = facing & inside  # rays only towards these: the others are not visible whatever they hit
+    hits = caster.first_hits(np.repeat(centre[None], int(candidate.sum()), axis=0), directions[candidate])
+    seen = candidate.copy()
+    seen[candidate] = hits.hit & (np.abs(hits.distance - distance[candidate]) < 0.5)
     visible = np.zeros(mask.shape, bool)
-    visible[mask] = facing & inside & unoccluded
+    visible[mask] = seen
     pixel_map = np.full((*mask.shape, 2), -1.0, np.float32)
     pixel_map[mask] = pixels.astype(np.float32)
     return visible, pixel_map

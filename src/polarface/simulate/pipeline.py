@@ -139,6 +139,10 @@ class SimulationScene:
     subsurface: SubsurfaceModel
     placement: np.ndarray
     exposure: float | None = None
+    #: arrays derived from the scene once, when a frame first needs them (e.g. the dynamic sequence's
+    #: rest rho_sss_bar, :func:`polarface.simulate.sequences.with_c_h_out`); the scene's copies
+    #: (``dataclasses.replace``) share it.
+    derived: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
 
     @classmethod
     def build(cls, config: SimulationConfig) -> SimulationScene:
@@ -282,17 +286,18 @@ def _simulate_sequence(scene: SimulationScene, out: Path, sequence: str, writer:
     if pending and scene.exposure is None:  # the first frame fixes the exposure of the whole capture
         frame_started = time.perf_counter()
         index, time_s, mesh, maps, subsurface = sequence_frame(scene, sequence, pending.pop(0))
-        frame = render_frame(scene, mesh, maps, subsurface)
+        stages = {"frame_state_s": time.perf_counter() - frame_started}
+        frame = render_frame(scene, mesh, maps, subsurface, stages)
         scene.exposure = exposure_from(frame, scene)
         scene.rig = with_exposure(scene.rig, scene.exposure)
         store = CaptureStore.create(out / sequence, scene.rig, sequence=sequence)
         store.reserve_frames(count)
-        write_frame(scene, out, sequence, index, time_s, mesh, maps, frame)
+        write_frame(scene, out, sequence, index, time_s, mesh, maps, frame, stages)
         store.write_manifest()
         writer.mark_done(sequence, index)
-        placements[f"{sequence}/{index}"] = UnitOutcome(
+        placements[f"{sequence}/{index}"] = {**UnitOutcome(
             index, seconds=time.perf_counter() - frame_started, host=socket.gethostname(), pid=os.getpid()
-        ).placement()
+        ).placement(), **stages}
         bar.update(1)
     if store is None:
         store = CaptureStore.create(out / sequence, scene.rig, sequence=sequence)

@@ -80,14 +80,15 @@ def sequence_frame(
     lowered = 0.8 * (1.0 - float(blood_flow_factor(time_s)))
     c_h_out = (scene.maps.c_h_out * (1.0 - lowered * pressed_patch(scene))).astype(np.float32)
     maps = with_c_h_out(scene, c_h_out)
-    subsurface = SubsurfaceModel.build(
-        chromophore_maps(maps),
-        scene.raster,
-        scene.calibration.wavelengths_nm,
-        shapes=scene.subsurface.shapes,
-        per_texel_stretch=scene.config.texel_stretch,
-    )
+    # Only the texels under the pressed patch change (a few percent; the Gaussian's tail rounds to the
+    # rest map's float32 value): their layer totals are recomputed, the others are the rest model's.
+    subsurface = scene.subsurface.updated(chromophore_maps(maps), _changed_texels(scene, c_h_out))
     return index, time_s, mesh, maps, subsurface
+
+
+def _changed_texels(scene: SimulationScene, c_h_out: np.ndarray) -> np.ndarray:
+    """``(Ht, Wt)`` bool: atlas texels whose outer haemoglobin differs from the rest maps'."""
+    return scene.maps.mask & (c_h_out != scene.maps.c_h_out)
 
 
 def static_poses(scene: SimulationScene) -> np.ndarray:
@@ -112,17 +113,36 @@ def pressed_patch(scene: SimulationScene) -> np.ndarray:
 
 
 def with_c_h_out(scene: SimulationScene, c_h_out: np.ndarray) -> AppearanceMaps:
-    """Maps with a new outer haemoglobin map and the matching six-channel rho_sss_bar."""
+    """Maps with a new outer haemoglobin map ``(Ht, Wt)`` float32 and the matching six-channel
+    rho_sss_bar (float64 two-layer ``R_bar`` integrated into the channels, per texel).
+
+    Computed at the texels whose ``c_h_out`` differs from the rest maps' only; the others take the
+    rest maps' values computed the same way once per scene (kept in ``scene.derived``), so the result is
+    the same as computing every texel.
+    """
+    key = "rho_sss_bar_float64"  # rho_sss_bar of the rest maps through this function (not build's)
+    if key not in scene.derived:
+        scene.derived[key] = _rho_sss_bar(
+            scene, scene.maps.mask, scene.maps.c_h_out, np.zeros_like(scene.maps.rho_sss_bar)
+        )
+    rho = _rho_sss_bar(scene, _changed_texels(scene, c_h_out), c_h_out, scene.derived[key])
+    return scene.maps.replace(c_h_out=c_h_out, rho_sss_bar=rho)
+
+
+def _rho_sss_bar(scene: SimulationScene, texels: np.ndarray, c_h_out: np.ndarray,
+                 base: np.ndarray) -> np.ndarray:
+    """Copy of ``base`` ``(Ht, Wt, 6)`` float32 with rho_sss_bar recomputed at ``texels`` ``(Ht, Wt)``."""
     from polarface.skin.layers import subsurface_albedo
 
-    mask = scene.maps.mask
+    rho = base.copy()
+    if not texels.any():
+        return rho
     r_bar = subsurface_albedo(
-        torch.from_numpy(scene.maps.c_m[mask].astype(np.float64)),
-        torch.from_numpy(scene.maps.beta_m[mask].astype(np.float64)),
-        torch.from_numpy(scene.maps.c_h_in[mask].astype(np.float64)),
-        torch.from_numpy(c_h_out[mask].astype(np.float64)),
+        torch.from_numpy(scene.maps.c_m[texels].astype(np.float64)),
+        torch.from_numpy(scene.maps.beta_m[texels].astype(np.float64)),
+        torch.from_numpy(scene.maps.c_h_in[texels].astype(np.float64)),
+        torch.from_numpy(c_h_out[texels].astype(np.float64)),
         scene.calibration.wavelengths_nm,
     )
-    rho = np.zeros_like(scene.maps.rho_sss_bar)
-    rho[mask] = scene.calibration.integrate(r_bar).float().numpy()
-    return scene.maps.replace(c_h_out=c_h_out, rho_sss_bar=rho)
+    rho[texels] = scene.calibration.integrate(r_bar).float().numpy()
+    return rho

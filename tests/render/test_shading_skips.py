@@ -1,0 +1,69 @@
+"""Work the renderer skips changes nothing: shadow rays only above the shading horizon
+(:func:`polarface.render.shading.lit_above_horizon`), ``s0`` alone for RGB cameras (:func:`lobe_stokes`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from polarface.geometry.head_asset import load_head_asset
+from polarface.geometry.raycast import RayCaster
+from polarface.geometry.uv_raster import rasterize_uv
+from polarface.render.renderer import rig_lighting, shading_normals
+from polarface.render.shading import FragmentMaterial, lit_above_horizon, lobe_stokes
+from polarface.render.subsurface import entering_flux, visible_entry_flux
+
+
+def test_horizon_culling_changes_no_entry_flux(small_rig):
+    """Every texel of the head, all modules: the culled visibility equals the shadow rays above the
+    horizon, and the entry flux (the simulator's :func:`entering_flux`) is the same bits as with every
+    ray cast."""
+    asset = load_head_asset(texture_resolution=128)
+    raster = rasterize_uv(asset.mesh, 128)
+    caster = RayCaster(asset.mesh)
+    shading = shading_normals(raster, np.zeros(raster.mask.shape))
+    lights, intensity = rig_lighting(small_rig)
+    # the head at the rig origin faces +z: put the lights around it at 1 m on both sides
+    lights = np.concatenate([lights[:, :2], np.full((len(lights), 1), -1000.0)], axis=1)
+    lights[::2, 2] *= -1.0
+    mask = raster.mask
+    points, normals, geometric = (
+        np.asarray(a[mask], np.float64) for a in (raster.position, shading, raster.normal)
+    )
+    culled = lit_above_horizon(caster, points, geometric, normals, lights)
+    every = caster.shadow_rays(points, geometric, lights)
+    cosine = np.einsum("nc,nkc->nk", normals, lights[None] - points[:, None])
+    above = cosine > 0
+    assert 0.1 < above.mean() < 0.9  # some modules are below the horizon
+    assert np.array_equal(culled[above], every[above])
+    up = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
+    power = torch.full((len(lights), 1), float(intensity), dtype=torch.float64)
+    eta = torch.full((len(points), 1), 1.4, dtype=torch.float64)
+    flux = [
+        visible_entry_flux(torch.from_numpy(normals), torch.from_numpy(points), up, lights, power, eta, v)
+        for v in (culled, every)
+    ]
+    assert np.array_equal(flux[0].numpy().view(np.uint8), flux[1].numpy().view(np.uint8))
+    assert float(flux[0].max()) > 0
+    out = entering_flux(caster, raster, shading, np.full(mask.shape, 1.4), lights, float(intensity),
+                        np.array([0.0, -1.0, 0.0]))
+    assert np.array_equal(out[mask], flux[1][:, 0].numpy().astype(np.float32))
+
+
+def test_lobe_stokes_s0_alone_is_the_full_vectors_s0():
+    rng = np.random.default_rng(5)
+    count = 500
+    normal = torch.from_numpy(rng.normal(size=(count, 3)) + np.array([0.0, 0.0, -3.0])).float()
+    normal = normal / normal.norm(dim=-1, keepdim=True)
+    position = torch.from_numpy(rng.uniform(-50, 50, size=(count, 3)) + np.array([0.0, 0.0, 1000.0])).float()
+    column = lambda low, high: torch.from_numpy(rng.uniform(low, high, size=(count, 1))).float()  # noqa: E731
+    material = FragmentMaterial(normal, normal, column(1.3, 1.5), column(0.1, 0.5), column(0.2, 0.6),
+                                column(0.0, 1.0), column(0.0, 1.0), column(0.0, 1.0).expand(count, 6))
+    centre, up = torch.zeros(3), torch.tensor([0.0, -1.0, 0.0])
+    lights = rng.uniform(-300, 300, size=(4, 3)) * np.array([1.0, 1.0, 0.0])
+    visible = rng.random((count, 4)) < 0.7
+    start = torch.from_numpy(rng.random((count, 6, 4))).float()
+    full = lobe_stokes(material, position, centre, up, lights, visible, torch.ones(1, 1), start)
+    s0 = lobe_stokes(material, position, centre, up, lights, visible, torch.ones(1, 1), start[..., :1])
+    assert s0.shape == (count, 6, 1)
+    assert torch.equal(s0[..., 0], full[..., 0])

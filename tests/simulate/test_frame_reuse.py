@@ -1,0 +1,59 @@
+"""Per-frame work the simulator skips gives the same frame as computing everything (bit for bit)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from polarface.geometry.raycast import RayCaster
+from polarface.geometry.uv_raster import reposition
+from polarface.render.subsurface import SubsurfaceModel
+from polarface.simulate.ground_truth_store import texel_visibility
+from polarface.simulate.pipeline import SimulationConfig, SimulationScene
+from polarface.simulate.sequences import chromophore_maps, sequence_frame
+from polarface.skin.layers import subsurface_albedo
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return SimulationScene.build(SimulationConfig(preset="tiny"))
+
+
+def test_dynamic_frame_equals_every_texel_recomputed(scene):
+    for index in (1, 0):  # the cached rest rho_sss_bar is made by the first frame asked for
+        _, _, _, maps, subsurface = sequence_frame(scene, "dynamic", index)
+        mask = maps.mask
+        r_bar = subsurface_albedo(
+            *(torch.from_numpy(m[mask].astype(np.float64)) for m in (maps.c_m, maps.beta_m, maps.c_h_in)),
+            torch.from_numpy(maps.c_h_out[mask].astype(np.float64)),
+            scene.calibration.wavelengths_nm,
+        )
+        rho = np.zeros_like(scene.maps.rho_sss_bar)
+        rho[mask] = scene.calibration.integrate(r_bar).float().numpy()
+        assert np.array_equal(maps.rho_sss_bar.view(np.uint8), rho.view(np.uint8))
+        full = SubsurfaceModel.build(chromophore_maps(maps), scene.raster, scene.calibration.wavelengths_nm,
+                                     shapes=scene.subsurface.shapes)
+        for a, b in zip(full.totals, subsurface.totals, strict=True):
+            assert torch.equal(a, b)
+        assert (maps.c_h_out != scene.maps.c_h_out).any()
+
+
+def test_texel_visibility_equals_every_ray(scene):
+    _, _, mesh, _, _ = sequence_frame(scene, "static", 1)
+    caster, raster = RayCaster(mesh), reposition(scene.raster, mesh)
+    camera = scene.rig.polarimetric_cameras()[0].pinhole()
+    visible, pixel = texel_visibility(caster, raster, camera)
+    points = raster.position[raster.mask].astype(np.float64)
+    rays = points - camera.center
+    distance = np.linalg.norm(rays, axis=1)
+    directions = rays / distance[:, None]
+    hits = caster.first_hits(np.repeat(camera.center[None], len(points), axis=0), directions)
+    projected, depth = camera.project(points)
+    inside = (depth > 0) & (projected >= -0.5).all(1) & (projected[:, 0] <= camera.width - 0.5) & (
+        projected[:, 1] <= camera.height - 0.5)
+    facing = np.einsum("nc,nc->n", raster.normal[raster.mask], -directions) > 0.0
+    expected = facing & inside & hits.hit & (np.abs(hits.distance - distance) < 0.5)
+    assert np.array_equal(visible[raster.mask], expected)
+    assert 0 < expected.sum() < expected.size
+    assert np.array_equal(pixel[raster.mask], projected.astype(np.float32))
