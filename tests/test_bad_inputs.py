@@ -776,8 +776,6 @@ def _reconstruct_rows() -> list[Row]:
         "--refine-lobes": ("-1",),
         "--holdout-every": ("-1",),
         "--threads": ("0", "-1"),
-        "--seconds": ("0", "-1", "nan", "inf"),
-        "--repeats": ("0", "-2"),
     }.items():
         name = arg.lstrip("-").split("-")[0]
         rows += [row(f"reconstruct{arg}={v}", f"{SIMR} {arg} {v}", name) for v in values]
@@ -918,8 +916,6 @@ def _biophysical_rows() -> list[Row]:
         "--shape-rounds": ("-1",),
         "--gamut-tolerance": ("-0.1", "nan"),
         "--threads": ("0", "-1"),
-        "--seconds": ("0", "-1", "nan", "inf"),
-        "--repeats": ("0", "-2"),
     }.items():
         rows += [
             row(f"biophysical{arg}={v}", f"{BIO} {arg} {v}", arg.lstrip("-").split("-")[0]) for v in values
