@@ -35,7 +35,7 @@ from polarface.export.formats import ExportOptions
 from polarface.export.gltf_glb import ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, GlbBuilder
 from polarface.export.source import ExportSource
 from polarface.export.texture_images import fresnel_f0
-from polarface.io import atomic_path
+from polarface.io import atomic_path, encode_png
 
 __all__ = ["GLB_NAME", "LOST", "tangent_space_normals", "write_gltf"]
 
@@ -131,17 +131,6 @@ def tangent_space_normals(raster, mesh, tangents: np.ndarray, shading: np.ndarra
     local[:, 2] = np.maximum(local[:, 2], 1e-3)
     out[rows, cols] = _unit(local)
     return out
-
-
-def _png(image: np.ndarray) -> bytes:
-    """PNG bytes of a uint8 ``(H, W, 3|4)`` RGB(A) image (row 0 first)."""
-    import cv2
-
-    channels = [2, 1, 0, 3][: image.shape[-1]]  # OpenCV stores BGR(A)
-    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(image[..., channels]))
-    if not ok:
-        raise ValueError("glTF export: OpenCV could not encode a PNG texture")
-    return encoded.tobytes()
 
 
 def _unorm8(values: np.ndarray) -> np.ndarray:
@@ -271,7 +260,7 @@ def write_gltf(source: ExportSource, out: Path, options: ExportOptions) -> dict[
     indices = builder.add_accessor(mesh.faces.reshape(-1).astype(index_type), ELEMENT_ARRAY_BUFFER)
     textures = {}
     for name in ("base_colour", "metallic_roughness", "normal", "specular", "specular_colour"):
-        textures[name] = builder.add_image(_png(getattr(images, name)), "image/png", name)
+        textures[name] = builder.add_image(encode_png(getattr(images, name)), "image/png", name)
     model_to_gltf = np.eye(4)
     model_to_gltf[:3, :3] = rotation * _MM_TO_M
     document = {

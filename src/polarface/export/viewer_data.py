@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from polarface.export.source import ExportSource
+from polarface.io import encode_png
 from polarface.results import layout
 
 __all__ = ["STOKES_ENCODING", "ViewerData", "ViewerFrame", "ViewerMap", "build_viewer_data", "glb_vertices"]
@@ -115,14 +116,7 @@ class ViewerData:
 
 def _png(rgb: np.ndarray) -> bytes:
     """8-bit PNG bytes of an ``(H, W, 3)`` float image in [0, 1] or uint8 image (RGB order)."""
-    import cv2
-
-    if rgb.dtype != np.uint8:
-        rgb = np.round(np.clip(rgb, 0.0, 1.0) * 255.0).astype(np.uint8)
-    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 6])
-    if not ok:
-        raise RuntimeError("PNG encoding failed")
-    return encoded.tobytes()
+    return encode_png(rgb, compression=6)
 
 
 def _colour_mapped(values: np.ndarray, mask: np.ndarray, vmin: float, vmax: float) -> bytes:

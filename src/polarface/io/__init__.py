@@ -7,6 +7,7 @@ Physics modules (``optics``, ``skin``) never import from here.
 from polarface.io.atomic import atomic_directory, atomic_path, write_json_atomic
 from polarface.io.images import (
     colormap_png,
+    encode_png,
     image_header,
     read_exr,
     read_gray,
@@ -22,6 +23,7 @@ __all__ = [
     "atomic_directory",
     "atomic_path",
     "colormap_png",
+    "encode_png",
     "image_header",
     "is_url",
     "json_values",

@@ -16,7 +16,16 @@ import numpy as np
 from polarface.io.atomic import atomic_path
 from polarface.io.storage import PathOrUrl, StoragePath, UrlPath, local_copy, read_head, storage_path
 
-__all__ = ["colormap_png", "image_header", "read_exr", "read_gray", "read_png", "write_exr", "write_png"]
+__all__ = [
+    "colormap_png",
+    "encode_png",
+    "image_header",
+    "read_exr",
+    "read_gray",
+    "read_png",
+    "write_exr",
+    "write_png",
+]
 
 
 def write_exr(
@@ -103,34 +112,45 @@ def read_exr(path: PathOrUrl) -> dict[str, np.ndarray]:
     return out
 
 
-def write_png(path: PathOrUrl, image: np.ndarray, *, bit_depth: int = 8) -> StoragePath:
-    """Write an integer or [0, 1]-float image as an 8- or 16-bit PNG, atomically.
+def encode_png(image: np.ndarray, *, bit_depth: int = 8, compression: int | None = None) -> bytes:
+    """The bytes of an integer or [0, 1]-float image as an 8- or 16-bit PNG (for files and for containers
+    that embed images: the glTF binary, the viewer's data).
 
     Float input is clipped to [0, 1] and scaled to the full range of ``bit_depth``; integer input is
-    written as is (it must fit ``bit_depth``). Shapes: ``(H, W)`` grey, ``(H, W, 3)`` RGB,
-    ``(H, W, 4)`` RGBA (16-bit colour is written through OpenCV, which PIL cannot do).
+    encoded as is (it must fit ``bit_depth``). Shapes: ``(H, W)`` grey, ``(H, W, 3)`` RGB,
+    ``(H, W, 4)`` RGBA (16-bit colour is encoded through OpenCV, which PIL cannot do). ``compression``:
+    zlib level 0-9 (default: OpenCV's).
     """
     import cv2
 
     if bit_depth not in (8, 16):
-        raise ValueError(f"write_png: bit_depth must be 8 or 16, got {bit_depth}")
+        raise ValueError(f"PNG image: bit_depth must be 8 or 16, got {bit_depth}")
     dtype = np.uint8 if bit_depth == 8 else np.uint16
     top = np.iinfo(dtype).max
     if np.issubdtype(image.dtype, np.floating):
         if not np.isfinite(image).all():
-            raise ValueError("write_png: image contains NaN or inf")
+            raise ValueError("PNG image: image contains NaN or inf")
         data = np.round(np.clip(image, 0.0, 1.0) * top).astype(dtype)
     else:
         if image.size and (image.min() < 0 or image.max() > top):
-            raise ValueError(f"write_png: integer values must lie in [0, {top}] for {bit_depth}-bit PNG")
+            raise ValueError(f"PNG image: integer values must lie in [0, {top}] for {bit_depth}-bit PNG")
         data = image.astype(dtype)
     if data.ndim == 3 and data.shape[-1] in (3, 4):
         data = data[..., [2, 1, 0, 3][: data.shape[-1]]]  # OpenCV stores BGR(A)
     elif data.ndim != 2:
-        raise ValueError(f"write_png: image must be (H, W), (H, W, 3) or (H, W, 4); got {image.shape}")
+        raise ValueError(f"PNG image: image must be (H, W), (H, W, 3) or (H, W, 4); got {image.shape}")
+    params = [] if compression is None else [cv2.IMWRITE_PNG_COMPRESSION, int(compression)]
+    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(data), params)
+    if not ok:
+        raise ValueError("PNG image: OpenCV could not encode the image")
+    return encoded.tobytes()
+
+
+def write_png(path: PathOrUrl, image: np.ndarray, *, bit_depth: int = 8) -> StoragePath:
+    """Write an integer or [0, 1]-float image as an 8- or 16-bit PNG, atomically (:func:`encode_png`)."""
+    encoded = encode_png(image, bit_depth=bit_depth)
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(data)):
-            raise ValueError(f"write_png: OpenCV could not write '{path}'")
+        Path(tmp).write_bytes(encoded)
     return storage_path(path)
 
 
