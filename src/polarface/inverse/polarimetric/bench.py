@@ -21,7 +21,8 @@ with observations rendered by the model itself. :func:`run_benchmark` times the 
 
 each for about ``seconds`` of wall time: a calibrated iteration count per repeat (after a warm-up that
 includes the JIT compile), ``repeats`` repeats, and their median, min/max and interquartile range (a
-shared machine makes single short timings swing by tens of percent). The baseline is the same losses
+shared machine makes single short timings swing by tens of percent). The baseline
+(:mod:`polarface.inverse.polarimetric.bench_eager`) is the same losses
 written the straightforward way (the style of the authors' release): a Python loop over texels, each
 evaluating :func:`polarface.optics.render_polarimetric` for its views one light at a time, its own
 backward and optimiser step (two steps per texel: it is ~1e3 times slower). Rates are texel-view
@@ -41,13 +42,12 @@ import numba
 import numpy as np
 import torch
 
+from polarface.inverse.polarimetric.bench_eager import eager_rate as eager_baseline_rate
 from polarface.inverse.polarimetric.config import PolarimetricConfig, initial_raw
 from polarface.inverse.polarimetric.engines import POLARIMETRIC_ENGINES
 from polarface.inverse.polarimetric.fused import build_fused_samples, fused_loss_and_grad
-from polarface.inverse.polarimetric.losses import data_losses
 from polarface.inverse.polarimetric.model import (
     SampleBatch,
-    SamplePrediction,
     precompute_samples,
     render_samples,
 )
@@ -191,46 +191,6 @@ def benchmark_problem(
     return BenchmarkProblem(problems, raw, views)
 
 
-def _eager_texel_step(samples: list[dict], params: dict[str, torch.Tensor], optimizer, scale: float) -> None:
-    """One iteration of the baseline for one texel: per view, per light calls of render_polarimetric."""
-    from polarface.optics.image_formation import render_polarimetric
-
-    optimizer.zero_grad()
-    eta = 1.05 + 1.45 * torch.sigmoid(params["eta"])
-    alpha_s = 0.02 + 1.48 * torch.sigmoid(params["alpha_s"])
-    alpha_ss = alpha_s + (1.5 - alpha_s) * torch.sigmoid(params["alpha_ss"])
-    rho_s, rho_ss = 2 * torch.sigmoid(params["rho_s"]), 2 * torch.sigmoid(params["rho_ss"])
-    rho = torch.sigmoid(params["rho_sss_bar"])
-    normal = params["normal"] / params["normal"].norm()
-    total = 0.0
-    for sample in samples:
-        stokes = None
-        for k in range(sample["lights"].shape[0]):
-            images = render_polarimetric(
-                normal,
-                sample["position"],
-                sample["centre"],
-                sample["up"],
-                sample["lights"][k : k + 1],
-                sample["intensity"][k : k + 1],
-                eta,
-                alpha_s,
-                alpha_ss,
-                rho_s,
-                rho_ss,
-                rho[sample["channels"]],
-            )
-            stokes = images.stokes if stokes is None else stokes + images.stokes
-        s0, s1, s2 = stokes[..., 0], stokes[..., 1], stokes[..., 2]
-        prediction = SamplePrediction(
-            i_sss=(s0 - s1)[None], i_zeta=(-s2)[None], i_s=s1[None], specular_s1=torch.zeros_like(s1)[None]
-        )
-        losses = data_losses(prediction, sample["observed"][None], scale)
-        total = total + losses["sss"] + losses["s"] + losses["phi"] + 0.002 * losses["psi"]
-    total.backward()
-    optimizer.step()
-
-
 def _timed_workloads(bench: BenchmarkProblem, device: torch.device) -> dict[str, tuple]:
     """Workload name -> ``(run(n), problem, torch threads)`` for each workload of :data:`TIMED` that runs
     on ``device``; ``run(n)`` does ``n`` iterations of it."""
@@ -348,55 +308,6 @@ def _timed_rates(
     return out
 
 
-def _eager_texel_inputs(problem: PatchProblem, views: list[ViewSpec], texel: int) -> tuple[list[dict], dict]:
-    """The baseline's per-view inputs and its leaf parameters for one texel of ``problem``."""
-    batch = problem.batch
-    chosen = torch.nonzero(batch.texel == texel)[:, 0]
-    samples = []
-    for s in chosen.tolist():
-        view = views[int(batch.view[s])]
-        samples.append(
-            {
-                "centre": torch.tensor(view.camera_center, dtype=torch.float32),
-                "up": torch.tensor(view.camera_up, dtype=torch.float32),
-                "lights": torch.tensor(view.light_positions, dtype=torch.float32),
-                "intensity": torch.tensor(view.light_intensity, dtype=torch.float32),
-                "channels": torch.tensor(view.channels),
-                "observed": batch.observed[s],
-            }
-        )
-    row, col = divmod(int(texel), problem.shape[1])
-    position = torch.as_tensor(problem.positions[row, col], dtype=torch.float32)
-    for sample in samples:
-        sample["position"] = position
-    params = {
-        "eta": torch.tensor(0.0, requires_grad=True),
-        "alpha_s": torch.tensor(0.0, requires_grad=True),
-        "alpha_ss": torch.tensor(0.0, requires_grad=True),
-        "rho_s": torch.tensor(0.0, requires_grad=True),
-        "rho_ss": torch.tensor(0.0, requires_grad=True),
-        "rho_sss_bar": torch.zeros(6, requires_grad=True),
-        "normal": problem.frame[2][row, col].clone().requires_grad_(True),
-    }
-    return samples, params
-
-
-def _eager_rate(problem: PatchProblem, views: list[ViewSpec], baseline_texels: int) -> tuple[float, float]:
-    """``(texel-view iterations per second, seconds)`` of the eager baseline on the first
-    ``baseline_texels`` texels of ``problem`` (the rate does not depend on how many)."""
-    texels = problem.batch.texel.unique()[: int(baseline_texels)]
-    work, eager_s = 0, 0.0
-    for texel in texels:
-        samples, params = _eager_texel_inputs(problem, views, int(texel))
-        optimizer = torch.optim.RMSprop(list(params.values()), lr=1e-3)
-        tick = time.perf_counter()
-        for _ in range(2):
-            _eager_texel_step(samples, params, optimizer, problem.scale)
-        eager_s += time.perf_counter() - tick
-        work += 2 * len(samples)
-    return (work / eager_s if eager_s > 0 else math.nan), eager_s
-
-
 def run_benchmark(
     side: int = 48,
     frames: int = 24,
@@ -440,7 +351,7 @@ def run_benchmark(
     fused, torch_rates = rates["fused_objective"], rates["torch_objective"]
     fused_rate, torch_rate = fused["median"], torch_rates["median"]
     best_rate = fused_rate if fused_rate == fused_rate else torch_rate
-    eager_rate, eager_s = _eager_rate(problem, bench.views, baseline_texels)
+    eager_rate, eager_s = eager_baseline_rate(problem, bench.views, baseline_texels)
     return {
         "device": str(device),
         "threads": torch.get_num_threads(),
