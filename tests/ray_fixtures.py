@@ -1,6 +1,8 @@
 """One local Ray instance per test process, shared by the tests that need Ray (importable: ``tests`` is
 on pytest's ``pythonpath``). Starting Ray costs seconds, so it is started once and left to Ray's own
-exit handler; executors that find it connected use it and leave it open."""
+exit handler; executors that find it connected use it and leave it open. Its processes' logs are not
+forwarded to this process (``log_to_driver=False``): a raylet warning (a nearly full disk, say) would
+otherwise appear in the captured stderr of whichever later test of this process checks stderr."""
 
 from __future__ import annotations
 
@@ -18,7 +20,8 @@ def ray_instance():
     """The ``ray`` module, connected to a local instance with :data:`RAY_CPUS` CPUs (skips without Ray)."""
     ray = pytest.importorskip("ray")
     if not ray.is_initialized():
-        ray.init(address="local", num_cpus=RAY_CPUS, include_dashboard=False, logging_level="warning")
+        ray.init(address="local", num_cpus=RAY_CPUS, include_dashboard=False, logging_level="warning",
+                 log_to_driver=False)
     return ray
 
 
