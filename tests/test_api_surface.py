@@ -18,7 +18,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "__version__",
     ),
     "polarface.capture": (
-        "BAYER_BLOCK", "Camera", "CaptureStore", "CharucoBoardSpec", "DEMOSAIC_METHODS",
+        "AnalyzerCalibration", "BAYER_BLOCK", "Camera", "CaptureStore", "CharucoBoardSpec",
+        "DEMOSAIC_METHODS",
         "DemosaicErrors", "DemosaicMethod", "FrameRecord", "IntrinsicsResult", "Lattice",
         "LightModule", "MANIFEST_FORMAT", "MANIFEST_VERSION", "OBSERVATION_NAMES", "Observations",
         "PATTERNS", "POLARIZER_BLOCK", "PolarizationStack", "RAW_SUFFIXES", "Rig", "SENSOR_KINDS",
@@ -90,7 +91,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "storage_path", "write_exr", "write_json_atomic", "write_png",
     ),
     "polarface.optics": (
-        "ANALYZER_ANGLES", "DEFAULT_LIGHT_STOKES", "FresnelTerms", "PolarimetricImages",
+        "ANALYZER_ANGLES", "AnalyzerModel", "DEFAULT_LIGHT_STOKES", "FresnelTerms",
+        "IDEAL_ANALYZER_ANGLES_DEG", "PolarimetricImages",
         "SURFACE_PARAMETER_NAMES", "analyzer_intensity", "aolp", "brewster_angle", "depolarizer",
         "diffuse_dop", "double_angle_cos_sin", "frame_rotation_angle", "fresnel_reflectance",
         "fresnel_terms", "fresnel_transmittance", "fresnel_transmittance_exit", "ggx_d",

@@ -79,11 +79,34 @@ def test_save_load_roundtrip(tmp_path):
         ({"colour_channels": {"R": 7}}, "colour_channels"),
         ({"colour_channels": {"R": 1}}, "mono-polarization"),
         ({"unknown": 1}, "unknown"),
+        ({"analyzer": {"extinction_ratio": 0.5}}, "analyzer(.|\n)*extinction_ratio: Input should be greater"),
+        ({"analyzer": {"analyzer_angles_deg": [0, 45, 90]}}, "analyzer(.|\n)*analyzer_angles_deg"),
+        ({"analyzer": {"analyzer_angles_deg": [90, 45, 0, 135]}}, "within 22.5 deg"),
+        ({"analyzer": {"R": {"extinction_ratio": 100}}}, "color-polarization"),
     ],
 )
 def test_camera_errors_name_field(overrides, field):
     with pytest.raises(ValueError, match=field):
         Camera.model_validate(_camera(**overrides))
+
+
+def test_analyzer_calibration_round_trips_and_defaults_to_ideal(tmp_path):
+    rig = paper_rig(width=64, height=48)
+    camera = rig.polarimetric_cameras()[0]
+    assert camera.analyzer is None and camera.analyzer_model("R").is_ideal
+    per_colour = {"R": {"extinction_ratio": 80.0, "analyzer_angles_deg": [0.5, 45.2, 89.1, 135.0],
+                        "extinction_ratio_std": 4.0, "analyzer_angles_std_deg": [0.02, 0.02, 0.03, 0.02]}}
+    payload = json.loads(json.dumps(rig.model_dump()))
+    payload["cameras"][0]["analyzer"] = per_colour
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(payload))
+    loaded = Rig.load(path)
+    model = loaded.cameras[0].analyzer_model("R")
+    assert model.extinction_ratio == 80.0 and model.angles_deg == (0.5, 45.2, 89.1, 135.0)
+    assert loaded.cameras[0].analyzer_model("G").is_ideal  # a colour left out is ideal
+    with pytest.raises(ValueError, match="colour must be R, G or B"):
+        loaded.cameras[0].analyzer_model(None)
+    assert Rig.load(loaded.save(tmp_path / "again.json")) == loaded
 
 
 def test_rig_errors(tmp_path):

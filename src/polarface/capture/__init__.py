@@ -58,7 +58,15 @@ from polarface.capture.observations import (
     register_to_reference,
     registration_map,
 )
-from polarface.capture.rig import SIX_CHANNEL_NAMES, Camera, LightModule, Rig, SpectralModel, paper_rig
+from polarface.capture.rig import (
+    SIX_CHANNEL_NAMES,
+    AnalyzerCalibration,
+    Camera,
+    LightModule,
+    Rig,
+    SpectralModel,
+    paper_rig,
+)
 from polarface.capture.rig_calibration import calibrate_rig
 from polarface.capture.sensor import (
     BAYER_BLOCK,
@@ -88,6 +96,7 @@ __all__ = [
     "RAW_SUFFIXES",
     "SENSOR_KINDS",
     "SIX_CHANNEL_NAMES",
+    "AnalyzerCalibration",
     "Camera",
     "CaptureStore",
     "CharucoBoardSpec",

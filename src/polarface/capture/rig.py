@@ -23,9 +23,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from polarface.geometry.camera import PinholeCamera, look_at
 from polarface.io.atomic import write_json_atomic
 from polarface.io.storage import PathOrUrl, StoragePath, storage_path
+from polarface.optics.analyzer import IDEAL_ANALYZER_ANGLES_DEG, AnalyzerModel
 
 __all__ = [
     "SIX_CHANNEL_NAMES",
+    "AnalyzerCalibration",
     "Camera",
     "LightModule",
     "Rig",
@@ -118,6 +120,35 @@ def _plain(value: Any) -> Any:
     return np.asarray(value).tolist() if hasattr(value, "__array__") or hasattr(value, "tolist") else value
 
 
+class AnalyzerCalibration(_Model):
+    """The measured analyzers of a polarization camera (or of one colour channel of it).
+
+    Absent from ``rig.json`` means ideal (infinite extinction ratio, 0/45/90/135 deg). Written by
+    ``polarface calibrate-polarization`` with its one-sigma uncertainties.
+
+    Attributes:
+        extinction_ratio: ``k1 / k2`` of the micro-polarizers (> 1); None = infinite (ideal).
+        analyzer_angles_deg: orientations of the analyzers polarface calls 0, 45, 90, 135 deg, degrees
+            from image +x, counter-clockwise as seen by the camera (``docs/conventions.md``).
+        extinction_ratio_std, analyzer_angles_std_deg: one-sigma uncertainties of the calibration.
+    """
+
+    extinction_ratio: float | None = Field(default=None, gt=1)
+    analyzer_angles_deg: tuple[float, float, float, float] = IDEAL_ANALYZER_ANGLES_DEG
+    extinction_ratio_std: float | None = Field(default=None, ge=0)
+    analyzer_angles_std_deg: tuple[float, float, float, float] | None = None
+
+    @model_validator(mode="after")
+    def _check_model(self) -> AnalyzerCalibration:
+        self.model()  # raises ValueError for angles out of order
+        return self
+
+    def model(self) -> AnalyzerModel:
+        """This calibration as an :class:`polarface.optics.analyzer.AnalyzerModel`."""
+        ratio = math.inf if self.extinction_ratio is None else self.extinction_ratio
+        return AnalyzerModel(ratio, self.analyzer_angles_deg)
+
+
 class Camera(_Model):
     """One camera of the rig.
 
@@ -135,6 +166,9 @@ class Camera(_Model):
         pattern_phase: (row, col) phase of the mosaic (cropped/flipped readouts).
         colour_channels: for colour cameras, the spectral channel index (0..5) of R, G, B, e.g.
             ``{"R": 0, "G": 1, "B": 2}``; empty for mono cameras or when unused.
+        analyzer: the measured micro-polarizers (polarization sensors only): one
+            :class:`AnalyzerCalibration` for every colour, or one per colour ``{"R": ..., "G": ...,
+            "B": ...}`` (colour cameras; a colour left out is ideal); None = ideal analyzers.
     """
 
     id: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
@@ -151,6 +185,7 @@ class Camera(_Model):
     exposure: float = Field(default=1.0, gt=0)
     pattern_phase: tuple[int, int] = (0, 0)
     colour_channels: dict[Literal["R", "G", "B"], int] = Field(default_factory=dict)
+    analyzer: AnalyzerCalibration | dict[Literal["R", "G", "B"], AnalyzerCalibration] | None = None
 
     @field_validator("K")
     @classmethod
@@ -180,6 +215,21 @@ class Camera(_Model):
             raise ValueError("distortion must hold 0, 4, 5, 8, 12 or 14 finite OpenCV coefficients")
         return value
 
+    @field_validator("analyzer", mode="before")
+    @classmethod
+    def _check_analyzer(cls, value: Any) -> Any:
+        """One calibration, or one per colour when every key is R, G or B (clear one-line errors)."""
+        if value is None or isinstance(value, AnalyzerCalibration):
+            return value
+        if not isinstance(value, dict):
+            raise ValueError("must be an object {extinction_ratio, analyzer_angles_deg} or {R, G, B: ...}")
+        try:
+            if value and set(value) <= {"R", "G", "B"}:
+                return {colour: AnalyzerCalibration.model_validate(entry) for colour, entry in value.items()}
+            return AnalyzerCalibration.model_validate(value)
+        except ValidationError as exc:
+            raise ValueError(_one_line(exc)) from None
+
     @field_validator("colour_channels")
     @classmethod
     def _check_channels(cls, value: dict[str, int]) -> dict[str, int]:
@@ -197,6 +247,10 @@ class Camera(_Model):
             )
         if self.sensor == "mono-polarization" and self.colour_channels:
             raise ValueError("colour_channels must be empty for a mono-polarization camera")
+        if self.analyzer is not None and self.sensor == "rgb":
+            raise ValueError("analyzer is only allowed for a polarization sensor; this camera is 'rgb'")
+        if isinstance(self.analyzer, dict) and self.sensor != "color-polarization":
+            raise ValueError("a per-colour analyzer {R, G, B} needs a color-polarization sensor")
         period = {"mono-polarization": 2, "color-polarization": 4}.get(self.sensor)
         if period is not None and not all(0 <= p < period for p in self.pattern_phase):
             raise ValueError(
@@ -225,6 +279,21 @@ class Camera(_Model):
         """Camera centre in world coordinates, mm, ``(3,)``."""
         pose = self.pose
         return -pose[:3, :3].T @ pose[:3, 3]
+
+    def analyzer_model(self, colour: str | None = None) -> AnalyzerModel:
+        """The analyzers of colour ``colour`` (``"R"``, ``"G"``, ``"B"``; None for a mono sensor or a
+        camera-wide calibration) as an :class:`polarface.optics.analyzer.AnalyzerModel`; ideal when
+        ``rig.json`` gives none."""
+        if self.analyzer is None:
+            return AnalyzerModel()
+        if isinstance(self.analyzer, AnalyzerCalibration):
+            return self.analyzer.model()
+        if colour not in ("R", "G", "B"):
+            raise ValueError(
+                f"camera {self.id!r} has per-colour analyzers; colour must be R, G or B; got {colour!r}"
+            )
+        calibration = self.analyzer.get(colour)
+        return AnalyzerModel() if calibration is None else calibration.model()
 
     def pinhole(self) -> PinholeCamera:
         """This camera as a :class:`polarface.geometry.camera.PinholeCamera` (K, pose, size, distortion)."""

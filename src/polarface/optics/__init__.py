@@ -3,7 +3,9 @@
 Pure, differentiable, device- and dtype-agnostic torch functions; numpy/float in gives the same
 kind out. Conventions (units, frames, the T = 1 - R choice) are in ``docs/conventions.md``.
 
-Modules: :mod:`~polarface.optics.stokes` (analyzer images, DoP, AoLP), :mod:`~polarface.optics.fresnel`,
+Modules: :mod:`~polarface.optics.stokes` (analyzer images, DoP, AoLP),
+:mod:`~polarface.optics.analyzer` (non-ideal micro-polarizers: extinction ratio, orientation errors),
+:mod:`~polarface.optics.fresnel`,
 :mod:`~polarface.optics.mueller` (rotator, polarizer, depolarizer, Fresnel matrices, Stokes frames),
 :mod:`~polarface.optics.microfacet` (GGX, Smith), :mod:`~polarface.optics.dop` (diffuse/specular DoP and
 inverses), :mod:`~polarface.optics.pbssrdf` (full Mueller matrices P_s, P_ss, P_sss, coaxial model) and
@@ -11,6 +13,7 @@ inverses), :mod:`~polarface.optics.pbssrdf` (full Mueller matrices P_s, P_ss, P_
 image formation used by the renderers and the inverse stages).
 """
 
+from polarface.optics.analyzer import IDEAL_ANALYZER_ANGLES_DEG, AnalyzerModel
 from polarface.optics.dop import (
     diffuse_dop,
     max_diffuse_dop,
@@ -65,7 +68,9 @@ from polarface.optics.stokes import (
 __all__ = [
     "ANALYZER_ANGLES",
     "DEFAULT_LIGHT_STOKES",
+    "IDEAL_ANALYZER_ANGLES_DEG",
     "SURFACE_PARAMETER_NAMES",
+    "AnalyzerModel",
     "FresnelTerms",
     "PolarimetricImages",
     "analyzer_intensity",
