@@ -201,13 +201,13 @@ def test_bad_arguments_name_the_argument():
 def test_edges_do_not_keep_open3d_results_alive(head_surface):
     """Regression: ``np.asarray(result.transformation)`` is a view whose base keeps Open3D's whole
     registration result (its correspondence set) alive in the pose graph: memory grew ~1 MB per frame."""
-    from polarface.geometry.registration import _icp, _registration_levels
+    from polarface.geometry.registration_icp import icp, registration_levels
 
     config = RegistrationConfig()
     truth = true_poses(count=2)
-    source, centre = _registration_levels(partial_view(head_surface, truth[1], seed=1), None, config)
-    target, _ = _registration_levels(partial_view(head_surface, truth[0], seed=0), centre, config)
-    transform, _, _, information = _icp(source, target, np.eye(4), config)
+    source, centre = registration_levels(partial_view(head_surface, truth[1], seed=1), None, config)
+    target, _ = registration_levels(partial_view(head_surface, truth[0], seed=0), centre, config)
+    transform, _, _, information = icp(source, target, np.eye(4), config)
     assert transform.base is None and information.base is None
 
 

@@ -35,13 +35,23 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from polarface.geometry.point_cloud import PointCloud
 from polarface.geometry.poses import check_rigid, invert_rigid
+from polarface.geometry.registration_icp import (
+    global_retry,
+    icp,
+    model_cloud,
+    orthonormalised,
+    point_to_plane,
+    registration_levels,
+    rejection_reason,
+    rotation_deg,
+    scaled_motion,
+)
 
 __all__ = [
     "PairRegistration", "RegistrationConfig", "SequenceRegistration", "register_pair", "register_sequence",
@@ -281,16 +291,16 @@ def register_pair(
         ValueError: a cloud with fewer than 16 confident points (naming it), or a non-rigid ``init``.
     """
     init = np.eye(4) if init is None else check_rigid(np.asarray(init, dtype=np.float64), "init")
-    source_levels, centre = _registration_levels(source, None, config)
+    source_levels, centre = registration_levels(source, None, config)
     if source_levels is None:
         raise ValueError("argument 'source' has fewer than 16 confident points to register")
-    target_levels, _ = _registration_levels(target, centre, config)
+    target_levels, _ = registration_levels(target, centre, config)
     if target_levels is None:
         raise ValueError("argument 'target' has fewer than 16 confident points to register")
     shift = np.eye(4)
     shift[:3, 3] = centre
     local_init = invert_rigid(shift) @ init @ shift
-    local, fitness, rmse, _ = _icp(source_levels, target_levels, local_init, config)
+    local, fitness, rmse, _ = icp(source_levels, target_levels, local_init, config)
     from open3d.pipelines import registration as reg
 
     reverse = reg.evaluate_registration(target_levels[-1], source_levels[-1], config.scales[-1][1],
@@ -315,76 +325,6 @@ def _walks(frames: list[int], reference: int) -> list[list[int]]:
     return [frames[at + 1 :], frames[:at][::-1]]
 
 
-def _registration_levels(cloud: PointCloud, centre: np.ndarray | None, config: RegistrationConfig):
-    """Open3D clouds per ICP level (coarse -> fine) of ``cloud`` shifted by ``-centre`` (the local frame;
-    ``None``: the cloud's own confident centroid); ``(levels, centre)``, levels ``None`` if too few points."""
-    if not isinstance(cloud, PointCloud):
-        raise ValueError(f"argument 'load_cloud' must return PointCloud; got {type(cloud).__name__}")
-    cloud = cloud.select(cloud.confidence >= config.min_confidence)
-    if len(cloud) < 16:
-        return None, centre
-    centre = cloud.points.mean(axis=0) if centre is None else centre
-    base = cloud.voxel_downsample(config.voxel_mm).to_open3d().translate(-centre)
-    levels = []
-    for voxel, _, _ in config.scales:
-        level = base if voxel <= config.voxel_mm else base.voxel_down_sample(voxel)
-        levels.append(level)
-    return levels, centre
-
-
-def _icp(source_levels, target_levels, init: np.ndarray, config: RegistrationConfig, first_level: int = 0):
-    """Multi-scale point-to-plane ICP of source onto target from level ``first_level`` on;
-    ``(T, fitness, rmse, information)`` at the finest level."""
-    from open3d.pipelines import registration as reg
-
-    transform = init
-    for level, (_, distance, iterations) in enumerate(config.scales):
-        if level < first_level:
-            continue
-        last = level == len(config.scales) - 1
-        kernel = reg.TukeyLoss(k=config.robust_kernel_mm) if last and config.robust_kernel_mm > 0 else None
-        method = (
-            reg.TransformationEstimationPointToPlane(kernel)
-            if kernel
-            else (reg.TransformationEstimationPointToPlane())
-        )
-        result = reg.registration_icp(
-            source_levels[level],
-            target_levels[level],
-            distance,
-            transform,
-            method,
-            reg.ICPConvergenceCriteria(1e-7, 1e-7, int(iterations)),
-        )
-        # a copy: np.asarray would be a view whose base keeps the whole result (its correspondence set,
-        # ~0.3 MB) alive in the pose graph's edges, growing memory with the frame count
-        transform = np.array(result.transformation, dtype=np.float64)
-    distance = config.scales[-1][1]
-    final = reg.evaluate_registration(source_levels[-1], target_levels[-1], distance, transform)
-    information = reg.get_information_matrix_from_point_clouds(
-        source_levels[-1], target_levels[-1], distance, transform
-    )
-    information = np.array(information, dtype=np.float64)
-    return transform, float(final.fitness), float(final.inlier_rmse), information
-
-
-def _rotation_deg(transform: np.ndarray) -> float:
-    """Rotation angle of a 4x4 transform, degrees."""
-    cosine = (np.trace(transform[:3, :3]) - 1.0) / 2.0
-    return math.degrees(math.acos(float(np.clip(cosine, -1.0, 1.0))))
-
-
-def _scaled_motion(motion: np.ndarray, factor: float) -> np.ndarray:
-    """The rigid motion ``motion`` (4x4) scaled along its screw: rotation vector and translation times
-    ``factor`` (a constant-velocity extrapolation over ``factor`` steps)."""
-    from scipy.spatial.transform import Rotation
-
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(motion[:3, :3]).as_rotvec() * factor).as_matrix()
-    out[:3, 3] = motion[:3, 3] * factor
-    return out
-
-
 def _chain_and_close(frames, load_cloud, reference, config, bar):
     """Step 1-2: chained odometry, loop closures, rejections, in a local frame: the world shifted by
     ``-centre`` (the reference cloud's centroid), so that poses have small translations and the pose graph
@@ -394,7 +334,7 @@ def _chain_and_close(frames, load_cloud, reference, config, bar):
     frame's local pose ``= P_anchor_optimised @ T``.
     """
     graph, relative, reasons = _Graph(), {}, {}
-    ref_levels, centre = _registration_levels(load_cloud(int(reference)), None, config)
+    ref_levels, centre = registration_levels(load_cloud(int(reference)), None, config)
     if ref_levels is None:
         raise ValueError(f"argument 'load_cloud': the reference frame {reference} has fewer than 16 points")
     ref = _Frame(int(reference), ref_levels, np.eye(4))
@@ -404,7 +344,7 @@ def _chain_and_close(frames, load_cloud, reference, config, bar):
     for walk in _walks(frames, reference):
         window: collections.deque[_Frame] = collections.deque([ref], maxlen=config.window + 1)
         for frame in walk:
-            levels, _ = _registration_levels(load_cloud(frame), centre, config)
+            levels, _ = registration_levels(load_cloud(frame), centre, config)
             _register_one(frame, levels, window, ref, position, graph, relative, reasons, config)
             bar.update(1)
     return graph, relative, reasons, centre
@@ -420,7 +360,7 @@ def _predict(window, frame: int, position: dict[int, int]) -> np.ndarray:
     steps = abs(position[frame] - position[anchor.index]) / max(
         abs(position[anchor.index] - position[before.index]), 1
     )
-    return _scaled_motion(motion, steps) @ anchor.pose
+    return scaled_motion(motion, steps) @ anchor.pose
 
 
 def _register_one(frame, levels, window, ref, position, graph, relative, reasons, config) -> None:
@@ -432,16 +372,16 @@ def _register_one(frame, levels, window, ref, position, graph, relative, reasons
         relative[frame] = (anchor.index, invert_rigid(anchor.pose) @ predicted)
         return
     init = anchor.pose @ invert_rigid(predicted)  # world-k -> world-anchor
-    transform, fitness, rmse, information = _icp(levels, anchor.levels, init, config)
-    pose = invert_rigid(check_rigid(_orthonormalised(transform))) @ anchor.pose
-    jump = _rotation_deg(pose @ invert_rigid(predicted))
-    reason = _rejection(fitness, rmse, jump, config)
+    transform, fitness, rmse, information = icp(levels, anchor.levels, init, config)
+    pose = invert_rigid(check_rigid(orthonormalised(transform))) @ anchor.pose
+    jump = rotation_deg(pose @ invert_rigid(predicted))
+    reason = rejection_reason(fitness, rmse, jump, config)
     if reason and config.global_voxel_mm > 0:
-        retry = _global_retry(levels, anchor.levels, config)
+        retry = global_retry(levels, anchor.levels, config)
         if retry is not None:
             transform, fitness, rmse, information = retry
-            pose = invert_rigid(check_rigid(_orthonormalised(transform))) @ anchor.pose
-            jump, reason = _rotation_deg(pose @ invert_rigid(predicted)), ""
+            pose = invert_rigid(check_rigid(orthonormalised(transform))) @ anchor.pose
+            jump, reason = rotation_deg(pose @ invert_rigid(predicted)), ""
     if reason:
         reasons[frame] = reason
         best = pose if jump <= config.max_rotation_jump_deg else predicted
@@ -455,74 +395,12 @@ def _register_one(frame, levels, window, ref, position, graph, relative, reasons
         targets.append(ref)
     for target in targets:
         init = target.pose @ invert_rigid(pose)
-        loop, loop_fitness, loop_rmse, loop_info = _icp(
+        loop, loop_fitness, loop_rmse, loop_info = icp(
             levels, target.levels, init, config, config.loop_first_level
         )
         if loop_fitness >= config.min_fitness and loop_rmse <= config.max_rmse_mm:
             graph.edges.append((frame, target.index, loop, loop_info, True))
     window.append(current)
-
-
-def _fpfh(cloud, voxel_mm: float):
-    """``(downsampled cloud, FPFH features)`` of an Open3D cloud with normals."""
-    import open3d as o3d
-
-    down = cloud.voxel_down_sample(voxel_mm)
-    features = o3d.pipelines.registration.compute_fpfh_feature(
-        down, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel_mm, max_nn=100)
-    )
-    return down, features
-
-
-def _global_retry(source_levels, target_levels, config: RegistrationConfig):
-    """ICP from a global FPFH + RANSAC registration (source -> target); ``(T, fitness, rmse, information)``
-    when it passes the fitness and RMSE tests, else None. RANSAC is seeded: runs are reproducible."""
-    import open3d as o3d
-
-    reg = o3d.pipelines.registration
-    voxel = config.global_voxel_mm
-    source, source_features = _fpfh(source_levels[0], voxel)
-    target, target_features = _fpfh(target_levels[0], voxel)
-    o3d.utility.random.seed(0)
-    found = reg.registration_ransac_based_on_feature_matching(
-        source, target, source_features, target_features, True, 1.5 * voxel,
-        reg.TransformationEstimationPointToPoint(False), 3,
-        [
-            reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-            reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel),
-        ],
-        reg.RANSACConvergenceCriteria(100000, 0.999),
-    )
-    if found.fitness <= 0 or _rotation_deg(np.asarray(found.transformation)) > config.max_global_rotation_deg:
-        return None
-    transform, fitness, rmse, information = _icp(source_levels, target_levels, np.array(found.transformation),
-                                                 config)
-    if _rejection(fitness, rmse, 0.0, config):
-        return None
-    return transform, fitness, rmse, information
-
-
-def _rejection(fitness: float, rmse: float, jump: float, config: RegistrationConfig) -> str:
-    """Why an odometry registration is rejected ('' if it is not)."""
-    if fitness < config.min_fitness:
-        return f"fitness {fitness:.2f} < {config.min_fitness}: no overlap with its neighbours"
-    if rmse > config.max_rmse_mm:
-        return f"inlier RMSE {rmse:.2f} mm > {config.max_rmse_mm} mm: the neighbours' surfaces do not agree"
-    if jump > config.max_rotation_jump_deg:
-        return (
-            f"rotation jump {jump:.1f} deg > {config.max_rotation_jump_deg} deg from the chained prediction: "
-            "ICP slid into a wrong minimum"
-        )
-    return ""
-
-
-def _orthonormalised(transform: np.ndarray) -> np.ndarray:
-    """``transform`` with its rotation block projected onto SO(3) (removes float drift)."""
-    u, _, vt = np.linalg.svd(transform[:3, :3])
-    out = np.array(transform, dtype=np.float64)
-    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    out[3] = (0.0, 0.0, 0.0, 1.0)
-    return out
 
 
 def _optimise(graph: _Graph, reference: int, config: RegistrationConfig) -> dict[int, np.ndarray]:
@@ -556,8 +434,8 @@ def _optimise(graph: _Graph, reference: int, config: RegistrationConfig) -> dict
         )
     to_model_ref = np.asarray(pose_graph.nodes[node_of[int(reference)]].pose)
     return {
-        frame: _orthonormalised(to_model_ref)
-        @ invert_rigid(_orthonormalised(np.asarray(pose_graph.nodes[node_of[frame]].pose)))
+        frame: orthonormalised(to_model_ref)
+        @ invert_rigid(orthonormalised(np.asarray(pose_graph.nodes[node_of[frame]].pose)))
         for frame in order
     }
 
@@ -570,7 +448,7 @@ def _all_poses(frames: list[int], optimised: dict[int, np.ndarray], relative: di
             poses[k] = optimised[frame]
         else:
             anchor, transform = relative[frame]
-            poses[k] = _orthonormalised(optimised[anchor] @ transform)
+            poses[k] = orthonormalised(optimised[anchor] @ transform)
     return poses
 
 
@@ -581,38 +459,18 @@ def _residuals_against_model(frames, load_cloud, reference, poses, reasons, conf
     fitness = np.zeros(len(frames))
     rmse = np.full(len(frames), np.nan)
     row = {f: i for i, f in enumerate(frames)}
-    reference_model = _model_cloud(load_cloud(int(reference)), np.eye(4), config)
+    reference_model = model_cloud(load_cloud(int(reference)), np.eye(4), config)
     fitness[row[int(reference)]], rmse[row[int(reference)]] = 1.0, 0.0
     for walk in _walks(frames, reference):
         model = reference_model
         for frame in walk:
-            cloud = _model_cloud(load_cloud(frame), pose_of[frame], config)
+            cloud = model_cloud(load_cloud(frame), pose_of[frame], config)
             bar.update(1)
             if len(cloud) < 16:
                 continue
-            fitness[row[frame]], rmse[row[frame]] = _point_to_plane(cloud, model, config.final_distance_mm)
+            fitness[row[frame]], rmse[row[frame]] = point_to_plane(cloud, model, config.final_distance_mm)
             if frame not in reasons:
                 model = PointCloud.concatenate([model, cloud]).voxel_downsample(config.voxel_mm)
     return fitness, rmse
 
 
-def _point_to_plane(cloud: PointCloud, model: PointCloud, distance_mm: float) -> tuple[float, float]:
-    """Fraction of ``cloud``'s points with a model point within ``distance_mm``, and the RMSE of their
-    distances to the model's tangent planes (mm; NaN when none)."""
-    from scipy.spatial import cKDTree
-
-    distance, nearest = cKDTree(model.points).query(
-        cloud.points, k=1, distance_upper_bound=distance_mm, workers=-1
-    )
-    inlier = np.isfinite(distance)
-    if not inlier.any():
-        return 0.0, float("nan")
-    offset = cloud.points[inlier] - model.points[nearest[inlier]]
-    residual = np.einsum("ij,ij->i", offset, model.normals[nearest[inlier]])
-    return float(inlier.mean()), float(np.sqrt(np.mean(residual**2)))
-
-
-def _model_cloud(cloud: PointCloud, pose: np.ndarray, config: RegistrationConfig) -> PointCloud:
-    """``cloud`` (world of its frame) in the model frame, confident points, downsampled to ``voxel_mm``."""
-    cloud = cloud.select(cloud.confidence >= config.min_confidence)
-    return cloud.voxel_downsample(config.voxel_mm).transformed(invert_rigid(pose))

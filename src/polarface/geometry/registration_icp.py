@@ -1,0 +1,183 @@
+"""The Open3D steps of :mod:`polarface.geometry.registration`: per-level clouds in a local frame,
+multi-scale point-to-plane ICP, the FPFH + RANSAC global retry, the acceptance test, and point-to-plane
+residuals against a voxel model. Positions in mm; transforms ``(4, 4)`` float64 rigid.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from polarface.geometry.point_cloud import PointCloud
+from polarface.geometry.poses import invert_rigid
+
+if TYPE_CHECKING:
+    from polarface.geometry.registration import RegistrationConfig
+
+__all__ = [
+    "global_retry",
+    "icp",
+    "model_cloud",
+    "orthonormalised",
+    "point_to_plane",
+    "registration_levels",
+    "rejection_reason",
+    "rotation_deg",
+    "scaled_motion",
+]
+
+
+def registration_levels(cloud: PointCloud, centre: np.ndarray | None, config: RegistrationConfig):
+    """Open3D clouds per ICP level (coarse -> fine) of ``cloud`` shifted by ``-centre`` (the local frame;
+    ``None``: the cloud's own confident centroid); ``(levels, centre)``, levels ``None`` if too few points."""
+    if not isinstance(cloud, PointCloud):
+        raise ValueError(f"argument 'load_cloud' must return PointCloud; got {type(cloud).__name__}")
+    cloud = cloud.select(cloud.confidence >= config.min_confidence)
+    if len(cloud) < 16:
+        return None, centre
+    centre = cloud.points.mean(axis=0) if centre is None else centre
+    base = cloud.voxel_downsample(config.voxel_mm).to_open3d().translate(-centre)
+    levels = []
+    for voxel, _, _ in config.scales:
+        level = base if voxel <= config.voxel_mm else base.voxel_down_sample(voxel)
+        levels.append(level)
+    return levels, centre
+
+
+def icp(source_levels, target_levels, init: np.ndarray, config: RegistrationConfig, first_level: int = 0):
+    """Multi-scale point-to-plane ICP of source onto target from level ``first_level`` on;
+    ``(T, fitness, rmse, information)`` at the finest level."""
+    from open3d.pipelines import registration as reg
+
+    transform = init
+    for level, (_, distance, iterations) in enumerate(config.scales):
+        if level < first_level:
+            continue
+        last = level == len(config.scales) - 1
+        kernel = reg.TukeyLoss(k=config.robust_kernel_mm) if last and config.robust_kernel_mm > 0 else None
+        method = (
+            reg.TransformationEstimationPointToPlane(kernel)
+            if kernel
+            else (reg.TransformationEstimationPointToPlane())
+        )
+        result = reg.registration_icp(
+            source_levels[level],
+            target_levels[level],
+            distance,
+            transform,
+            method,
+            reg.ICPConvergenceCriteria(1e-7, 1e-7, int(iterations)),
+        )
+        # a copy: np.asarray would be a view whose base keeps the whole result (its correspondence set,
+        # ~0.3 MB) alive in the pose graph's edges, growing memory with the frame count
+        transform = np.array(result.transformation, dtype=np.float64)
+    distance = config.scales[-1][1]
+    final = reg.evaluate_registration(source_levels[-1], target_levels[-1], distance, transform)
+    information = reg.get_information_matrix_from_point_clouds(
+        source_levels[-1], target_levels[-1], distance, transform
+    )
+    information = np.array(information, dtype=np.float64)
+    return transform, float(final.fitness), float(final.inlier_rmse), information
+
+
+def rotation_deg(transform: np.ndarray) -> float:
+    """Rotation angle of a 4x4 transform, degrees."""
+    cosine = (np.trace(transform[:3, :3]) - 1.0) / 2.0
+    return math.degrees(math.acos(float(np.clip(cosine, -1.0, 1.0))))
+
+
+def scaled_motion(motion: np.ndarray, factor: float) -> np.ndarray:
+    """The rigid motion ``motion`` (4x4) scaled along its screw: rotation vector and translation times
+    ``factor`` (a constant-velocity extrapolation over ``factor`` steps)."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(motion[:3, :3]).as_rotvec() * factor).as_matrix()
+    out[:3, 3] = motion[:3, 3] * factor
+    return out
+
+
+def fpfh_features(cloud, voxel_mm: float):
+    """``(downsampled cloud, FPFH features)`` of an Open3D cloud with normals."""
+    import open3d as o3d
+
+    down = cloud.voxel_down_sample(voxel_mm)
+    features = o3d.pipelines.registration.compute_fpfh_feature(
+        down, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * voxel_mm, max_nn=100)
+    )
+    return down, features
+
+
+def global_retry(source_levels, target_levels, config: RegistrationConfig):
+    """ICP from a global FPFH + RANSAC registration (source -> target); ``(T, fitness, rmse, information)``
+    when it passes the fitness and RMSE tests, else None. RANSAC is seeded: runs are reproducible."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    voxel = config.global_voxel_mm
+    source, source_features = fpfh_features(source_levels[0], voxel)
+    target, target_features = fpfh_features(target_levels[0], voxel)
+    o3d.utility.random.seed(0)
+    found = reg.registration_ransac_based_on_feature_matching(
+        source, target, source_features, target_features, True, 1.5 * voxel,
+        reg.TransformationEstimationPointToPoint(False), 3,
+        [
+            reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+            reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel),
+        ],
+        reg.RANSACConvergenceCriteria(100000, 0.999),
+    )
+    if found.fitness <= 0 or rotation_deg(np.asarray(found.transformation)) > config.max_global_rotation_deg:
+        return None
+    transform, fitness, rmse, information = icp(source_levels, target_levels, np.array(found.transformation),
+                                                 config)
+    if rejection_reason(fitness, rmse, 0.0, config):
+        return None
+    return transform, fitness, rmse, information
+
+
+def rejection_reason(fitness: float, rmse: float, jump: float, config: RegistrationConfig) -> str:
+    """Why an odometry registration is rejected ('' if it is not)."""
+    if fitness < config.min_fitness:
+        return f"fitness {fitness:.2f} < {config.min_fitness}: no overlap with its neighbours"
+    if rmse > config.max_rmse_mm:
+        return f"inlier RMSE {rmse:.2f} mm > {config.max_rmse_mm} mm: the neighbours' surfaces do not agree"
+    if jump > config.max_rotation_jump_deg:
+        return (
+            f"rotation jump {jump:.1f} deg > {config.max_rotation_jump_deg} deg from the chained prediction: "
+            "ICP slid into a wrong minimum"
+        )
+    return ""
+
+
+def orthonormalised(transform: np.ndarray) -> np.ndarray:
+    """``transform`` with its rotation block projected onto SO(3) (removes float drift)."""
+    u, _, vt = np.linalg.svd(transform[:3, :3])
+    out = np.array(transform, dtype=np.float64)
+    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def point_to_plane(cloud: PointCloud, model: PointCloud, distance_mm: float) -> tuple[float, float]:
+    """Fraction of ``cloud``'s points with a model point within ``distance_mm``, and the RMSE of their
+    distances to the model's tangent planes (mm; NaN when none)."""
+    from scipy.spatial import cKDTree
+
+    distance, nearest = cKDTree(model.points).query(
+        cloud.points, k=1, distance_upper_bound=distance_mm, workers=-1
+    )
+    inlier = np.isfinite(distance)
+    if not inlier.any():
+        return 0.0, float("nan")
+    offset = cloud.points[inlier] - model.points[nearest[inlier]]
+    residual = np.einsum("ij,ij->i", offset, model.normals[nearest[inlier]])
+    return float(inlier.mean()), float(np.sqrt(np.mean(residual**2)))
+
+
+def model_cloud(cloud: PointCloud, pose: np.ndarray, config: RegistrationConfig) -> PointCloud:
+    """``cloud`` (world of its frame) in the model frame, confident points, downsampled to ``voxel_mm``."""
+    cloud = cloud.select(cloud.confidence >= config.min_confidence)
+    return cloud.voxel_downsample(config.voxel_mm).transformed(invert_rigid(pose))
