@@ -35,7 +35,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "simulate_raw", "stokes_pattern", "update_rig", "write_manifest", "write_stokes_images",
     ),
     "polarface.executors": (
-        "EXECUTOR_NAMES", "Executor", "LocalExecutor", "RayExecutor", "ThreadSettings", "UNIT_FAILURES",
+        "EXECUTOR_NAMES", "Executor", "LocalExecutor", "ProcessExecutor", "RayExecutor", "ThreadSettings",
+        "UNIT_FAILURES",
         "UnitOutcome", "check_ray_address", "create_executor", "failure_reason", "map_units_with_progress",
         "run_unit",
     ),

@@ -1,5 +1,5 @@
-"""``simulate`` with its frames as executor units on Ray (2 workers of a local Ray instance) against the
-local executor, on a small tiny-preset simulation (2 static + 2 dynamic frames): the same bytes, a
+"""``simulate`` with its frames as executor units on Ray (2 workers of a local Ray instance) and in 2
+worker processes against the local executor, on a small tiny-preset simulation (2 static + 2 dynamic frames): the same bytes, a
 killed worker's frame rerun, a stopped run resumed from the frames already written."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from polarface.executors import RayExecutor
+from polarface.executors import ProcessExecutor, RayExecutor
 from polarface.simulate.pipeline import SimulationConfig, simulate
 from ray_fixtures import RAY_CPUS, ray_instance, ray_worker_running_a_unit  # noqa: F401 (fixture)
 
@@ -45,6 +45,15 @@ def test_ray_frames_are_the_local_executor_bytes(local, ray_instance, tmp_path):
     assert all(units[key]["node_id"] and units[key]["render_s"] > 0
                for key in ("static/1", "dynamic/0", "dynamic/1"))
     assert summary["exposure"] == json.loads((local[0] / "simulation.json").read_text())["exposure"]
+
+
+def test_process_frames_are_the_local_executor_bytes(local, tmp_path):
+    with ProcessExecutor(workers=2, threads_per_worker=1) as executor:
+        summary = simulate(tmp_path / "processes", CONFIG, progress=False, executor=executor)
+    assert _tree(tmp_path / "processes") == local[1]
+    units = summary["executor"]["units"]
+    assert summary["executor"]["name"] == "processes"
+    assert {units[key]["pid"] for key in ("static/1", "dynamic/0", "dynamic/1")} - {None} != set()
 
 
 def test_a_killed_worker_is_retried_and_the_files_are_identical(local, ray_instance, tmp_path):  # noqa: F811

@@ -75,11 +75,12 @@ def add_force_argument(parser: argparse.ArgumentParser, target: str = "the outpu
 
 
 def add_executor_arguments(parser: argparse.ArgumentParser, units: str = "units") -> None:
-    """``--executor local|ray``, ``--ray-address ADDR``, ``--workers N`` and ``--gpus-per-unit G``: how
-    the command's ``units`` run (:mod:`polarface.executors`)."""
+    """``--executor local|processes|ray``, ``--ray-address ADDR``, ``--workers N`` and
+    ``--gpus-per-unit G``: how the command's ``units`` run (:mod:`polarface.executors`)."""
     parser.add_argument(
-        "--executor", choices=("local", "ray"), default="local",
-        help=f"run the {units} in this process (local, default) or as Ray tasks (ray; needs "
+        "--executor", choices=("local", "processes", "ray"), default="local",
+        help=f"run the {units} in this process (local, default), in worker processes of this machine "
+        "(processes; --workers of them, default one per core) or as Ray tasks (ray; needs "
         "'pip install polarface[cluster]')",
     )
     parser.add_argument(
@@ -89,7 +90,8 @@ def add_executor_arguments(parser: argparse.ArgumentParser, units: str = "units"
     )
     parser.add_argument(
         "--workers", type=int, default=None,
-        help=f"with --executor ray: {units} at once, and the CPUs of a local Ray instance (default: all)",
+        help=f"with --executor ray: {units} at once, and the CPUs of a local Ray instance (default: all); "
+        "with --executor processes: worker processes (default: one per core)",
     )
     parser.add_argument(
         "--gpus-per-unit", type=float, default=None, metavar="G",

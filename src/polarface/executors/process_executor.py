@@ -1,0 +1,109 @@
+"""Units in worker processes of this machine (``--executor processes``): Python's
+:class:`concurrent.futures.ProcessPoolExecutor` with ``spawn`` workers.
+
+Threads do not help a unit whose time goes to Embree ray casting, which holds Python's lock (the
+simulator's camera renders), nor small torch problems that do not fill two threads (a dynamic frame's
+fits); separate processes do. Each worker runs its units with ``threads_per_worker`` torch and numba
+threads (default: this machine's cores divided among the workers), so the workers together use the
+cores once. Workers are started on first use and kept for the executor's life, so a worker builds its
+per-process caches (a simulation scene, a store's chunk cache) once.
+
+A worker that dies (killed, out of memory) breaks the pool: the units it and the others had not finished
+are reported failed with that reason (the stage's resume runs them again); the pool is then replaced for
+later calls. For more than one machine use ``--executor ray``.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any
+
+from polarface.executors.base import UNIT_FAILURES, ThreadSettings, UnitOutcome, run_unit
+
+__all__ = ["ProcessExecutor"]
+
+
+class ProcessExecutor:
+    """Runs the units in ``workers`` local worker processes (module docstring).
+
+    Args:
+        workers: worker processes, >= 1 (default: this machine's CPU count).
+        threads_per_worker: torch/numba threads of each worker, >= 1 (default: CPU count // workers,
+            at least 1).
+
+    Raises:
+        ValueError: ``workers`` or ``threads_per_worker`` < 1 (naming ``--workers``).
+    """
+
+    name = "processes"
+
+    def __init__(self, workers: int | None = None, threads_per_worker: int | None = None) -> None:
+        cpus = os.cpu_count() or 1
+        self.workers = cpus if workers is None else int(workers)
+        if self.workers < 1:
+            raise ValueError(f"argument '--workers' must be >= 1; got {workers}")
+        self.threads_per_worker = (max(1, cpus // self.workers) if threads_per_worker is None
+                                   else int(threads_per_worker))
+        if self.threads_per_worker < 1:
+            raise ValueError(f"threads_per_worker must be >= 1; got {threads_per_worker}")
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+
+    def start(self) -> None:
+        """Create the worker pool (its processes start with the first unit); idempotent."""
+        if self._pool is None:
+            self._pool = concurrent.futures.ProcessPoolExecutor(
+                max_workers=self.workers, mp_context=multiprocessing.get_context("spawn")
+            )
+
+    def map_units(self, fn: Callable[[Any], Any], units: Sequence[Any], *,
+                  failures: tuple[type[BaseException], ...] = UNIT_FAILURES,
+                  on_done: Callable[[UnitOutcome], None] | None = None) -> list[UnitOutcome]:
+        """:meth:`polarface.executors.base.Executor.map_units` in the worker processes; on any exception
+        in this process (Ctrl-C, a unit's unexpected error) the units not started are cancelled."""
+        self.start()
+        assert self._pool is not None
+        units = list(units)
+        settings = ThreadSettings(self.threads_per_worker, self.threads_per_worker)
+        outcomes: list[UnitOutcome | None] = [None] * len(units)
+        futures = {self._pool.submit(run_unit, fn, unit, failures, settings): index
+                   for index, unit in enumerate(units)}
+        try:
+            for future in concurrent.futures.as_completed(futures):
+                index = futures[future]
+                try:
+                    outcome = future.result()
+                except BrokenProcessPool as exc:
+                    reason = f"its worker process died ({' '.join(str(exc).split()) or 'BrokenProcessPool'})"
+                    outcome = UnitOutcome(units[index], None, reason)
+                outcomes[index] = outcome
+                if on_done is not None:
+                    on_done(outcome)
+        except BaseException:
+            for future in futures:
+                future.cancel()
+            raise
+        finally:
+            if any(outcome is not None and outcome.error and "worker process died" in outcome.error
+                   for outcome in outcomes):
+                self.close()  # a broken pool cannot run more units: the next call starts a new one
+        return [outcome for outcome in outcomes if outcome is not None]
+
+    def describe(self) -> dict[str, Any]:
+        """Name, workers and threads per worker, as JSON values."""
+        return {"name": self.name, "workers": self.workers, "threads_per_worker": self.threads_per_worker}
+
+    def close(self) -> None:
+        """Stop the worker processes (waiting for units already running)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self) -> ProcessExecutor:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
