@@ -1,6 +1,7 @@
 """``simulate`` with its frames as executor units on Ray (2 workers of a local Ray instance) and in 2
-worker processes against the local executor, on a small tiny-preset simulation (2 static + 2 dynamic frames): the same bytes, a
-killed worker's frame rerun, a stopped run resumed from the frames already written."""
+worker processes against the local executor, on a small tiny-preset simulation (2 static + 2 dynamic
+frames): the same bytes, a killed worker's frame rerun, a stopped run resumed from the frames already
+written."""
 
 from __future__ import annotations
 
