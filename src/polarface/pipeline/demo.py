@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -56,6 +57,7 @@ _CAPTIONS = {
 # ---- the pipeline demo ---------------------------------------------------------------------------
 def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], None]) -> dict[str, Any]:
     """Simulate, reconstruct and evaluate; each step announced as the equivalent command line."""
+    from polarface.executors import LocalExecutor, ProcessExecutor
     from polarface.io import write_json_atomic
     from polarface.io.output_folder import output_folder
     from polarface.pipeline.evaluate import evaluate
@@ -65,12 +67,18 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
     from polarface.simulate.pipeline import SimulationConfig, simulate
 
     sim, result = out / "sim", out / "result"
-    say(f"polarface demo: polarface simulate --preset {preset} --skin-type {skin_type} --out {sim}")
+    # The simulator's frames spend most of their time in Embree, which holds Python's lock: on a machine
+    # with more than one core they run in worker processes (docs/performance.md).
+    workers = os.cpu_count() or 1
+    executor = ProcessExecutor(workers) if workers > 1 else LocalExecutor()
+    say(f"polarface demo: polarface simulate --preset {preset} --skin-type {skin_type} --out {sim}"
+        + (f" --executor processes --workers {workers}" if workers > 1 else ""))
     config = SimulationConfig(
         preset=preset, seed=0, skin_type=skin_type, noise=True, subsurface_blur=True,
         sequences=("static", "dynamic"),
     )
-    summary = simulate(str(sim), config)
+    with executor:
+        summary = simulate(str(sim), config, executor=executor)
     say(json.dumps({"out": str(sim), "timings": summary["timings"], "peak_rss_mb": summary["peak_rss_mb"]},
                    indent=2))
     resume = result.exists()
