@@ -292,7 +292,9 @@ def _checked_frames(
     for raw, name in zip(raw_frames, names, strict=True):
         raw = np.asarray(raw)
         if raw.ndim != 2 or raw.shape != expected:
-            raise ValueError(f"frame '{name}' has shape {raw.shape}; camera '{camera.id}' declares {expected}")
+            raise ValueError(
+                f"frame '{name}' has shape {raw.shape}; camera '{camera.id}' declares {expected}"
+            )
         if not np.issubdtype(raw.dtype, np.integer) and not np.issubdtype(raw.dtype, np.floating):
             raise ValueError(f"frame '{name}' must hold numeric raw counts; got dtype {raw.dtype}")
         out.append(raw)
@@ -352,14 +354,16 @@ def calibrate_analyzers(
     x0, y0, w, h = roi
     stack = np.stack([f[y0 : y0 + h, x0 : x0 + w] for f in frames]).astype(np.float64)
     white, black = camera.saturation_level, camera.black_level
-    saturated = (stack >= white).reshape(len(frames), h // period, period, w // period, period).any(axis=(2, 4))
+    blocks = (len(frames), h // period, period, w // period, period)
+    saturated = (stack >= white).reshape(blocks).any(axis=(2, 4))
     valid = ~saturated.any(axis=0)  # (h / p, w / p) super-pixels usable in every frame
     if valid.sum() < options.min_pixels:
         fractions = saturated.mean(axis=(1, 2))
         worst = int(np.argmax(fractions))
         raise ValueError(
             f"frame '{names[worst]}' saturates {fractions[worst]:.0%} of the region's super-pixels at the "
-            f"white level {white:g}; {int(valid.sum())} usable (need {options.min_pixels}): lower the exposure"
+            f"white level {white:g}; {int(valid.sum())} usable (need {options.min_pixels}): lower the "
+            "exposure"
         )
     signal = (stack - black) / (white - black) / scale[:, None, None]
     mean_signal = np.array([s[np.repeat(np.repeat(valid, period, 0), period, 1)].mean() for s in signal])
@@ -432,8 +436,8 @@ def _reference_angles(
         deviation = np.abs(fit.angles_deg - nominal)
         if np.any(deviation > 22.5):
             raise ValueError(
-                f"{label}: estimated analyzer angles {np.round(fit.angles_deg, 2).tolist()} deg lie more than "
-                "22.5 deg from 0/45/90/135: check the camera's pattern_phase and the polarizer's zero "
+                f"{label}: estimated analyzer angles {np.round(fit.angles_deg, 2).tolist()} deg lie more "
+                "than 22.5 deg from 0/45/90/135: check the camera's pattern_phase and the polarizer's zero "
                 "(or use angle_reference 'analyzers')"
             )
     return fits
