@@ -413,9 +413,10 @@ def _lattice_means(
                 tile_index[valid], weights=sub[f][valid], minlength=n_tiles
             )
         weights[wanted[colour], lattice.angle] += 1.0
-    tile_means = sums / (counts[:, None, None, None] * weights[None, None])
+    filled = counts > 0
+    tile_means = sums[filled] / (counts[filled, None, None, None] * weights[None, None])
     means = sums.sum(axis=0) / (counts.sum() * weights[None])
-    return means, tile_means[counts > 0]
+    return means, tile_means
 
 
 def _reference_angles(

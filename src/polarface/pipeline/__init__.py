@@ -2,7 +2,8 @@
 the geometry stage (stereo -> meshes, poses, atlas), the dynamic stage (tracking, per-frame maps), the
 evaluation against ground truth,
  the description of a folder (``info``), the demo jobs, the skin
-fit of a spectra file, the IOR of a sphere capture and the polarimetric calibration of a camera. Commands call one function of here."""
+fit of a spectra file, the IOR of a sphere capture and the polarimetric calibration of a camera.
+Commands call one function of here."""
 
 from polarface.pipeline.biophysical import load_stage_inputs, run_biophysical_stage
 from polarface.pipeline.calibrate_polarization import (
