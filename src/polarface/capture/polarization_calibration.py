@@ -53,6 +53,7 @@ __all__ = [
 ]
 
 COLOUR_NAMES = ("R", "G", "B")
+_MIN_DIATTENUATION = 0.1  # extinction ratio 1.22: below it the frames do not see a polarizer
 _ONE_SIDED_95 = 1.6448536269514722  # normal quantile of the one-sided 95 % bounds
 
 
@@ -432,8 +433,11 @@ def _reference_angles(
         }
     for colour, fit in fits.items():
         label = f"camera '{camera_id}'" + (f" colour {colour}" if colour else "")
-        if np.any(fit.diattenuation <= 0.0):
-            raise ValueError(f"{label}: the frames show no polarization modulation; is the target polarized?")
+        if np.any(fit.diattenuation < _MIN_DIATTENUATION):
+            raise ValueError(
+                f"{label}: the frames show no polarization modulation (diattenuation "
+                f"{np.round(fit.diattenuation, 3).tolist()} < {_MIN_DIATTENUATION}); is the target polarized?"
+            )
         deviation = np.abs(fit.angles_deg - nominal)
         if np.any(deviation > 22.5):
             raise ValueError(
