@@ -61,7 +61,9 @@ def target_frames(
     for angle, scale in zip(polarizer_deg, scales, strict=True):
         two = np.deg2rad(2.0 * angle)
         stokes = radiance * scale * np.array([1.0, np.cos(two), np.sin(two)])
-        per_model = [m.measure(stokes) * np.asarray(g) for m, g in zip(models, gains, strict=True)]
+        per_model = [
+            np.maximum(m.measure(stokes) * np.asarray(g), 0.0) for m, g in zip(models, gains, strict=True)
+        ]
         if camera.sensor == "mono-polarization":
             images = [field * per_model[0][k] for k in range(4)]
         else:
