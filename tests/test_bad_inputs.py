@@ -32,8 +32,10 @@ from polarface.capture.sensor import mosaic, simulate_raw
 from polarface.capture.synthetic import stokes_pattern
 from polarface.cli import main
 from polarface.io import write_exr, write_png
+from polarface.optics.analyzer import AnalyzerModel
 from polarface.optics.stokes import intensities_from_stokes
 from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
+from polarization_targets import target_frames
 
 TEST_DATA = Path(__file__).parent / "data"
 RES = 16
@@ -67,6 +69,10 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     (root / "spectra.csv").write_text("\n".join(",".join(line.split(",")[:3]) for line in lines) + "\n")
     write_ior_capture(root / "ior", size=32)
     Rig.model_validate({"cameras": [_stereo_camera(c) for c in ("left", "right")]}).save(root / "calrig.json")
+    pol_camera = paper_rig(width=48, height=32).camera("pol_upper")
+    pol_angles = (0, 45, 90, 135)
+    for angle, frame in zip(pol_angles, target_frames(pol_camera, [AnalyzerModel(200.0)] * 3, pol_angles)):
+        write_png(root / "polframes" / f"pol_{angle:03d}.png", frame, bit_depth=16)
     return {
         "sim": sim,
         "result": result,
@@ -76,6 +82,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
         "csv": root / "spectra.csv",
         "ior": root / "ior",
         "calrig": root / "calrig.json",
+        "polframes": root / "polframes",
     }
 
 
@@ -469,6 +476,61 @@ def _calibrate_rows() -> list[Row]:
     ):
         rows.append(row(f"calibrate-board={board}", f"{CAL} --board {board}", "board|NOPE"))
     return rows
+
+
+CALPOL = "calibrate-polarization {polframes} --rig {rig} --camera pol_upper --out {ws}/out.json"
+
+
+def _png16(rel: str, value: int, shape: tuple[int, int] = (32, 48)) -> Setup:
+    def setup(ws: Path) -> None:
+        write_png(ws / rel, np.full(shape, value, np.uint16), bit_depth=16)
+
+    return setup
+
+
+def _calibrate_polarization_rows() -> list[Row]:
+    frame = "polframes/pol_090.png"
+    mono = chain_json(
+        _set(["cameras", 0, "sensor"], "mono-polarization"), _set(["cameras", 0, "colour_channels"], {})
+    )
+    return [
+        row("calpol-missing-frames", CALPOL.replace("{polframes}", "{ws}/nope"), "nope"),
+        row("calpol-frames-empty", CALPOL.replace("{polframes}", "{ws}/empty"), "empty", folder("empty")),
+        row("calpol-frames-is-file", CALPOL.replace("{polframes}", "{rig}"), "rig.json"),
+        row("calpol-no-camera", CALPOL.replace("--camera pol_upper", ""), "--camera"),
+        row("calpol-unknown-camera", CALPOL.replace("pol_upper", "nope"), "nope"),
+        row("calpol-rgb-camera", CALPOL.replace("pol_upper", "stereo0_a"), "stereo0_a"),
+        row("calpol-missing-rig", CALPOL.replace("{rig}", "{ws}/nope.json"), "nope.json"),
+        row("calpol-rig-corrupt", CALPOL, "rig.json", text("rig.json", "{oops")),
+        row("calpol-mono-colours", CALPOL + " --colours G", "--colours", edit_json("rig.json", mono)),
+        row("calpol-colour-unknown", CALPOL + " --colours X", "colours"),
+        row(
+            "calpol-two-angles",
+            CALPOL,
+            "3 distinct",
+            chain(remove("polframes/pol_090.png"), remove("polframes/pol_135.png")),
+        ),
+        row("calpol-angles-repeat", CALPOL + " --angles-deg 0 180 0 90", "3 distinct"),
+        row("calpol-angles-count", CALPOL + " --angles-deg 0 45", "--angles-deg"),
+        row("calpol-angles-text", CALPOL + " --angles-deg north", "--angles-deg"),
+        row("calpol-unnamed-frame", CALPOL, "frame.png", _png16("polframes/frame.png", 100)),
+        row("calpol-frame-saturated", CALPOL, "pol_090", _png16(frame, 4095)),
+        row("calpol-frame-dark", CALPOL, "pol_090", _png16(frame, 0)),
+        row("calpol-frame-garbage", CALPOL, "pol_090", data(frame, GARBAGE)),
+        row("calpol-frame-empty", CALPOL, "pol_090", data(frame, b"")),
+        row("calpol-frame-size", CALPOL, "pol_090", _png16(frame, 100, (16, 16))),
+        row("calpol-listing-garbage", CALPOL, "frames.json", text("polframes/frames.json", "{oops")),
+        row(
+            "calpol-listing-no-angle",
+            CALPOL,
+            "polarizer_deg",
+            text("polframes/frames.json", json.dumps({"frames": [{"file": "pol_000.png"}]})),
+        ),
+        row("calpol-roi-outside", CALPOL + " --roi 0,0,999,999", "roi"),
+        row("calpol-roi-text", CALPOL + " --roi middle", "--roi"),
+        row("calpol-out-foreign", CALPOL, "out.json", text("out.json", "thesis")),
+        row("calpol-out-is-dir", CALPOL, "out.json", folder("out.json")),
+    ]
 
 
 def _skin_rows() -> list[Row]:
@@ -1078,6 +1140,7 @@ ROWS: list[Row] = [
     *_stokes_rows(),
     *_ingest_rows(),
     *_calibrate_rows(),
+    *_calibrate_polarization_rows(),
     *_skin_rows(),
     *_simulate_demo_bench_rows(),
     *_reconstruct_rows(),
@@ -1106,6 +1169,7 @@ COPIED = {
     "csv": "spectra.csv",
     "ior": "ior",
     "calrig": "calrig.json",
+    "polframes": "polframes",
 }
 
 
@@ -1177,6 +1241,7 @@ def test_table_is_large_and_unique():
         "stokes",
         "ingest",
         "calibrate",
+        "calibrate-polarization",
         "skin-fit",
         "simulate",
         "reconstruct",

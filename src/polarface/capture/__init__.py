@@ -11,6 +11,7 @@ Modules:
     ingest           RAW_DIR -> capture store.
     calibration      OpenCV chessboard / ChArUco detection and calibration written into a rig.
     rig_calibration  board photos -> calibrated rig.json (``polarface calibrate``).
+    polarization_calibration  extinction ratio and analyzer angles from frames of a polarized target.
     synthetic        synthetic Stokes patterns and demosaicing error measurements.
 """
 
@@ -58,6 +59,13 @@ from polarface.capture.observations import (
     register_to_reference,
     registration_map,
 )
+from polarface.capture.polarization_calibration import (
+    AnalyzerFit,
+    PolarizationCalibration,
+    PolarizationCalibrationOptions,
+    calibrate_analyzers,
+    central_roi,
+)
 from polarface.capture.rig import (
     SIX_CHANNEL_NAMES,
     AnalyzerCalibration,
@@ -97,6 +105,7 @@ __all__ = [
     "SENSOR_KINDS",
     "SIX_CHANNEL_NAMES",
     "AnalyzerCalibration",
+    "AnalyzerFit",
     "Camera",
     "CaptureStore",
     "CharucoBoardSpec",
@@ -107,6 +116,8 @@ __all__ = [
     "Lattice",
     "LightModule",
     "Observations",
+    "PolarizationCalibration",
+    "PolarizationCalibrationOptions",
     "PolarizationStack",
     "Rig",
     "SensorNoise",
@@ -114,9 +125,11 @@ __all__ = [
     "StereoResult",
     "StokesOptions",
     "angle_index_map",
+    "calibrate_analyzers",
     "calibrate_intrinsics",
     "calibrate_rig",
     "calibrate_stereo",
+    "central_roi",
     "chessboard_object_points",
     "colour_index_map",
     "convergence_distance_mm",

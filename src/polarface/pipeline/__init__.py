@@ -2,9 +2,19 @@
 the geometry stage (stereo -> meshes, poses, atlas), the dynamic stage (tracking, per-frame maps), the
 evaluation against ground truth,
  the description of a folder (``info``), the demo jobs, the skin
-fit of a spectra file and the IOR of a sphere capture. Commands call one function of here."""
+fit of a spectra file, the IOR of a sphere capture and the polarimetric calibration of a camera.
+Commands call one function of here."""
 
 from polarface.pipeline.biophysical import load_stage_inputs, run_biophysical_stage
+from polarface.pipeline.calibrate_polarization import (
+    FRAMES_JSON,
+    POLARIZATION_FRAME_SUFFIXES,
+    PolarizationFrame,
+    calibrate_polarization,
+    format_polarization_table,
+    polarization_report,
+    read_polarization_frames,
+)
 from polarface.pipeline.demo import reconstruct_summary_line, run_demo_pipeline, run_sphere_demo
 from polarface.pipeline.dynamic import DynamicStageConfig, reconstruct_dynamic
 from polarface.pipeline.evaluate import (
@@ -50,17 +60,21 @@ from polarface.pipeline.skin_fit import (
 __all__ = [
     "ANALYZER_IMAGE_NAMES",
     "EXPORT_JSON",
+    "FRAMES_JSON",
     "GEOMETRY_JSON",
     "METRIC_GROUPS",
+    "POLARIZATION_FRAME_SUFFIXES",
     "STAGES",
     "DynamicStageConfig",
     "GeometryConfig",
     "GeometryEvaluationConfig",
+    "PolarizationFrame",
     "ReconstructContext",
     "ReconstructInputs",
     "SkinFitSummary",
     "SpectraFitOptions",
     "biophysical_metrics",
+    "calibrate_polarization",
     "check_stereo_pairs",
     "dynamic_metrics",
     "estimate_ior_from_folder",
@@ -70,12 +84,15 @@ __all__ = [
     "fit_spectra_file",
     "folder_info",
     "format_info",
+    "format_polarization_table",
     "frame_stereo",
     "geometry_metrics",
     "ground_truth_root",
     "load_stage_inputs",
     "polarimetric_metrics",
+    "polarization_report",
     "read_analyzer_image",
+    "read_polarization_frames",
     "read_reflectance_csv",
     "reconstruct",
     "reconstruct_dynamic",
