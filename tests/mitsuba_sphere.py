@@ -12,6 +12,8 @@ so any analyzer model (:class:`polarface.optics.analyzer.AnalyzerModel`) and the
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from mitsuba_capture import _cast, _lobe_stokes, _mitsuba, _pplastic
@@ -20,7 +22,7 @@ from polarface.geometry.camera import PinholeCamera
 from polarface.inverse.ior import SphereScene
 from polarface.optics.analyzer import AnalyzerModel
 
-__all__ = ["LIGHT_INTENSITY", "render_mitsuba_sphere", "sensor_images"]
+__all__ = ["LIGHT_INTENSITY", "perturb_scene", "render_mitsuba_sphere", "sensor_images"]
 
 #: Radiant intensity of each LED (as :func:`polarface.inverse.ior.render_sphere`).
 LIGHT_INTENSITY = 1.0e6
@@ -77,3 +79,33 @@ def sensor_images(
             image = raw / sensor.saturation_count / exposure
         out[name] = image.astype(np.float32)
     return out
+
+
+def perturb_scene(
+    scene: SphereScene,
+    seed: int,
+    *,
+    light_mm: float = 2.0,
+    focal_fraction: float = 0.002,
+    principal_px: float = 1.0,
+    sphere_mm: float = 0.5,
+) -> SphereScene:
+    """``scene`` as a real rig's calibration would give it: each light moved by ``light_mm`` and the
+    sphere centre by ``sphere_mm`` in random directions, the focal lengths scaled by ``1 +
+    focal_fraction`` and the principal point moved by ``principal_px`` in a random direction."""
+    rng = np.random.default_rng(seed)
+
+    def unit(count: int, dims: int) -> np.ndarray:
+        vectors = rng.normal(size=(count, dims))
+        return vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+
+    K = scene.K.copy()
+    K[0, 0] *= 1.0 + focal_fraction
+    K[1, 1] *= 1.0 + focal_fraction
+    K[:2, 2] += principal_px * unit(1, 2)[0]
+    return dataclasses.replace(
+        scene,
+        K=K,
+        lights=scene.lights + light_mm * unit(len(scene.lights), 3),
+        centre=scene.centre + sphere_mm * unit(1, 3)[0],
+    )

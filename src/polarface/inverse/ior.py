@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy import ndimage
+from scipy import ndimage, stats
 
 from polarface.inverse.ior_refine import LightCheck, SphereRefinement, check_lights, refine_sphere
 from polarface.inverse.ior_scene import SphereScene, sphere_pixels
@@ -63,7 +63,7 @@ __all__ = [
 
 #: An eta one-sigma uncertainty above this is reported as untrustworthy (``IorResult.warnings``).
 UNCERTAINTY_WARNING = 0.01
-#: Delete-one-group jackknife groups: azimuth quadrants x zenith bands.
+#: Delete-one-group jackknife groups: azimuth sectors x zenith bands.
 AZIMUTH_GROUPS, ZENITH_GROUPS = 6, 3
 
 
@@ -77,7 +77,8 @@ class IorResult:
         ``eta`` lies on a bound of the search interval (within 1e-5 of its width): the cost's minimum is
         at or beyond the bound, so ``eta`` is not a measurement.
         eta_std: one-sigma uncertainty of ``eta`` (jackknife over pixel groups, channels combined);
-        channel_stds: per-channel one-sigma uncertainties.
+        channel_stds: per-channel one-sigma uncertainties. eta_u95: half-width of the 95 % interval,
+        ``t(0.975, G - 1) * eta_std`` for the jackknife's G groups (Student's t).
         refinement: the silhouette fit (None when not refined). lights: the shading check (None without
         lights). warnings: one line per reason to distrust the scene or the estimate.
     """
@@ -89,6 +90,7 @@ class IorResult:
     at_bound: bool = False
     eta_std: float = math.nan
     channel_stds: tuple[float, ...] = ()
+    eta_u95: float = math.nan
     refinement: SphereRefinement | None = None
     lights: LightCheck | None = None
     warnings: tuple[str, ...] = ()
@@ -105,6 +107,7 @@ class IorResult:
         return {
             "eta": self.eta,
             "eta_std": self.eta_std,
+            "eta_u95": self.eta_u95,
             "rms_residual": self.rms_residual,
             "pixels": self.pixels,
             "channels": list(self.channels),
@@ -279,7 +282,7 @@ def _refine_eta(
 
 
 def _pixel_groups(normal: np.ndarray, to_camera: np.ndarray, rotation: np.ndarray) -> np.ndarray:
-    """``(N,)`` group index in ``[0, AZIMUTH_GROUPS * ZENITH_GROUPS)`` of each pixel: the quadrant of
+    """``(N,)`` group index in ``[0, AZIMUTH_GROUPS * ZENITH_GROUPS)`` of each pixel: the sector of
     its normal's azimuth in the camera frame times the band of its exit zenith (equal-count bands)."""
     normal_cam = normal @ rotation.T
     azimuth = np.arctan2(normal_cam[:, 1], normal_cam[:, 0])
@@ -296,6 +299,7 @@ class _ChannelFit:
     rms: float
     pixels: int
     std: float
+    groups: int
     rows: np.ndarray
     cols: np.ndarray
 
@@ -333,7 +337,8 @@ def _channel_estimate(
             left_out.append(_refine_eta(eta, n[keep], p[keep], c, u, ratio[keep], gain[keep]))
     count = len(left_out)
     std = math.sqrt((count - 1) / count * float(np.sum((np.asarray(left_out) - np.mean(left_out)) ** 2)))
-    return _ChannelFit(eta, float(torch.sqrt((residual**2).mean())), int(rows.size), std, rows, cols)
+    rms = float(torch.sqrt((residual**2).mean()))
+    return _ChannelFit(eta, rms, int(rows.size), std, count, rows, cols)
 
 
 def _ideal_images(images: list[np.ndarray], polarizer: AnalyzerModel) -> list[np.ndarray]:
@@ -435,6 +440,7 @@ def estimate_ior(
     spread = float(np.var(estimates)) / len(estimates) if len(estimates) > 1 else 0.0
     eta_std = math.sqrt(float(np.median(stds)) ** 2 + spread)
     widest = max(fits, key=lambda fit: fit.pixels)
+    eta_u95 = float(stats.t.ppf(0.975, max(min(fit.groups for fit in fits) - 1, 1))) * eta_std
     _, position, normal, _, _ = geometry
     shading = 2.0 * images[2].sum(axis=-1)[widest.rows, widest.cols]
     lights = check_lights(
@@ -453,6 +459,7 @@ def estimate_ior(
         channels=tuple(float(e) for e in estimates),
         at_bound=min(eta - lo, hi - eta) <= 1e-5 * (hi - lo),
         eta_std=eta_std,
+        eta_u95=eta_u95,
         channel_stds=tuple(float(s) for s in stds),
         refinement=refinement,
         lights=lights,
