@@ -87,7 +87,8 @@ def main() -> None:
     args = parser.parse_args()
     started = time.perf_counter()
     table = run(args.size, args.cache, args.seed)
-    header = "| condition | before: mean abs | worst | after: mean abs | worst | in 95 % interval | in 1 sigma |"
+    header = "| condition | before: mean abs | worst | after: mean abs | worst | in 95 % interval"
+    header += " | in 1 sigma |"
     print(header)
     print("|---|---|---|---|---|---|---|")
     for condition, row in table.items():
