@@ -2,10 +2,12 @@
 
 * :func:`refine_sphere`: the sphere's image is bounded by the cone of rays tangent to it, so its
   silhouette gives the direction of the centre and the angular radius ``alpha`` (``sin alpha = r / D``)
-  in the camera's frame. The supplied radius ``r`` fixes the distance ``D``; the normals at every pixel
-  (hence the exit zenith and the ratio the estimator fits) do not depend on that scale. A sphere centre
-  off by half a millimetre, or a principal point off by a pixel, is thus corrected from the image, and
-  a focal-length error mostly cancels (the silhouette and the pixel rays are measured with the same K).
+  in the camera's frame (the supplied angular radius is kept unless the silhouette's differs by more
+  than :data:`RADIUS_TOLERANCE_PX`). The supplied radius ``r`` fixes the distance ``D``; the normals
+  at every pixel (hence the exit zenith and the ratio the estimator fits) do not depend on that scale.
+  A sphere centre off by half a millimetre, or a principal point off by a pixel, is thus corrected from
+  the image; a focal-length error of 0.2 % changes the image radius by far less than a pixel and is
+  left (docs/ior.md, table).
 * :func:`check_lights`: the subsurface shading ``2 I90`` of the sphere is predicted from the supplied
   light positions (one albedo per channel, equal LED intensities); each light's gain is refitted alone
   against the others', and a light whose gain departs from 1 beyond a tolerance is flagged as
@@ -26,6 +28,11 @@ from polarface.optics.image_formation import subsurface_entry_flux, subsurface_e
 
 __all__ = ["LightCheck", "SphereRefinement", "check_lights", "refine_sphere", "silhouette_edges"]
 
+#: The silhouette's angular radius replaces the supplied one only when they differ by more than this
+#: many pixels (the edge points' discretisation biases the radius by up to a few tenths of a pixel on
+#: small spheres, and eta is sensitive to it: a 0.6 % radius error gives -0.007 at eta 1.5).
+RADIUS_TOLERANCE_PX = 0.5
+
 
 @dataclasses.dataclass(frozen=True)
 class SphereRefinement:
@@ -34,8 +41,8 @@ class SphereRefinement:
     Attributes:
         scene: the input scene with the refined ``centre`` (radius kept; mm, world frame).
         shift_px: distance (pixels) between the supplied and the refined sphere's projected centres.
-        angular_radius_change: refined over supplied ``sin alpha`` minus 1 (a depth, radius or focal-length
-            disagreement; 0.002 is a 0.2 % focal-length error).
+        angular_radius_change: the silhouette's over the supplied ``sin alpha`` minus 1 (a depth, radius
+            or focal-length disagreement; 0.002 is a 0.2 % focal-length error).
         edge_rms_px: RMS distance (pixels) of the silhouette edge points from the fitted cone.
         edge_points: edge points used. centre_std_px: one-sigma uncertainty of the projected centre.
     """
@@ -104,6 +111,8 @@ def refine_sphere(scene: SphereScene, brightness: np.ndarray) -> SphereRefinemen
     start = np.array([0.0, 0.0, np.arcsin(min(scene.radius / distance, 1.0))])
     fit = optimize.least_squares(residual, start, loss="soft_l1", f_scale=0.5 / focal, x_scale=1.0 / focal)
     direction, alpha = direction_of(fit.x), float(fit.x[2])
+    if abs(alpha - start[2]) * focal < RADIUS_TOLERANCE_PX:
+        alpha = float(start[2])  # within the silhouette's discretisation: keep the supplied size
     refined_cam = direction * scene.radius / np.sin(alpha)
     refined = dataclasses.replace(scene, centre=rotation.T @ (refined_cam - translation))
     project = lambda p: (scene.K @ p)[:2] / p[2]  # noqa: E731
@@ -118,7 +127,7 @@ def refine_sphere(scene: SphereScene, brightness: np.ndarray) -> SphereRefinemen
     return SphereRefinement(
         scene=refined,
         shift_px=float(np.linalg.norm(project(refined_cam) - project(centre_cam))),
-        angular_radius_change=float(np.sin(alpha) * distance / scene.radius - 1.0),
+        angular_radius_change=float(np.sin(fit.x[2]) * distance / scene.radius - 1.0),
         edge_rms_px=float(np.sqrt(np.mean(angles**2))),
         edge_points=len(edges),
         centre_std_px=centre_std,
