@@ -28,10 +28,11 @@ from polarface.optics.image_formation import subsurface_entry_flux, subsurface_e
 
 __all__ = ["LightCheck", "SphereRefinement", "check_lights", "refine_sphere", "silhouette_edges"]
 
-#: The silhouette's angular radius replaces the supplied one only when they differ by more than this
-#: many pixels (the edge points' discretisation biases the radius by up to a few tenths of a pixel on
-#: small spheres, and eta is sensitive to it: a 0.6 % radius error gives -0.007 at eta 1.5).
-RADIUS_TOLERANCE_PX = 0.5
+#: The silhouette's angular radius replaces the supplied one when they differ by more than this many
+#: pixels. 0: always, since eta is very sensitive to it (a 0.2 % focal-length error, 0.08 px at a 41 px
+#: sphere, gives up to 0.018 at eta 2.3). On small spheres (radius < ~30 px) the edge points'
+#: discretisation biases the fitted radius by up to 0.6 % (docs/ior.md, "Limits").
+RADIUS_TOLERANCE_PX = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
