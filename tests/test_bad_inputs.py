@@ -1059,6 +1059,12 @@ def _ior_rows() -> list[Row]:
             edit_json(scene, _set(["sphere", "center"], [0.0, 0.0, -1000.0])),
         ),
         row("ior-scene-lights-string", IOR, "lights", edit_json(scene, _set(["lights"], "on"))),
+        row(
+            "ior-scene-polarizer-er",
+            IOR,
+            "polarizer",
+            edit_json(scene, _set(["polarizer"], {"extinction_ratio": 0.5})),
+        ),
         row("ior-eta-range-text", IOR + " --eta-range low high", "--eta-range"),
         row(
             "ior-images-zero",

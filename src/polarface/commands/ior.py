@@ -6,10 +6,13 @@ DIR holds ``I0.exr, I45.exr, I90.exr, I135.exr`` (float32 linear; one channel ``
     {"units": "mm",
      "camera": {"K": 3x3, "world_to_camera": 4x4 (OpenCV), "width": W, "height": H},
      "lights": [{"position": [x, y, z]}, ...],
-     "sphere": {"center": [x, y, z], "radius": r}}
+     "sphere": {"center": [x, y, z], "radius": r},
+     "polarizer": {"extinction_ratio": ER, "analyzer_angles_deg": [a0, a45, a90, a135]}}  (optional)
 
-with the incident light polarized along the camera x axis. Prints the estimate (``--json``:
-``{"eta": value, "rms_residual": ..., "pixels": ..., "channels": [...]}``). ``--validate`` instead renders
+with the incident light polarized along the camera x axis. Prints the estimate with its one-sigma
+uncertainty and 95 % interval, and one ``warning:`` line per disagreement between scene.json and the
+images (``--json``: ``{"eta", "eta_std", "eta_u95", "rms_residual", "pixels", "channels",
+"channel_stds", "refinement", "lights", "warnings"}``; docs/ior.md). ``--validate`` instead renders
 spheres of the paper's ten objects (eta 1.177-2.295) with the rig and prints the error table (method:
 :mod:`polarface.inverse.ior`).
 """
@@ -36,6 +39,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--noise", action="store_true", help="with --validate: add the rig's sensor noise")
     parser.add_argument("--eta-range", type=float, nargs=2, default=(1.05, 3.0), metavar=("LO", "HI"))
+    parser.add_argument(
+        "--no-refine",
+        action="store_true",
+        help="use scene.json's sphere centre as given (default: refit it to the sphere's silhouette)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -56,20 +64,19 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.dir is None:
         raise ValueError("argument 'dir' is required (or pass --validate)")
-    result = estimate_ior_from_folder(args.dir, eta_range=tuple(args.eta_range))
+    result = estimate_ior_from_folder(args.dir, eta_range=tuple(args.eta_range), refine=not args.no_refine)
     if args.json:
-        print(
-            json.dumps(
-                {
-                    "eta": result.eta,
-                    "rms_residual": result.rms_residual,
-                    "pixels": result.pixels,
-                    "channels": list(result.channels),
-                }
-            )
+        print(json.dumps(result.to_dict()))
+        return 0
+    print(
+        f"eta = {result.eta:.4f} +- {result.eta_std:.4f} (1 sigma; 95 % interval +- {result.eta_u95:.4f}; "
+        f"{result.pixels} pixels, ratio rms residual {result.rms_residual:.3g})"
+    )
+    if len(result.channels) > 1:
+        channels = ", ".join(
+            f"{eta:.4f} +- {std:.4f}" for eta, std in zip(result.channels, result.channel_stds, strict=True)
         )
-    else:
-        print(
-            f"eta = {result.eta:.4f} ({result.pixels} pixels, ratio rms residual {result.rms_residual:.3g})"
-        )
+        print(f"channels: {channels}")
+    for warning in result.warnings:
+        print(f"warning: {warning}")
     return 0

@@ -18,6 +18,13 @@ is avoided), ``|zeta|`` is not small, and the co-polarized excess ``I0 - I90`` i
 ``2 I90`` (highlights removed). The exact forward model of :mod:`polarface.optics` is used for the
 prediction (:func:`polarface.optics.subsurface_exit_stokes`), so the real camera and light positions
 enter (the paper's "near-coaxial" geometry is not approximated).
+
+Before the fit (docs/ior.md): measured intensities are mapped to ideal-analyzer intensities with the
+scene's polarizer calibration (:meth:`polarface.optics.analyzer.AnalyzerModel.to_ideal`); the sphere's
+centre is refitted to its silhouette (:func:`polarface.inverse.ior_refine.refine_sphere`). After it:
+the uncertainty of eta is a delete-one-group jackknife over 18 pixel groups (6 azimuth sectors x 3
+zenith bands), so geometric errors that bias one side or one zenith band of the sphere show as spread;
+the shading is checked against the lights (:func:`polarface.inverse.ior_refine.check_lights`).
 """
 
 from __future__ import annotations
@@ -30,123 +37,34 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy import ndimage, stats
 
+from polarface.inverse.ior_refine import LightCheck, SphereRefinement, check_lights, refine_sphere
+from polarface.inverse.ior_scene import SphereScene, sphere_pixels
+from polarface.inverse.ior_validation import (
+    PAPER_OBJECTS,
+    default_sphere_scene,
+    render_sphere,
+    validate_paper_objects,
+)
+from polarface.optics.analyzer import AnalyzerModel
 from polarface.optics.image_formation import subsurface_exit_stokes
 
-__all__ = ["IorResult", "SphereScene", "estimate_ior", "sphere_pixels"]
+__all__ = [
+    "PAPER_OBJECTS",
+    "IorResult",
+    "SphereScene",
+    "default_sphere_scene",
+    "estimate_ior",
+    "render_sphere",
+    "sphere_pixels",
+    "validate_paper_objects",
+]
 
-
-@dataclasses.dataclass(frozen=True)
-class SphereScene:
-    """Single-view sphere capture geometry (mm, OpenCV camera).
-
-    Attributes:
-        K: ``(3, 3)`` intrinsics; world_to_camera: ``(4, 4)``; width, height: image size in pixels;
-        centre: ``(3,)`` sphere centre; radius: sphere radius (mm); lights: ``(L, 3)`` positions (unused by
-        the ratio but kept for reports).
-    """
-
-    K: np.ndarray
-    world_to_camera: np.ndarray
-    width: int
-    height: int
-    centre: np.ndarray
-    radius: float
-    lights: np.ndarray
-
-    @classmethod
-    def from_dict(cls, payload: dict[str, Any]) -> SphereScene:
-        """Parse the ``scene.json`` layout of ``polarface ior`` (ValueError naming the field)."""
-        if payload.get("units", "mm") != "mm":
-            raise ValueError(f"scene: units must be 'mm'; got {payload.get('units')!r}")
-        K, pose = _field(payload, "camera.K"), _field(payload, "camera.world_to_camera")
-        width, height = _field(payload, "camera.width", int), _field(payload, "camera.height", int)
-        centre, radius = _field(payload, "sphere.center"), _field(payload, "sphere.radius", float)
-        lights = _field(payload, "lights", _positions) if "lights" in payload else np.zeros((0, 3))
-        if K.shape != (3, 3) or pose.shape != (4, 4) or centre.shape != (3,):
-            raise ValueError("scene: camera.K must be 3x3, camera.world_to_camera 4x4, sphere.center 3-D")
-        if not (np.isfinite(K).all() and np.isfinite(pose).all() and np.isfinite(centre).all()):
-            raise ValueError("scene: NaN/inf in the camera or sphere")
-        if not (radius > 0 and math.isfinite(radius)) or width < 1 or height < 1:
-            raise ValueError(
-                f"scene: need sphere.radius > 0 and a positive image size; got {radius}, {width}x{height}"
-            )
-        if lights.size and not np.isfinite(lights).all():
-            raise ValueError("scene: lights[].position contains NaN/inf")
-        scene = cls(K, pose, width, height, centre, radius, lights)
-        scene.check_geometry()
-        return scene
-
-    def check_geometry(self) -> None:
-        """ValueError naming the field unless K has positive focal lengths, zero skew row ``[0, 0, 1]``
-        and the principal point inside the image, ``world_to_camera`` is rigid (orthonormal to 1e-6,
-        det +1, last row ``[0, 0, 0, 1]``) and the sphere lies wholly in front of the camera."""
-        K, pose = self.K, self.world_to_camera
-        if not (K[0, 0] > 0 and K[1, 1] > 0):
-            raise ValueError(f"scene: camera.K focal lengths must be > 0; got {K[0, 0]}, {K[1, 1]}")
-        if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
-            raise ValueError(
-                f"scene: camera.K must be upper triangular with last row [0, 0, 1]; got {K.tolist()}"
-            )
-        if not (0 <= K[0, 2] <= self.width and 0 <= K[1, 2] <= self.height):
-            raise ValueError(
-                f"scene: camera.K principal point ({K[0, 2]}, {K[1, 2]}) lies outside the "
-                f"{self.width}x{self.height} image"
-            )
-        rotation = pose[:3, :3]
-        if not np.allclose(pose[3], [0, 0, 0, 1]) or not np.allclose(
-            rotation @ rotation.T, np.eye(3), atol=1e-6
-        ):
-            raise ValueError(
-                "scene: camera.world_to_camera must be rigid "
-                "(orthonormal rotation to 1e-6, last row [0, 0, 0, 1])"
-            )
-        if np.linalg.det(rotation) < 0:
-            raise ValueError("scene: camera.world_to_camera rotation must be proper (det +1)")
-        depth = float((rotation @ self.centre + pose[:3, 3])[2])
-        if depth <= self.radius:
-            raise ValueError(
-                f"scene: the sphere (sphere.center depth {depth:.6g} mm, radius {self.radius:.6g} mm) "
-                "must lie in front of the camera"
-            )
-
-
-def _positions(lights: Any) -> np.ndarray:
-    """``(L, 3)`` positions of a ``lights`` list of ``{"position": [x, y, z]}`` objects."""
-    if not isinstance(lights, list):
-        raise TypeError("must be a list of objects with a 'position'")
-    return np.asarray([light["position"] for light in lights], dtype=np.float64).reshape(len(lights), 3)
-
-
-def _field(payload: dict, name: str, convert: Callable | None = None):
-    """The scene field at the dotted ``name``, converted; ValueError naming the field otherwise."""
-    try:
-        value = functools.reduce(lambda node, key: node[key], name.split("."), payload)
-        return np.asarray(value, dtype=np.float64) if convert is None else convert(value)
-    except (KeyError, TypeError, ValueError, IndexError) as exc:
-        raise ValueError(f"scene: missing or malformed field '{name}' ({exc})") from None
-
-
-def sphere_pixels(scene: SphereScene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per pixel of the sphere: ``mask (H, W)``, world ``position (H, W, 3)``, ``normal (H, W, 3)``,
-    camera centre ``(3,)`` (ray-sphere intersection of each pixel centre)."""
-    rotation, translation = scene.world_to_camera[:3, :3], scene.world_to_camera[:3, 3]
-    centre_cam = -rotation.T @ translation
-    y, x = np.mgrid[0 : scene.height, 0 : scene.width].astype(np.float64)
-    pixels = np.stack([x, y, np.ones_like(x)], axis=-1)
-    rays_cam = pixels @ np.linalg.inv(scene.K).T
-    rays = rays_cam @ rotation  # camera -> world: R^T d
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    oc = centre_cam - scene.centre
-    b = rays @ oc
-    c = float(oc @ oc) - scene.radius**2
-    disc = b * b - c
-    mask = disc > 0
-    t = -b - np.sqrt(np.where(mask, disc, 0.0))
-    mask &= t > 0
-    position = centre_cam + t[..., None] * rays
-    normal = (position - scene.centre) / scene.radius
-    return mask, position, normal, centre_cam
+#: An eta one-sigma uncertainty above this is reported as untrustworthy (``IorResult.warnings``).
+UNCERTAINTY_WARNING = 0.01
+#: Delete-one-group jackknife groups: azimuth sectors x zenith bands.
+AZIMUTH_GROUPS, ZENITH_GROUPS = 6, 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,6 +76,11 @@ class IorResult:
         channels: per-channel estimates (when the input has several channels); at_bound: True when
         ``eta`` lies on a bound of the search interval (within 1e-5 of its width): the cost's minimum is
         at or beyond the bound, so ``eta`` is not a measurement.
+        eta_std: one-sigma uncertainty of ``eta`` (jackknife over pixel groups, channels combined);
+        channel_stds: per-channel one-sigma uncertainties. eta_u95: half-width of the 95 % interval,
+        ``t(0.975, G - 1) * eta_std`` for the jackknife's G groups (Student's t).
+        refinement: the silhouette fit (None when not refined). lights: the shading check (None without
+        lights). warnings: one line per reason to distrust the scene or the estimate.
     """
 
     eta: float
@@ -165,6 +88,34 @@ class IorResult:
     pixels: int
     channels: tuple[float, ...] = ()
     at_bound: bool = False
+    eta_std: float = math.nan
+    channel_stds: tuple[float, ...] = ()
+    eta_u95: float = math.nan
+    refinement: SphereRefinement | None = None
+    lights: LightCheck | None = None
+    warnings: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (the output of ``polarface ior --json``)."""
+        refinement = None
+        if self.refinement is not None:
+            refinement = {
+                "center": self.refinement.scene.centre.tolist(),
+                **{f.name: getattr(self.refinement, f.name) for f in dataclasses.fields(self.refinement)[1:]},
+            }
+        lights = None if self.lights is None else dataclasses.asdict(self.lights)
+        return {
+            "eta": self.eta,
+            "eta_std": self.eta_std,
+            "eta_u95": self.eta_u95,
+            "rms_residual": self.rms_residual,
+            "pixels": self.pixels,
+            "channels": list(self.channels),
+            "channel_stds": list(self.channel_stds),
+            "refinement": refinement,
+            "lights": lights,
+            "warnings": list(self.warnings),
+        }
 
 
 def _ratio_prediction(
@@ -234,6 +185,29 @@ def _channel_pixels(
     return rows, cols, i_sss
 
 
+def _observed_ratio(
+    difference: np.ndarray, i_sss: np.ndarray, rows: np.ndarray, cols: np.ndarray
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(I135 - I45) / S~`` and ``2 I90 / S~`` ``(N,)`` at the pixels, with ``S~`` the subsurface
+    image ``2 I90`` averaged over each pixel's neighbours *without* the pixel itself (5 x 5 Gaussian,
+    sigma 1 px, normalised over the lit pixels). The residual ``prediction * 2 I90 / S~ - (I135 - I45)
+    / S~`` is then linear in each pixel's own noisy intensities, so zero-mean noise leaves it unbiased;
+    the plain ratio ``(I135 - I45) / (2 I90)`` is biased where ``2 I90`` is dim (Jensen)."""
+    offsets = np.arange(-2, 3, dtype=np.float64)
+    kernel = np.exp(-0.5 * (offsets[:, None] ** 2 + offsets[None, :] ** 2))
+    kernel[2, 2] = 0.0
+    lit = (i_sss > 0).astype(np.float64)
+    smooth = ndimage.convolve(i_sss * lit, kernel, mode="constant") / np.maximum(
+        ndimage.convolve(lit, kernel, mode="constant"), 1e-12
+    )
+    smooth = np.maximum(smooth[rows, cols], 1e-12 * max(float(i_sss.max()), 1e-300))
+    smooth = np.sqrt(smooth * float(smooth.mean()))  # shot-noise weights: variance ~ intensity
+    return (
+        torch.from_numpy(difference[rows, cols] / smooth),
+        torch.from_numpy(i_sss[rows, cols] / smooth),
+    )
+
+
 def _huber_cost(
     etas: torch.Tensor,
     n: torch.Tensor,
@@ -241,12 +215,14 @@ def _huber_cost(
     c: torch.Tensor,
     u: torch.Tensor,
     ratio: torch.Tensor,
+    gain: torch.Tensor,
 ) -> torch.Tensor:
     """``(E,)`` mean Huber loss (threshold 2 robust sigmas, per eta) of the ratio residuals of float64
     etas ``(E,)``; pixels weigh by |zeta| (where the ratio carries eta) through the prediction's
     sensitivity. ``n, p``: ``(N, 3)`` world normals and positions (mm); ``c``: ``(3,)`` camera centre;
-    ``u``: ``(3,)`` unit camera up; ``ratio``: ``(N,)`` observed ``(I135 - I45) / (2 I90)``."""
-    residual = _ratio_prediction(etas, n, p, c, u) - ratio[None]
+    ``u``: ``(3,)`` unit camera up; ``ratio``, ``gain``: ``(N,)`` observed ``(I135 - I45) / S~`` and
+    ``2 I90 / S~`` (:func:`_observed_ratio`)."""
+    residual = _ratio_prediction(etas, n, p, c, u) * gain[None] - ratio[None]
     scale = 1.4826 * residual.abs().median(dim=1, keepdim=True).values.clamp_min(1e-6)
     huber = torch.where(
         residual.abs() <= 2 * scale, 0.5 * residual**2, 2 * scale * residual.abs() - 2 * scale**2
@@ -280,28 +256,131 @@ def _minimise_eta(cost: Callable[[torch.Tensor], torch.Tensor], lo: float, hi: f
     return 0.5 * (a + b)
 
 
+def _refine_eta(
+    eta: float,
+    n: torch.Tensor,
+    p: torch.Tensor,
+    c: torch.Tensor,
+    u: torch.Tensor,
+    ratio: torch.Tensor,
+    gain: torch.Tensor,
+) -> float:
+    """Huber-weighted Gauss-Newton steps on the ratio residual from ``eta`` (a local refit, used for
+    the jackknife's leave-one-group-out estimates; inputs as :func:`_huber_cost`)."""
+    step_h = 1e-4
+    for _ in range(8):
+        prediction = _ratio_prediction(torch.tensor([eta, eta + step_h], dtype=torch.float64), n, p, c, u)
+        residual = prediction[0] * gain - ratio
+        slope = (prediction[1] - prediction[0]) * gain / step_h
+        scale = float(1.4826 * residual.abs().median().clamp_min(1e-6))
+        weight = torch.where(residual.abs() <= 2 * scale, 1.0, 2 * scale / residual.abs().clamp_min(1e-300))
+        step = -float((weight * slope * residual).sum() / (weight * slope * slope).sum().clamp_min(1e-300))
+        eta = min(max(eta + step, 1.0 + 1e-6), 10.0)
+        if abs(step) < 1e-7:
+            break
+    return eta
+
+
+def _pixel_groups(normal: np.ndarray, to_camera: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """``(N,)`` group index in ``[0, AZIMUTH_GROUPS * ZENITH_GROUPS)`` of each pixel: the sector of
+    its normal's azimuth in the camera frame times the band of its exit zenith (equal-count bands)."""
+    normal_cam = normal @ rotation.T
+    azimuth = np.arctan2(normal_cam[:, 1], normal_cam[:, 0])
+    quadrant = np.floor((azimuth + np.pi) / (2 * np.pi) * AZIMUTH_GROUPS).astype(np.int64) % AZIMUTH_GROUPS
+    cos_o = (normal * to_camera).sum(-1)
+    edges = np.quantile(cos_o, np.linspace(0, 1, ZENITH_GROUPS + 1)[1:-1])
+    band = np.searchsorted(edges, cos_o)
+    return quadrant * ZENITH_GROUPS + band
+
+
+@dataclasses.dataclass(frozen=True)
+class _ChannelFit:
+    eta: float
+    rms: float
+    pixels: int
+    std: float
+    groups: int
+    rows: np.ndarray
+    cols: np.ndarray
+
+
 def _channel_estimate(
     images: list[np.ndarray],
     channel: int,
     geometry: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    rotation: np.ndarray,
     eta_range: tuple[float, float],
     max_pixels: int,
     specular_threshold: float,
-) -> tuple[float, float, int] | None:
-    """``(eta, RMS ratio residual, pixels used)`` of one channel (``geometry`` of
-    :func:`_sphere_geometry`); ``None`` with fewer than 10 usable pixels."""
+) -> _ChannelFit | None:
+    """One channel's fit (``geometry`` of :func:`_sphere_geometry`, ``rotation`` the camera's world ->
+    camera rotation) with its jackknife uncertainty; ``None`` with fewer than 10 usable pixels."""
     usable, position, normal, centre, up = geometry
     rows, cols, i_sss = _channel_pixels(images, channel, usable, max_pixels, specular_threshold)
     if rows.size < 10:
         return None
     _, i45, _, i135 = images
-    ratio = torch.from_numpy((i135[rows, cols, channel] - i45[rows, cols, channel]) / i_sss[rows, cols])
+    ratio, gain = _observed_ratio(i135[..., channel] - i45[..., channel], i_sss, rows, cols)
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
     n, p = t(normal[rows, cols]), t(position[rows, cols])
     c, u = t(centre), t(up / np.linalg.norm(up))
-    eta = _minimise_eta(functools.partial(_huber_cost, n=n, p=p, c=c, u=u, ratio=ratio), *eta_range)
-    residual = _ratio_prediction(torch.tensor([eta], dtype=torch.float64), n, p, c, u)[0] - ratio
-    return eta, float(torch.sqrt((residual**2).mean())), int(rows.size)
+    cost = functools.partial(_huber_cost, n=n, p=p, c=c, u=u, ratio=ratio, gain=gain)
+    eta = _minimise_eta(cost, *eta_range)
+    residual = _ratio_prediction(torch.tensor([eta], dtype=torch.float64), n, p, c, u)[0] * gain - ratio
+    to_camera = centre - position[rows, cols]
+    to_camera /= np.linalg.norm(to_camera, axis=-1, keepdims=True)
+    groups = _pixel_groups(normal[rows, cols], to_camera, rotation)
+    left_out = []
+    for group in np.unique(groups):
+        keep = torch.from_numpy(groups != group)
+        if int(keep.sum()) >= 10:
+            left_out.append(_refine_eta(eta, n[keep], p[keep], c, u, ratio[keep], gain[keep]))
+    count = len(left_out)
+    std = math.sqrt((count - 1) / count * float(np.sum((np.asarray(left_out) - np.mean(left_out)) ** 2)))
+    rms = float(torch.sqrt((residual**2).mean()))
+    return _ChannelFit(eta, rms, int(rows.size), std, count, rows, cols)
+
+
+def _ideal_images(images: list[np.ndarray], polarizer: AnalyzerModel) -> list[np.ndarray]:
+    """The four ``(H, W, C)`` images mapped to what ideal 0/45/90/135 deg analyzers would measure."""
+    if polarizer.is_ideal:
+        return images
+    ideal = polarizer.to_ideal(np.stack(images, axis=-1))
+    return [np.ascontiguousarray(ideal[..., k]) for k in range(4)]
+
+
+def _scene_warnings(
+    refinement: SphereRefinement | None, refine: bool, lights: LightCheck | None
+) -> list[str]:
+    """One line per disagreement between scene.json and the images (docs/ior.md, "Checks")."""
+    warnings = []
+    if refine and refinement is None:
+        warnings.append("no sphere silhouette found: the supplied sphere centre is used unrefined")
+    if refinement is not None:
+        if refinement.shift_px > max(1.0, 3.0 * refinement.centre_std_px):
+            warnings.append(
+                f"the sphere's silhouette lies {refinement.shift_px:.2f} px from where scene.json's camera "
+                "and sphere.center put it (camera pose/principal point or sphere centre miscalibrated; "
+                "the centre was refined from the image)"
+            )
+        if abs(refinement.angular_radius_change) > 0.01:
+            warnings.append(
+                f"the silhouette's angular size differs by {100 * refinement.angular_radius_change:+.1f} % "
+                "from sphere.radius at its distance (focal length, radius or depth miscalibrated; the "
+                "normals follow the silhouette)"
+            )
+        if refinement.edge_rms_px > 1.0:
+            warnings.append(
+                f"the silhouette is not a sphere's under camera.K (edge rms "
+                f"{refinement.edge_rms_px:.2f} px): check the intrinsics, distortion and the background"
+            )
+    if lights is not None and lights.flagged:
+        listed = ", ".join(f"lights[{i}] (gain {lights.gains[i]:.2f})" for i in lights.flagged)
+        warnings.append(
+            f"the shading disagrees with {listed}: position or intensity miscalibrated "
+            "(eta does not depend on the lights)"
+        )
+    return warnings
 
 
 def estimate_ior(
@@ -312,27 +391,39 @@ def estimate_ior(
     zenith_range_deg: tuple[float, float] = (25.0, 80.0),
     max_pixels: int = 20000,
     specular_threshold: float = 0.25,
+    polarizer: AnalyzerModel | None = None,
+    refine: bool = True,
 ) -> IorResult:
     """Estimate one refractive index from a sphere's four analyzer images (module docstring).
 
     Args:
-        intensities: ``{"I0", "I45", "I90", "I135"}`` -> ``(H, W)`` or ``(H, W, C)`` linear float images.
+        intensities: ``{"I0", "I45", "I90", "I135"}`` -> ``(H, W)`` or ``(H, W, C)`` linear float images
+            as measured behind the camera's analyzers.
         scene: :class:`SphereScene`.
         eta_range: search interval (> 1). zenith_range_deg: usable exit zenith angles.
         max_pixels: pixels used at most (evenly subsampled, deterministic).
         specular_threshold: pixels with ``(I0 - I90) > threshold * 2 I90`` are dropped (highlights).
+        polarizer: the analyzers' calibration (default ``scene.polarizer``; ideal when absent).
+        refine: refit the sphere's centre to its silhouette (``IorResult.refinement``).
 
     Returns:
         :class:`IorResult`: the median of the per-channel estimates with more than two channels, else
-        their pixel-count-weighted mean; ``at_bound`` flags an estimate on a bound of ``eta_range``.
+        their pixel-count-weighted mean; ``at_bound`` flags an estimate on a bound of ``eta_range``;
+        ``eta_std`` its one-sigma uncertainty; ``warnings`` the reasons to distrust it.
 
     Raises:
         ValueError: missing/mismatched images, NaN/inf, no usable pixel.
     """
-    images = _check_inputs(intensities, scene, eta_range)
-    geometry = _sphere_geometry(scene, zenith_range_deg)
+    images = _ideal_images(_check_inputs(intensities, scene, eta_range), polarizer or scene.polarizer)
+    refinement = None
+    if refine:
+        brightness = 0.5 * sum(image.sum(axis=-1) for image in images)
+        refinement = refine_sphere(scene, brightness)
+    fitted_scene = scene if refinement is None else refinement.scene
+    geometry = _sphere_geometry(fitted_scene, zenith_range_deg)
+    rotation = scene.world_to_camera[:3, :3]
     fits = [
-        _channel_estimate(images, channel, geometry, eta_range, max_pixels, specular_threshold)
+        _channel_estimate(images, channel, geometry, rotation, eta_range, max_pixels, specular_threshold)
         for channel in range(images[0].shape[2])
     ]
     fits = [fit for fit in fits if fit is not None]
@@ -340,111 +431,37 @@ def estimate_ior(
         raise ValueError(
             "no usable sphere pixel: check the scene (sphere centre/radius, camera) and the images"
         )
-    estimates = [fit[0] for fit in fits]
-    weights = np.asarray([fit[2] for fit in fits], dtype=np.float64)
+    estimates = np.asarray([fit.eta for fit in fits])
+    weights = np.asarray([fit.pixels for fit in fits], dtype=np.float64)
     eta = float(np.median(estimates)) if len(estimates) > 2 else float(np.average(estimates, weights=weights))
+    stds = np.asarray([fit.std for fit in fits])
+    # channels share the geometry, so their errors are not independent: the typical channel's
+    # uncertainty, plus the channels' disagreement
+    spread = float(np.var(estimates)) / len(estimates) if len(estimates) > 1 else 0.0
+    eta_std = math.sqrt(float(np.median(stds)) ** 2 + spread)
+    widest = max(fits, key=lambda fit: fit.pixels)
+    eta_u95 = float(stats.t.ppf(0.975, max(min(fit.groups for fit in fits) - 1, 1))) * eta_std
+    _, position, normal, _, _ = geometry
+    shading = 2.0 * images[2].sum(axis=-1)[widest.rows, widest.cols]
+    lights = check_lights(
+        fitted_scene, shading, normal[widest.rows, widest.cols], position[widest.rows, widest.cols], eta
+    )
+    warnings = _scene_warnings(refinement, refine, lights)
+    if eta_std > UNCERTAINTY_WARNING:
+        warnings.append(
+            f"eta uncertainty {eta_std:.3g} exceeds {UNCERTAINTY_WARNING}: the measurement cannot be trusted"
+        )
     lo, hi = eta_range
     return IorResult(
         eta=eta,
-        rms_residual=float(np.average([fit[1] for fit in fits], weights=weights)),
-        pixels=int(sum(fit[2] for fit in fits)),
+        rms_residual=float(np.average([fit.rms for fit in fits], weights=weights)),
+        pixels=int(sum(fit.pixels for fit in fits)),
         channels=tuple(float(e) for e in estimates),
         at_bound=min(eta - lo, hi - eta) <= 1e-5 * (hi - lo),
+        eta_std=eta_std,
+        eta_u95=eta_u95,
+        channel_stds=tuple(float(s) for s in stds),
+        refinement=refinement,
+        lights=lights,
+        warnings=tuple(warnings),
     )
-
-
-#: The ten objects of the paper's validation table: (name, measured eta_gt) (Ha et al. 2024, Sec. 6).
-PAPER_OBJECTS: tuple[tuple[str, float], ...] = (
-    ("red billiard", 1.485),
-    ("green billiard", 1.469),
-    ("blue billiard", 1.504),
-    ("white billiard", 1.463),
-    ("POM", 1.462),
-    ("fake pearl", 2.295),
-    ("yellow silicone", 1.303),
-    ("pink silicone", 1.177),
-    ("white silicone", 1.248),
-    ("light green silicone", 1.343),
-)
-
-
-def default_sphere_scene(size: int = 256, radius: float = 40.0) -> SphereScene:
-    """The paper rig's upper polarimetric camera and 8 LED modules looking at a sphere at 1 m."""
-    from polarface.capture.rig import paper_rig
-
-    rig = paper_rig(width=size, height=size)
-    camera = rig.polarimetric_cameras()[0]
-    return SphereScene(
-        np.asarray(camera.K),
-        np.asarray(camera.world_to_camera),
-        size,
-        size,
-        np.array([0.0, 0.0, 1000.0]),
-        radius,
-        np.array([light.position_mm for light in rig.lights], dtype=np.float64),
-    )
-
-
-def render_sphere(
-    scene: SphereScene,
-    eta: float,
-    *,
-    rho_sss_bar: float = 0.5,
-    rho_s: float = 0.3,
-    alpha_s: float = 0.2,
-    noise: bool = False,
-    seed: int = 0,
-) -> dict[str, np.ndarray]:
-    """Analyzer images ``{"I0", "I45", "I90", "I135"}`` ``(H, W)`` float32 of a dielectric sphere under the
-    scene's lights (radiant intensity 1e6, the rig's), with the full forward model
-    (:func:`polarface.optics.render_polarimetric`); ``noise`` adds the rig's sensor shot/read noise
-    and 12-bit quantisation at an exposure putting the brightest pixel at 80 % of full well."""
-    from polarface.capture.sensor import SensorNoise, simulate_raw
-    from polarface.optics.image_formation import render_polarimetric
-
-    mask, position, normal, centre = sphere_pixels(scene)
-    up = -scene.world_to_camera[1, :3]
-    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))  # noqa: E731
-    images = render_polarimetric(
-        t(normal[mask]),
-        t(position[mask]),
-        t(centre),
-        t(up),
-        t(scene.lights),
-        torch.full((len(scene.lights), 1), 1.0e6, dtype=torch.float64),
-        eta,
-        alpha_s,
-        0.6,
-        rho_s,
-        0.1,
-        rho_sss_bar,
-    )
-    out = {}
-    for name, values in (("I0", images.i0), ("I45", images.i45), ("I90", images.i90), ("I135", images.i135)):
-        image = np.zeros((scene.height, scene.width), np.float64)
-        image[mask] = values[:, 0].numpy()
-        out[name] = image
-    if noise:
-        exposure = 0.8 / max(float(out["I0"].max()), 1e-12)
-        sensor = SensorNoise(exposure=exposure)
-        rng = np.random.default_rng(seed)
-        for name in out:
-            raw = simulate_raw(out[name], sensor, seed=rng).astype(np.float64)
-            white = (2**sensor.bit_depth - 1) if sensor.white_level is None else sensor.white_level
-            out[name] = (raw - sensor.black_level) / (white - sensor.black_level) / exposure
-    return {k: v.astype(np.float32) for k, v in out.items()}
-
-
-def validate_paper_objects(
-    noise: bool = False, size: int = 256, seed: int = 0
-) -> list[dict[str, float | str]]:
-    """Render a sphere for each of :data:`PAPER_OBJECTS` and estimate its eta: list of table rows."""
-    scene = default_sphere_scene(size)
-    rows = []
-    for index, (name, eta_gt) in enumerate(PAPER_OBJECTS):
-        images = render_sphere(scene, eta_gt, noise=noise, seed=seed + index)
-        result = estimate_ior(images, scene)
-        rows.append(
-            {"object": name, "eta_gt": eta_gt, "eta": result.eta, "abs_error": abs(result.eta - eta_gt)}
-        )
-    return rows

@@ -1,9 +1,10 @@
 """Refractive index of a sphere from one capture folder: the ``polarface ior`` job.
 
 The folder holds ``I0.exr, I45.exr, I90.exr, I135.exr`` (float32 linear; one channel ``Y`` or R, G, B)
-and ``scene.json`` (camera, lights and sphere in mm; schema in the ``polarface ior`` command's help and
-:meth:`polarface.inverse.ior.SphereScene.from_dict`). The estimator is
-:func:`polarface.inverse.ior.estimate_ior`.
+and ``scene.json`` (camera, lights and sphere in mm, optional ``polarizer`` calibration; schema in
+docs/ior.md and :meth:`polarface.inverse.ior.SphereScene.from_dict`). The estimator is
+:func:`polarface.inverse.ior.estimate_ior` (analyzer calibration applied, sphere refined from its
+silhouette, jackknife uncertainty, shading check of the lights).
 """
 
 from __future__ import annotations
@@ -38,9 +39,10 @@ def read_analyzer_image(path: str | os.PathLike[str]) -> np.ndarray:
 
 
 def estimate_ior_from_folder(
-    folder: str | os.PathLike[str], eta_range: tuple[float, float] = (1.05, 3.0)
+    folder: str | os.PathLike[str], eta_range: tuple[float, float] = (1.05, 3.0), refine: bool = True
 ) -> IorResult:
-    """Read the capture folder (module docstring) and estimate the sphere's refractive index.
+    """Read the capture folder (module docstring) and estimate the sphere's refractive index
+    (``refine``: refit the sphere's centre to its silhouette).
 
     Raises:
         FileNotFoundError: the folder, ``scene.json`` or an analyzer image is missing.
@@ -63,7 +65,7 @@ def estimate_ior_from_folder(
     except ValueError as exc:
         raise ValueError(f"'{scene_path}': {exc}") from exc
     images = {name: read_analyzer_image(folder / f"{name}.exr") for name in ANALYZER_IMAGE_NAMES}
-    result = estimate_ior(images, scene, eta_range=tuple(eta_range))
+    result = estimate_ior(images, scene, eta_range=tuple(eta_range), refine=refine)
     if result.at_bound:
         raise ValueError(
             f"eta estimate {result.eta:.4f} lies on the bound of argument 'eta_range' "
