@@ -12,8 +12,12 @@ Modules:
     calibration      OpenCV chessboard / ChArUco detection and calibration written into a rig.
     rig_calibration  board photos -> calibrated rig.json (``polarface calibrate``).
     synthetic        synthetic Stokes patterns and demosaicing error measurements.
+    authors_layout   the authors' preprocessed face sessions: layout scan, COLMAP / pose / gain files.
+    authors_rig      the rig of such a session (its cameras and the paper's LED ring).
 """
 
+from polarface.capture.authors_layout import AuthorsSession, scan_session
+from polarface.capture.authors_rig import authors_rig
 from polarface.capture.calibration import (
     CharucoBoardSpec,
     IntrinsicsResult,
@@ -88,6 +92,7 @@ __all__ = [
     "RAW_SUFFIXES",
     "SENSOR_KINDS",
     "SIX_CHANNEL_NAMES",
+    "AuthorsSession",
     "Camera",
     "CaptureStore",
     "CharucoBoardSpec",
@@ -105,6 +110,7 @@ __all__ = [
     "StereoResult",
     "StokesOptions",
     "angle_index_map",
+    "authors_rig",
     "calibrate_intrinsics",
     "calibrate_rig",
     "calibrate_stereo",
@@ -136,6 +142,7 @@ __all__ = [
     "registration_map",
     "reprojection_rms",
     "scan_raw_directory",
+    "scan_session",
     "simulate_raw",
     "stokes_pattern",
     "update_rig",

@@ -289,14 +289,16 @@ def write_colmap_cameras(path: str | Path, cameras: Mapping[int, ColmapCamera]) 
         K = np.asarray(camera.K, dtype=np.float64)
         distortion = (list(camera.distortion) + [0.0] * 4)[:4]
         params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *distortion]
-        lines.append(f"{ident} OPENCV {camera.width} {camera.height} " + " ".join(repr(float(v)) for v in params))
+        values = " ".join(repr(float(v)) for v in params)
+        lines.append(f"{ident} OPENCV {camera.width} {camera.height} {values}")
     return _write_text(Path(path), lines)
 
 
 def write_colmap_images(path: str | Path, world_to_camera: Mapping[int, np.ndarray]) -> Path:
     """Write ``images.txt`` (one image per camera, camera id = image id, empty 2D point lines)."""
     lines = ["# Image list with two lines of data per image:",
-             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME", "#   POINTS2D[] as (X, Y, POINT3D_ID)"]
+             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+             "#   POINTS2D[] as (X, Y, POINT3D_ID)"]
     for ident, pose in sorted(world_to_camera.items()):
         pose = np.asarray(pose, dtype=np.float64)
         values = [*_quaternion_from_rotation(pose[:3, :3]), *pose[:3, 3]]
@@ -325,7 +327,8 @@ def read_white_balance(path: str | Path, cameras: Sequence[int] = AUTHORS_CAMERA
     except ValueError as exc:
         raise ValueError(f"'{path}' is not a table of numbers: {exc}") from None
     if table.shape[0] < max(cameras) or table.shape[1] < 4:
-        raise ValueError(f"'{path}': need a row [index, R, G, B] per camera {list(cameras)}; got {table.shape}")
+        raise ValueError(f"'{path}': need a row [index, R, G, B] per camera {list(cameras)}; "
+                         f"got shape {table.shape}")
     gains = {c: table[c - 1, 1:4].copy() for c in cameras}
     for camera, gain in gains.items():
         if not (np.isfinite(gain).all() and (gain > 0).all()):
@@ -354,7 +357,8 @@ def read_icp_poses(folder: str | Path, count: int) -> np.ndarray:
         except ValueError as exc:
             raise ValueError(f"ICP pose '{path}' is not a 4x4 matrix: {exc}") from None
         rotation = matrix[:3, :3]
-        if not (np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) and np.allclose(matrix[3], [0, 0, 0, 1])):
+        orthonormal = np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4)
+        if not (orthonormal and np.allclose(matrix[3], [0, 0, 0, 1])):
             raise ValueError(f"ICP pose '{path}' is not a rigid transform")
         poses.append(matrix)
     return np.stack(poses)

@@ -84,7 +84,8 @@ def authors_rig(cameras: Mapping[int, ColmapCamera], world_to_camera: Mapping[in
         rig_cameras.append(Camera(
             id=f"cam{index}", role="polarimetric", sensor="color-polarization",
             width=int(camera.width), height=int(camera.height), K=np.asarray(camera.K).tolist(),
-            distortion=[*camera.distortion[:4], 0.0], world_to_camera=np.asarray(world_to_camera[index]).tolist(),
+            distortion=[*camera.distortion[:4], 0.0],
+            world_to_camera=np.asarray(world_to_camera[index]).tolist(),
             bit_depth=12, colour_channels={"R": first, "G": first + 1, "B": first + 2},
         ))
     positions = led_ring([world_to_camera[i] for i in AUTHORS_CAMERAS])

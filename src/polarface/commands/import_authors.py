@@ -21,7 +21,7 @@ INTERRUPTED = "imported views kept in {out}; rerun the same command to continue"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Register the command's arguments."""
-    parser.add_argument("session", type=Path, help="the module folder, e.g. FaceData/5_Static/90 (or 5_Static)")
+    parser.add_argument("session", type=Path, help="module folder, e.g. FaceData/5_Static/90 (or 5_Static)")
     parser.add_argument("--out", type=local_folder, required=True, help="imported session folder (local)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     add_force_argument(parser)

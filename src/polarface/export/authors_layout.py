@@ -7,7 +7,8 @@ first with channels 0-2) and, for the dynamic frames, ``frames/NNNN/unwrap.zarr`
 alignment. Writes ``OUT/5_Static/90`` and, with dynamic frames, ``OUT/6_Dynamic_1/90``:
 
 * ``texture/{0,45,90,135}/exr/img{1,2}_{FFFF}.exr`` from each view's ``[I_sss, I_zeta, I_s]``:
-  ``I90 = I_sss / 2``, ``I0 = I_s + I90``, ``I45 = (I0 + I90 - I_zeta) / 2``, ``I135 = (I0 + I90 + I_zeta) / 2``
+  ``I90 = I_sss / 2``, ``I0 = I_s + I90``, ``I45 = (I0 + I90 - I_zeta) / 2``,
+  ``I135 = (I0 + I90 + I_zeta) / 2``
   (an ideal polarizer: ``I0 + I90 = I45 + I135``), times ``1e6 / sum_k I_L,k`` of the view's channels so
   that the importer's LED ring of total intensity 1e6 (:mod:`polarface.capture.authors_rig`) gives
   the same fit; ``visible_img*`` is the view's ``valid`` (1 / 0 in R, G, B), the same in each angle;
@@ -45,7 +46,8 @@ _TOTAL_INTENSITY = 1.0e6
 
 
 def polarizer_images(obs: np.ndarray) -> np.ndarray:
-    """``(4, ..., C)`` I0, I45, I90, I135 of ``obs (..., 3, C)`` ``[I_sss, I_zeta, I_s]`` (module docstring)."""
+    """``(4, ..., C)`` I0, I45, I90, I135 of ``obs (..., 3, C)`` = ``[I_sss, I_zeta, I_s]`` (module
+    docstring; float64)."""
     obs = np.asarray(obs, dtype=np.float64)
     i_sss, i_zeta, i_s = obs[..., 0, :], obs[..., 1, :], obs[..., 2, :]
     i90 = 0.5 * i_sss
@@ -157,11 +159,13 @@ def write_authors_layout(source: ExportSource, out: Path, options: ExportOptions
     vertex, normal = _geometry_maps(unwrap, np.eye(4))
     write_exr(static / "texture" / "vertex.exr", vertex)
     write_exr(static / "texture" / "normal.exr", normal)
-    files += 3 + len(poses) + 2 + _write_views(unwrap, static / "texture", numbers, lambda f: f"{order[f]:04d}")
+    files += 3 + len(poses) + 2
+    files += _write_views(unwrap, static / "texture", numbers, lambda f: f"{order[f]:04d}")
     written = ["5_Static/90"]
     if frame_unwraps:
         dynamic = out / "6_Dynamic_1" / "90"
-        alignment = np.asarray(folder.stage_record("dynamic").get("alignment", np.eye(4).tolist()), np.float64)
+        recorded = folder.stage_record("dynamic").get("alignment", np.eye(4).tolist())
+        alignment = np.asarray(recorded, np.float64)
         _write_cameras(dynamic, rig, numbers)
         for k, frame_unwrap in enumerate(frame_unwraps):
             _write_text(dynamic / "icp-pose" / f"{k:04d}.txt", "\n".join(
@@ -173,4 +177,4 @@ def write_authors_layout(source: ExportSource, out: Path, options: ExportOptions
         files += 3
         written.append("6_Dynamic_1/90")
     return {"files": written, "file_count": files, "frames": list(source.frames),
-            "notes": "import with 'polarface import-authors OUT/5_Static/90 --out DIR' (docs/authors_dataset.md)"}
+            "notes": "import: 'polarface import-authors OUT/5_Static/90 --out DIR' (docs/authors_dataset.md)"}

@@ -51,7 +51,7 @@ def _copy_unwrap(source: Path, target: Path) -> None:
 def reconstruct_dynamic_imported(
     result_dir: str | Path,
     imported: Path,
-    config: DynamicStageConfig = DynamicStageConfig(),
+    config: DynamicStageConfig | None = None,
     *,
     frames: str | Sequence[int] | None = None,
     device: str = "auto",
@@ -69,6 +69,7 @@ def reconstruct_dynamic_imported(
     from polarface.device import resolve_device
 
     started = time.perf_counter()
+    config = config or DynamicStageConfig()
     folder = ResultFolder(result_dir)
     _check_static_result(folder)
     record = read_imported(imported, "dynamic")
@@ -91,8 +92,9 @@ def reconstruct_dynamic_imported(
         try:
             frame_folder.root.mkdir(parents=True, exist_ok=True)
             _copy_unwrap(source / "unwrap.zarr", Path(frame_folder.unwrap_path))
-            timings = _process_frame(None, folder, frame, all_frames, load_mesh(source / "mesh.obj"), identity,
-                                     static, config, resolved, threads)
+            mesh = load_mesh(source / "mesh.obj")
+            timings = _process_frame(None, folder, frame, all_frames, mesh, identity, static, config,
+                                     resolved, threads)
         except (ValueError, FileNotFoundError, RuntimeError) as exc:
             failed[str(frame)] = str(exc)
             continue

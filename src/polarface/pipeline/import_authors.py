@@ -73,7 +73,7 @@ def read_imported(path: str | Path, kind: str | None = None) -> dict[str, Any]:
     if record.get("format") != IMPORTED_FORMAT:
         raise ValueError(f"'{file}' is not an authors' import record (format {record.get('format')!r})")
     if record.get("complete") is not True:
-        raise ValueError(f"'{file}': the import was interrupted; rerun 'polarface import-authors' to finish it")
+        raise ValueError(f"'{file}': the import was interrupted; rerun 'polarface import-authors' to finish")
     if kind is not None and record.get("kind") != kind:
         raise ValueError(f"'{path}' is an imported {record.get('kind')} session; a {kind} one is needed here")
     return record

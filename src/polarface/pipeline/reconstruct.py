@@ -440,7 +440,7 @@ def reconstruct(
             check_imported_inputs(ctx.capture, ctx.dynamic, ctx.frames)
         else:
             store = _open_capture(ctx) if stereo else _load_geometry(ctx)[0]
-        if ctx.dynamic is not None and not is_imported_session(ctx.dynamic):  # finished, same rig, frames known
+        if ctx.dynamic is not None and not is_imported_session(ctx.dynamic):  # finished, same rig, frames
             from polarface.pipeline.dynamic import open_dynamic_capture
 
             open_dynamic_capture(ctx.dynamic, store.rig, store.root / "rig.json", ctx.frames)

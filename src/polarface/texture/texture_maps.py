@@ -3,7 +3,8 @@
 
 * :func:`texel_geometry_from_maps`: the per-texel geometry of a UV-space position map and normal map
   (mm): tangents and texel sizes by central differences of the positions (one-sided at the mask's
-  edge and across atlas seams: neighbours more than 4 median texel steps away), ``tangent_v`` along +v = decreasing row (:mod:`polarface.geometry.uv_raster`'s convention);
+  edge and across atlas seams: neighbours more than 4 median texel steps away), ``tangent_v`` along
+  +v = decreasing row (:mod:`polarface.geometry.uv_raster`'s convention);
 * :func:`grid_mesh`: a triangle mesh through the texel centres (two triangles per 2 x 2 block of texels
   in the mask whose edges are shorter than ``max_edge_texels`` texel sizes), with UVs at the texel centres
   (row 0 = v 1), so rasterizing it gives back the same texel layout; used for shadow rays and as the
