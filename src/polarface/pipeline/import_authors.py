@@ -126,7 +126,7 @@ def _geometry(position_path: Path, normal_path: Path):
 
 
 def _import_static(session: AuthorsSession, out: Path, rig, gains, progress: bool) -> dict[str, Any]:
-    icp = read_icp_poses(session.root / "icp-pose", session.frame_count)
+    icp = read_icp_poses(session.root / "icp-pose", session.frame_count)  # checked before any write too
     poses = np.stack([invert_rigid(m) for m in icp])  # frame -> reference inverted: model -> world
     geometry = _geometry(session.texture_dir / "vertex.exr", session.texture_dir / "normal.exr")
     frames = list(range(session.frame_count))
@@ -181,6 +181,8 @@ def import_authors(session_dir: str | Path, out: str | Path, *, progress: bool =
     rig = authors_rig(read_colmap_cameras(root / "cameras.txt"), read_colmap_images(root / "images.txt"),
                       str(root))
     gains = read_white_balance(root / "white_balance.txt")
+    if not session.dynamic:
+        read_icp_poses(root / "icp-pose", session.frame_count)  # a partial download fails before any write
     out.mkdir(parents=True, exist_ok=True)
     record_path = out / IMPORTED_JSON
     if record_path.exists():
