@@ -42,7 +42,7 @@ def write_fake_session(root: Path, frames: int = 2, resolution: int = 8, dynamic
     rig = paper_rig(width=48, height=32)
     cameras = rig.polarimetric_cameras()
     write_colmap_cameras(root / "cameras.txt", {
-        i + 1: ColmapCamera(c.width, c.height, c.intrinsics, (0.0, 0.0, 0.0, 0.0)) for i, c in enumerate(cameras)})
+        i + 1: ColmapCamera(c.width, c.height, c.intrinsics, (0.0,) * 4) for i, c in enumerate(cameras)})
     write_colmap_images(root / "images.txt", {i + 1: c.pose for i, c in enumerate(cameras)})
     (root / "white_balance.txt").write_text("1 1.0 1.0 1.0\n2 1.0 1.0 1.0\n3 1.0 1.0 1.0\n")
     (root / "icp-pose").mkdir(parents=True)

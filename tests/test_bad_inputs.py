@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from authors_fixtures import write_fake_session
 from disk_fixtures import write_ior_capture
 from polarface.capture.rig import Rig, paper_rig
 from polarface.capture.sensor import mosaic, simulate_raw
@@ -67,6 +68,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     (root / "spectra.csv").write_text("\n".join(",".join(line.split(",")[:3]) for line in lines) + "\n")
     write_ior_capture(root / "ior", size=32)
     Rig.model_validate({"cameras": [_stereo_camera(c) for c in ("left", "right")]}).save(root / "calrig.json")
+    write_fake_session(root / "authors", frames=2, resolution=4)
     return {
         "sim": sim,
         "result": result,
@@ -76,6 +78,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
         "csv": root / "spectra.csv",
         "ior": root / "ior",
         "calrig": root / "calrig.json",
+        "authors": root / "authors",
     }
 
 
@@ -235,6 +238,26 @@ CAL3 = CAL.replace("left01.jpg", "left0[123].jpg")
 DEMO = "demo --sphere --out {ws}/out"
 BENCH = "bench --side 8 --frames 1 --iterations 1 --baseline-texels 1 --threads 1 --seconds 0.05 --repeats 1"
 IOR = "ior {ior}"
+AUTHORS = "import-authors {authors} --no-progress --out {ws}/out"
+
+
+def _import_authors_rows() -> list[Row]:
+    """A partial download of an authors' session is refused before anything is written, naming the file."""
+    mismatch = chain(remove("authors/texture/90/exr/img2_0001.exr"),
+                     remove("authors/texture/90/exr/visible_img2_0001.exr"))
+    return [
+        row("import-authors-missing-session", "import-authors {ws}/nothing --out {ws}/out", "nothing"),
+        row("import-authors-missing-angle-folder", AUTHORS, "texture/45/exr", remove("authors/texture/45")),
+        row("import-authors-frame-count-mismatch", AUTHORS, "texture/90/exr", mismatch),
+        row("import-authors-missing-visibility", AUTHORS, "visible_img1_0000.exr",
+            remove("authors/texture/0/exr/visible_img1_0000.exr")),
+        row("import-authors-missing-icp-pose", AUTHORS, "icp-pose", remove("authors/icp-pose/0001.txt")),
+        row("import-authors-missing-cameras", AUTHORS, "cameras.txt", remove("authors/cameras.txt")),
+        row("import-authors-missing-vertex-map", AUTHORS, "vertex.exr", remove("authors/texture/vertex.exr")),
+        row("import-authors-bad-white-balance", AUTHORS, "white_balance.txt",
+            text("authors/white_balance.txt", "1 1.0 1.0\n")),
+        row("import-authors-out-is-foreign", AUTHORS, "out", foreign("out")),
+    ]
 
 
 def _stokes_rows() -> list[Row]:
@@ -1086,6 +1109,7 @@ ROWS: list[Row] = [
     *_biophysical_rows(),
     *_render_rows(),
     *_ior_rows(),
+    *_import_authors_rows(),
 ]
 
 #: Rows that fail on today's code, grouped by the defect they show (run as strict xfail; empty when every
@@ -1106,6 +1130,7 @@ COPIED = {
     "csv": "spectra.csv",
     "ior": "ior",
     "calrig": "calrig.json",
+    "authors": "authors",
 }
 
 
@@ -1186,6 +1211,7 @@ def test_table_is_large_and_unique():
         "render",
         "ior",
         "bench",
+        "import-authors",
     }
 
 

@@ -46,7 +46,8 @@ def test_missing_angle_folder_is_named(session) -> None:
 def test_frame_count_mismatch_between_angles_is_named(session) -> None:
     for name in ("img2_0001.exr", "visible_img2_0001.exr"):
         (session / "texture" / "90" / "exr" / name).unlink()
-    with pytest.raises(ValueError, match=r"texture/90/exr' holds 1 img2_\*\.exr frames .* frame 0001 is missing"):
+    pattern = r"texture/90/exr' holds 1 img2_\*\.exr frames .* frame 0001 is missing"
+    with pytest.raises(ValueError, match=pattern):
         scan_session(session)
 
 

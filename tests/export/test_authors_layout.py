@@ -28,7 +28,8 @@ def test_polarizer_images_follow_malus_law() -> None:
     rng = np.random.default_rng(1)
     s0 = rng.uniform(0.5, 1.0, (5, 3))
     s1, s2 = rng.uniform(-0.2, 0.2, (2, 5, 3)) * s0
-    malus = np.stack([0.5 * (s0 + s1 * np.cos(2 * t) + s2 * np.sin(2 * t)) for t in np.radians([0, 45, 90, 135])])
+    angles = np.radians([0, 45, 90, 135])
+    malus = np.stack([0.5 * (s0 + s1 * np.cos(2 * t) + s2 * np.sin(2 * t)) for t in angles])
     obs = np.stack([2 * malus[2], malus[3] - malus[1], malus[0] - malus[2]], axis=-2)
     np.testing.assert_allclose(polarizer_images(obs), malus, atol=1e-14)
 
@@ -99,7 +100,8 @@ def test_round_trip_through_the_authors_layout(tiny_export, tmp_path) -> None:
 def test_reconstruct_refuses_a_mixed_or_unfinished_import(tiny_export, tmp_path) -> None:
     sim, result = tiny_export
     out = tmp_path / "export"
-    assert main(["export", str(result), "--format", "authors-layout", "--frames", "0", "--out", str(out)]) == 0
+    argv = ["export", str(result), "--format", "authors-layout", "--frames", "0", "--out", str(out)]
+    assert main(argv) == 0
     static = tmp_path / "static"
     import_authors(out / "authors-layout" / "5_Static", static, progress=False)
     with pytest.raises(ValueError, match="'--dynamic' must be one too"):

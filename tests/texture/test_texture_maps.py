@@ -102,7 +102,8 @@ def test_view_samples_reference_values_and_validity() -> None:
 
 
 def _plane_view(frame: int) -> ViewSpec:
-    lights = tuple((100.0 * np.cos(a), 100.0 * np.sin(a), 0.0) for a in np.linspace(0, 2 * np.pi, 8, endpoint=False))
+    angles = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    lights = tuple((100.0 * np.cos(a), 100.0 * np.sin(a), 0.0) for a in angles)
     return ViewSpec(frame, "cam1", (0, 1, 2), (0.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, -1.0, 0.0), lights,
                     ((1.25e5,) * 3,) * 8)
 
@@ -120,7 +121,8 @@ def test_store_writer_samples_lit_and_refuses_nothing_seen(tmp_path) -> None:
         calls.append(index)
         return obs * (index + 1), geometry.mask.copy()
 
-    store = write_texture_unwrap(tmp_path / "u.zarr", geometry, views, poses, lights, read, patch=4, progress=False)
+    store = write_texture_unwrap(tmp_path / "u.zarr", geometry, views, poses, lights, read, patch=4,
+                                 progress=False)
     assert store.complete and calls == [0, 1] and not (tmp_path / "u.zarr.partial").exists()
     got, valid, lit = store.read(slice(None), slice(None))
     assert valid.all() and lit.all() and got[1, 0, 0, 0, 0] == 2.0
