@@ -83,15 +83,15 @@ def test_round_trip_through_the_authors_layout(tiny_export, tmp_path) -> None:
         np.testing.assert_allclose(obs_b[index] * scale, obs_a[index], rtol=1e-5, atol=1e-6 * obs_a.max())
     assert (lit_a[valid_a] == lit_b[valid_b]).mean() > 0.999
 
+    # the static stages, then the dynamic stage on the imported tracked maps of frame 0
     again = tmp_path / "result"
-    assert main(["reconstruct", str(tmp_path / "static"), "--out", str(again), "--iterations", ITERATIONS,
-                 "--quiet"]) == 0
+    assert main(["reconstruct", str(tmp_path / "static"), "--dynamic", str(tmp_path / "dynamic"), "--frames",
+                 "0", "--out", str(again), "--iterations", ITERATIONS, "--quiet"]) == 0
     _assert_same_maps(direct, ResultFolder(again))
     assert (again / "report.html").is_file()
-
-    # the dynamic stage on the imported tracked maps (frame 0): same maps as the capture path's frame
-    record = reconstruct_dynamic(again, tmp_path / "dynamic", frames="0", progress=False)
+    record = ResultFolder(again).stage_record("dynamic")
     assert record["completed"] == [0] and not record["failed_frames"]
+    assert reconstruct_dynamic(again, tmp_path / "dynamic", frames="0", progress=False)["completed"] == [0]
     alignment = np.asarray(direct.stage_record("dynamic")["alignment"])
     _assert_same_maps(direct.frame(0), ResultFolder(again).frame(0), alignment[:3, :3])
 

@@ -112,8 +112,6 @@ def test_store_writer_samples_lit_and_refuses_nothing_seen(tmp_path) -> None:
     vertex, normal = plane_maps(6)
     geometry = texel_geometry_from_maps(vertex, normal)
     views = [_plane_view(0), _plane_view(1)]
-    poses = {0: np.eye(4), 1: np.eye(4)}
-    lights = np.array(views[0].light_positions)
     obs = np.ones((6, 6, 3, 3), np.float32)
     calls = []
 
@@ -121,16 +119,15 @@ def test_store_writer_samples_lit_and_refuses_nothing_seen(tmp_path) -> None:
         calls.append(index)
         return obs * (index + 1), geometry.mask.copy()
 
-    store = write_texture_unwrap(tmp_path / "u.zarr", geometry, views, poses, lights, read, patch=4,
-                                 progress=False)
+    store = write_texture_unwrap(tmp_path / "u.zarr", geometry, views, read, patch=4, progress=False)
     assert store.complete and calls == [0, 1] and not (tmp_path / "u.zarr.partial").exists()
     got, valid, lit = store.read(slice(None), slice(None))
     assert valid.all() and lit.all() and got[1, 0, 0, 0, 0] == 2.0
     assert UnwrapStore.open(tmp_path / "u.zarr").views == views
     # a finished store is returned as is
-    write_texture_unwrap(tmp_path / "u.zarr", geometry, views, poses, lights, read, progress=False)
+    write_texture_unwrap(tmp_path / "u.zarr", geometry, views, read, progress=False)
     assert calls == [0, 1]
     with pytest.raises(ValueError, match="no texel is seen"):
-        write_texture_unwrap(tmp_path / "none.zarr", geometry, views, poses, lights,
-                             lambda i: (obs, np.zeros((6, 6), bool)), progress=False)
+        write_texture_unwrap(tmp_path / "none.zarr", geometry, views, lambda i: (obs, np.zeros((6, 6), bool)),
+                             progress=False)
     assert not (tmp_path / "none.zarr.partial").exists() and not (tmp_path / "none.zarr").exists()

@@ -81,11 +81,14 @@ def reconstruct_dynamic_imported(
                          f"'{folder.root}' are {list(static[1].shape)}: import the sessions of one subject")
     resolved = resolve_device(device)
     identity = np.eye(4)
+    previous = folder.stage_record("dynamic").get("timings", {}).get("frames", {})
     per_frame: dict[str, dict[str, float]] = {}
     failed: dict[str, str] = {}
     for frame in tqdm(selected, desc="dynamic: frames", unit="frame", disable=not progress):
         frame_folder = folder.frame(frame)
         if _frame_done(frame_folder, config):
+            if str(frame) in previous:
+                per_frame[str(frame)] = previous[str(frame)]
             continue
         begun = time.perf_counter()
         source = Path(imported) / "frames" / f"{frame:04d}"

@@ -57,9 +57,9 @@ IMPORTED_FORMAT = "polarface-authors-import"
 IMPORTED_VERSION = 1
 
 
-def is_imported_session(path: str | Path) -> bool:
-    """Whether ``path`` is an imported session folder (holds ``imported.json``)."""
-    return isinstance(path, Path | str) and (Path(path) / IMPORTED_JSON).is_file()
+def is_imported_session(path: str | Path | None) -> bool:
+    """Whether ``path`` is a local imported session folder (holds ``imported.json``); False for None."""
+    return isinstance(path, Path | str) and str(path) != "" and (Path(path) / IMPORTED_JSON).is_file()
 
 
 def read_imported(path: str | Path, kind: str | None = None) -> dict[str, Any]:
@@ -131,16 +131,14 @@ def _import_static(session: AuthorsSession, out: Path, rig, gains, progress: boo
     geometry = _geometry(session.texture_dir / "vertex.exr", session.texture_dir / "normal.exr")
     frames = list(range(session.frame_count))
     views = build_views(rig, frames, poses, 0)
-    lights = np.array([light.position_mm for light in rig.lights])
-    write_texture_unwrap(out / "unwrap.zarr", geometry, views, dict(zip(frames, poses, strict=True)), lights,
-                         _view_reader(session, views, gains, geometry), progress=progress)
+    write_texture_unwrap(out / "unwrap.zarr", geometry, views, _view_reader(session, views, gains, geometry),
+                         progress=progress)
     save_obj(out / "mesh.obj", grid_mesh(geometry))
     save_poses(out / "poses.json", poses)
     return {"texture_resolution": list(geometry.resolution), "views": len(views)}
 
 
 def _import_dynamic(session: AuthorsSession, out: Path, rig, gains, progress: bool) -> dict[str, Any]:
-    lights = np.array([light.position_mm for light in rig.lights])
     identity = np.eye(4)
     resolution = None
     for frame, (vertex, normal) in enumerate(session.tracked_paths):
@@ -152,8 +150,8 @@ def _import_dynamic(session: AuthorsSession, out: Path, rig, gains, progress: bo
         resolution = list(geometry.resolution)
         views = build_views(rig, [frame], identity[None], 0)
         folder.mkdir(parents=True, exist_ok=True)
-        write_texture_unwrap(folder / "unwrap.zarr", geometry, views, {frame: identity}, lights,
-                             _view_reader(session, views, gains, geometry), progress=progress,
+        reader = _view_reader(session, views, gains, geometry)
+        write_texture_unwrap(folder / "unwrap.zarr", geometry, views, reader, progress=progress,
                              desc=f"import frame {frame}")
         save_obj(folder / "mesh.obj", grid_mesh(geometry))
     return {"texture_resolution": resolution, "views": 2 * session.frame_count}

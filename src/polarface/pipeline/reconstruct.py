@@ -436,7 +436,7 @@ def reconstruct(
         PolarimetricConfig(**options)
         from polarface.pipeline.import_authors import check_imported_inputs, is_imported_session
 
-        if is_imported_session(ctx.capture) or is_imported_session(ctx.dynamic or ""):
+        if is_imported_session(ctx.capture) or is_imported_session(ctx.dynamic):
             check_imported_inputs(ctx.capture, ctx.dynamic, ctx.frames)
         else:
             store = _open_capture(ctx) if stereo else _load_geometry(ctx)[0]

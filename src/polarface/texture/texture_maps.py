@@ -14,7 +14,8 @@
   visibility maps;
 * :func:`write_texture_unwrap`: the store itself, view by view (one view's images in memory at a time),
   into ``OUT.partial`` renamed when complete (a rerun resumes at the first view not written); each
-  view's LED visibility by shadow rays against the posed grid mesh.
+  view's LED visibility by shadow rays against the grid mesh, in the model frame (the views' light
+  positions are mapped there: exact for rigid poses, and one ray-casting structure serves every view).
 """
 
 from __future__ import annotations
@@ -187,8 +188,6 @@ def write_texture_unwrap(
     out: Path,
     geometry: TexelGeometry,
     views: Sequence[ViewSpec],
-    poses: dict[int, np.ndarray],
-    lights_world: np.ndarray,
     read_view: Callable[[int], tuple[np.ndarray, np.ndarray]],
     *,
     patch: int = 64,
@@ -199,8 +198,8 @@ def write_texture_unwrap(
 
     Args:
         out: the store (``out.partial`` while written). geometry: texel geometry, model frame.
-        views: the views (:func:`polarface.texture.views.build_views`); poses: frame -> ``(4, 4)`` model ->
-            world; lights_world: ``(K, 3)`` LED positions, mm.
+        views: the views (:func:`polarface.texture.views.build_views`: camera and LED positions in the
+            model frame, mm).
         read_view: view index -> ``(obs, valid)`` (:func:`texture_view_samples`); called once per view not
             yet written.
 
@@ -225,8 +224,7 @@ def write_texture_unwrap(
         shutil.rmtree(partial, ignore_errors=True)
         writer = UnwrapStore.create(partial, geometry, views, patch)
     done = writer.done()
-    mesh = grid_mesh(geometry)
-    caster, caster_frame = None, None
+    caster = RayCaster(grid_mesh(geometry))
     seen = False
     for index, view in enumerate(tqdm(views, desc=desc, unit="view", disable=not progress)):
         if index in done:
@@ -235,14 +233,12 @@ def write_texture_unwrap(
         obs, valid = read_view(index)
         valid = valid & geometry.mask & _facing(geometry, view)
         obs = np.where(valid[..., None, None], obs, np.float32(0.0))
-        lit = np.zeros((*valid.shape, len(lights_world)), bool)
+        lights = np.asarray(view.light_positions, dtype=np.float64)
+        lit = np.zeros((*valid.shape, len(lights)), bool)
         if valid.any():
-            pose = poses[view.frame]
-            if caster_frame != view.frame:
-                caster, caster_frame = RayCaster(mesh.transformed(pose)), view.frame
-            points = geometry.position[valid].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
-            normals = geometry.normal[valid].astype(np.float64) @ pose[:3, :3].T
-            lit[valid] = caster.shadow_rays(points, normals, lights_world, pairwise=True)
+            points = geometry.position[valid].astype(np.float64)
+            normals = geometry.normal[valid].astype(np.float64)
+            lit[valid] = caster.shadow_rays(points, normals, lights, pairwise=True)
             seen = True
         writer.write_view(index, obs, valid, lit)
     if not seen:
