@@ -12,7 +12,6 @@ order; each resumes as in the capture path. Timestamps assume the rig's 20 fps (
 from __future__ import annotations
 
 import resource
-import shutil
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -30,22 +29,13 @@ from polarface.pipeline.dynamic import (
     _static_inputs,
     parse_frame_selection,
 )
-from polarface.pipeline.import_authors import read_imported
+from polarface.pipeline.import_authors import copy_unwrap_store, read_imported
 from polarface.results import ResultFolder
 
 __all__ = ["FRAME_RATE_HZ", "reconstruct_dynamic_imported"]
 
 #: Frame rate of the rig (paper Sec. 4), for the frames' timestamps.
 FRAME_RATE_HZ = 20.0
-
-
-def _copy_unwrap(source: Path, target: Path) -> None:
-    if target.is_dir():
-        return
-    partial = target.with_name(target.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
-    shutil.copytree(source, partial)
-    partial.rename(target)
 
 
 def reconstruct_dynamic_imported(
@@ -94,7 +84,8 @@ def reconstruct_dynamic_imported(
         source = Path(imported) / "frames" / f"{frame:04d}"
         try:
             frame_folder.root.mkdir(parents=True, exist_ok=True)
-            _copy_unwrap(source / "unwrap.zarr", Path(frame_folder.unwrap_path))
+            if not Path(frame_folder.unwrap_path).is_dir():
+                copy_unwrap_store(source / "unwrap.zarr", Path(frame_folder.unwrap_path))
             mesh = load_mesh(source / "mesh.obj")
             timings = _process_frame(None, folder, frame, all_frames, mesh, identity, static, config,
                                      resolved, threads)

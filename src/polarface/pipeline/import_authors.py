@@ -21,6 +21,7 @@ The import streams one view at a time (8 EXR images in memory) and resumes view 
 
 from __future__ import annotations
 
+import os
 import shutil
 import time
 from pathlib import Path
@@ -204,6 +205,27 @@ def import_authors(session_dir: str | Path, out: str | Path, *, progress: bool =
     return record
 
 
+def _link_or_copy(source: str, target: str) -> None:
+    """Hard-link a chunk file (never rewritten: zarr replaces chunks by new files), copy metadata (``*.json``,
+    rewritten in place by attribute updates); copy where links are impossible (another file system)."""
+    if source.endswith(".json"):
+        shutil.copy2(source, target)
+        return
+    try:
+        os.link(source, target)
+    except OSError:
+        shutil.copy2(source, target)
+
+
+def copy_unwrap_store(source: Path, target: Path) -> None:
+    """Copy an unwrap store (chunks hard-linked where possible) into ``target`` via ``target.partial``."""
+    partial = target.with_name(target.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    shutil.copytree(source, partial, copy_function=_link_or_copy)
+    shutil.rmtree(target, ignore_errors=True)
+    partial.rename(target)
+
+
 def prepare_imported(imported: Path, folder, holdout_every: int) -> dict[str, Any]:
     """The ``prepare`` stage on an imported static session: its unwrap store copied into the RESULT
     ``folder`` (every ``holdout_every``-th frame's views marked held out, as
@@ -215,17 +237,13 @@ def prepare_imported(imported: Path, folder, holdout_every: int) -> dict[str, An
     started = time.perf_counter()
     record = read_imported(imported, "static")
     target = Path(folder.unwrap_path)
-    partial = target.with_name(target.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
-    shutil.copytree(Path(imported) / "unwrap.zarr", partial)
-    store = UnwrapStore.open(partial, mode="a")
+    copy_unwrap_store(Path(imported) / "unwrap.zarr", target)
+    store = UnwrapStore.open(target, mode="a")
     views = [
         {**v.to_dict(), "held_out": holdout_every >= 2 and v.frame % holdout_every == holdout_every - 1}
         for v in store.views
     ]
     store.root.attrs["views"] = views
-    shutil.rmtree(target, ignore_errors=True)
-    partial.rename(target)
     rig_path = Path(imported) / "rig.json"
     shutil.copyfile(rig_path, folder.rig_path)
     folder.write_mesh(load_mesh(Path(imported) / "mesh.obj"))
