@@ -35,6 +35,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "raw_bit_depth_ok", "read_gray", "read_image_list", "read_manifest",
         "register_to_reference", "registration_map", "reprojection_rms", "scan_raw_directory",
         "simulate_raw", "stokes_pattern", "update_rig", "write_manifest", "write_stokes_images",
+        "AuthorsSession", "authors_rig", "scan_session",
     ),
     "polarface.executors": (
         "EXECUTOR_NAMES", "Executor", "LocalExecutor", "ProcessExecutor", "RayExecutor", "ThreadSettings",
@@ -121,6 +122,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "rerender_metrics",
         "resolve_reconstruct_inputs", "run_biophysical_stage", "run_demo_pipeline",
         "run_sphere_demo", "run_stages", "texel_correspondence", "validate_ior", "write_figures",
+        "import_authors", "reconstruct_dynamic_imported",
     ),
     "polarface.render": (
         "DemoParameters", "DemoRender", "FragmentMaterial", "FragmentRecord", "FrameTextures",
@@ -168,6 +170,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
     "polarface.texture": (
         "TEXTURE_OBSERVATION_NAMES", "TexelGeometry", "UnwrapConfig", "UnwrapStore", "ViewSpec",
         "build_views", "footprint_sees_surface", "sample_view", "texel_geometry", "unwrap_capture",
+        "grid_mesh", "texel_geometry_from_maps", "texture_view_samples", "write_texture_unwrap",
     ),
 }
 

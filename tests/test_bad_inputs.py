@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from authors_fixtures import write_fake_session
 from disk_fixtures import write_ior_capture
 from polarface.capture.rig import Rig, paper_rig
 from polarface.capture.sensor import mosaic, simulate_raw
@@ -73,6 +74,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     pol_angles = (0, 45, 90, 135)
     for angle, frame in zip(pol_angles, target_frames(pol_camera, [AnalyzerModel(200.0)] * 3, pol_angles)):
         write_png(root / "polframes" / f"pol_{angle:03d}.png", frame, bit_depth=16)
+    write_fake_session(root / "authors", frames=2, resolution=4)
     return {
         "sim": sim,
         "result": result,
@@ -83,6 +85,7 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
         "ior": root / "ior",
         "calrig": root / "calrig.json",
         "polframes": root / "polframes",
+        "authors": root / "authors",
     }
 
 
@@ -242,6 +245,26 @@ CAL3 = CAL.replace("left01.jpg", "left0[123].jpg")
 DEMO = "demo --sphere --out {ws}/out"
 BENCH = "bench --side 8 --frames 1 --iterations 1 --baseline-texels 1 --threads 1 --seconds 0.05 --repeats 1"
 IOR = "ior {ior}"
+AUTHORS = "import-authors {authors} --no-progress --out {ws}/out"
+
+
+def _import_authors_rows() -> list[Row]:
+    """A partial download of an authors' session is refused before anything is written, naming the file."""
+    mismatch = chain(remove("authors/texture/90/exr/img2_0001.exr"),
+                     remove("authors/texture/90/exr/visible_img2_0001.exr"))
+    return [
+        row("import-authors-missing-session", "import-authors {ws}/nothing --out {ws}/out", "nothing"),
+        row("import-authors-missing-angle-folder", AUTHORS, "texture/45/exr", remove("authors/texture/45")),
+        row("import-authors-frame-count-mismatch", AUTHORS, "texture/90/exr", mismatch),
+        row("import-authors-missing-visibility", AUTHORS, "visible_img1_0000.exr",
+            remove("authors/texture/0/exr/visible_img1_0000.exr")),
+        row("import-authors-missing-icp-pose", AUTHORS, "icp-pose", remove("authors/icp-pose/0001.txt")),
+        row("import-authors-missing-cameras", AUTHORS, "cameras.txt", remove("authors/cameras.txt")),
+        row("import-authors-missing-vertex-map", AUTHORS, "vertex.exr", remove("authors/texture/vertex.exr")),
+        row("import-authors-bad-white-balance", AUTHORS, "white_balance.txt",
+            text("authors/white_balance.txt", "1 1.0 1.0\n")),
+        row("import-authors-out-is-foreign", AUTHORS, "out", foreign("out")),
+    ]
 
 
 def _stokes_rows() -> list[Row]:
@@ -1155,6 +1178,7 @@ ROWS: list[Row] = [
     *_biophysical_rows(),
     *_render_rows(),
     *_ior_rows(),
+    *_import_authors_rows(),
 ]
 
 #: Rows that fail on today's code, grouped by the defect they show (run as strict xfail; empty when every
@@ -1176,6 +1200,7 @@ COPIED = {
     "ior": "ior",
     "calrig": "calrig.json",
     "polframes": "polframes",
+    "authors": "authors",
 }
 
 
@@ -1257,6 +1282,7 @@ def test_table_is_large_and_unique():
         "render",
         "ior",
         "bench",
+        "import-authors",
     }
 
 

@@ -13,8 +13,12 @@ Modules:
     rig_calibration  board photos -> calibrated rig.json (``polarface calibrate``).
     polarization_calibration  extinction ratio and analyzer angles from frames of a polarized target.
     synthetic        synthetic Stokes patterns and demosaicing error measurements.
+    authors_layout   the authors' preprocessed face sessions: layout scan, COLMAP / pose / gain files.
+    authors_rig      the rig of such a session (its cameras and the paper's LED ring).
 """
 
+from polarface.capture.authors_layout import AuthorsSession, scan_session
+from polarface.capture.authors_rig import authors_rig
 from polarface.capture.calibration import (
     CharucoBoardSpec,
     IntrinsicsResult,
@@ -106,6 +110,7 @@ __all__ = [
     "SIX_CHANNEL_NAMES",
     "AnalyzerCalibration",
     "AnalyzerFit",
+    "AuthorsSession",
     "Camera",
     "CaptureStore",
     "CharucoBoardSpec",
@@ -125,6 +130,7 @@ __all__ = [
     "StereoResult",
     "StokesOptions",
     "angle_index_map",
+    "authors_rig",
     "calibrate_analyzers",
     "calibrate_intrinsics",
     "calibrate_rig",
@@ -158,6 +164,7 @@ __all__ = [
     "registration_map",
     "reprojection_rms",
     "scan_raw_directory",
+    "scan_session",
     "simulate_raw",
     "stokes_pattern",
     "update_rig",

@@ -37,7 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("result", type=store_location, help="RESULT folder (a path or a URL)")
     parser.add_argument(
         "--format", dest="formats", type=_formats, action="append", default=None,
-        help=f"format(s): {', '.join(EXPORT_FORMATS)}; comma-separated or repeated (default: all)",
+        help=f"format(s): {', '.join(EXPORT_FORMATS)}; comma-separated or repeated (default: all but "
+             "authors-layout)",
     )
     parser.add_argument("--out", type=local_folder, default=None,
                         help="export folder (default RESULT/exports; a local path)")
@@ -50,13 +51,12 @@ def run(args: argparse.Namespace) -> int:
     """Export (module docstring); prints ``export.json``'s record."""
     from pathlib import Path
 
-    from polarface.export import EXPORT_FORMATS, ExportOptions
+    from polarface.export import ExportOptions
     from polarface.io.output_folder import output_folder
     from polarface.pipeline.export import export_result
 
-    formats = tuple(dict.fromkeys(f for group in args.formats for f in group)) if args.formats else tuple(
-        EXPORT_FORMATS
-    )
+    formats = tuple(dict.fromkeys(f for group in args.formats for f in group)) if args.formats else \
+        ExportOptions().formats  # fmt: skip
     options = ExportOptions(formats=formats, frames=args.frames)
     out = args.out if args.out is not None else args.result / "exports"
     if not isinstance(out, Path):

@@ -109,6 +109,14 @@ EXPORT_FORMATS: dict[str, ExportFormat] = {
         frames=False,
         writer="polarface.export.kernels:write_kernels",
     ),
+    "authors-layout": ExportFormat(
+        "authors-layout",
+        "the RESULT's unwrapped observations and geometry in the layout of the authors' face sessions "
+        "(texture-space EXR per polarizer angle and camera, COLMAP cameras, ICP poses); not a default format",
+        (),
+        frames=True,
+        writer="polarface.export.authors_layout:write_authors_layout",
+    ),
 }
 
 

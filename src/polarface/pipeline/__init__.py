@@ -17,6 +17,7 @@ from polarface.pipeline.calibrate_polarization import (
 )
 from polarface.pipeline.demo import reconstruct_summary_line, run_demo_pipeline, run_sphere_demo
 from polarface.pipeline.dynamic import DynamicStageConfig, reconstruct_dynamic
+from polarface.pipeline.dynamic_imported import reconstruct_dynamic_imported
 from polarface.pipeline.evaluate import (
     METRIC_GROUPS,
     biophysical_metrics,
@@ -41,6 +42,7 @@ from polarface.pipeline.geometry import (
     frame_stereo,
     reconstruct_geometry,
 )
+from polarface.pipeline.import_authors import import_authors
 from polarface.pipeline.info import folder_info, format_info
 from polarface.pipeline.ior import (
     ANALYZER_IMAGE_NAMES,
@@ -88,6 +90,7 @@ __all__ = [
     "frame_stereo",
     "geometry_metrics",
     "ground_truth_root",
+    "import_authors",
     "load_stage_inputs",
     "polarimetric_metrics",
     "polarization_report",
@@ -96,6 +99,7 @@ __all__ = [
     "read_reflectance_csv",
     "reconstruct",
     "reconstruct_dynamic",
+    "reconstruct_dynamic_imported",
     "reconstruct_geometry",
     "reconstruct_summary_line",
     "rerender_metrics",

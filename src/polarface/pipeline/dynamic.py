@@ -113,6 +113,8 @@ def resolve_dynamic_capture(path: str | Path) -> Path:
         raise FileNotFoundError(f"dynamic capture '{path}' does not exist")
     if (path / "dynamic" / "manifest.json").is_file():
         path = path / "dynamic"
+    if (path / "imported.json").is_file():  # an imported authors' session (pipeline.dynamic_imported)
+        return path
     if not (path / "manifest.json").is_file():
         raise ValueError(f"'--dynamic {path}' is not a capture store (no manifest.json)")
     return path
@@ -355,6 +357,11 @@ def reconstruct_dynamic(
     from polarface.device import resolve_device
     from polarface.results.fingerprint import capture_identity
 
+    if (Path(str(capture)) / "imported.json").is_file():  # an authors' session: its tracked maps
+        from polarface.pipeline.dynamic_imported import reconstruct_dynamic_imported
+
+        return reconstruct_dynamic_imported(result_dir, Path(str(capture)), config, frames=frames,
+                                            device=device, threads=threads, progress=progress)
     started = time.perf_counter()
     executor = executor or LocalExecutor()
     folder = ResultFolder(result_dir)

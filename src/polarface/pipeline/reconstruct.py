@@ -159,8 +159,11 @@ def _geometry_summary(ctx: ReconstructContext) -> dict[str, Any]:
 def stage_prepare(ctx: ReconstructContext) -> dict[str, Any]:
     """Copy rig and mesh, write the result.json header and unwrap the capture into ``unwrap.zarr``
     (frames the geometry stage rejected are left out)."""
+    from polarface.pipeline.import_authors import is_imported_session, prepare_imported
     from polarface.texture import UnwrapConfig, unwrap_capture
 
+    if is_imported_session(ctx.capture):  # an authors' session: its unwrap store is copied
+        return prepare_imported(ctx.capture, ctx.folder, ctx.holdout_every)
     started = time.perf_counter()
     folder = ctx.folder
     store, mesh, poses = _load_geometry(ctx)
@@ -431,8 +434,13 @@ def reconstruct(
         from polarface.inverse.polarimetric import PolarimetricConfig
 
         PolarimetricConfig(**options)
-        store = _open_capture(ctx) if stereo else _load_geometry(ctx)[0]
-        if ctx.dynamic is not None:  # finished, of the static capture's rig, frames known
+        from polarface.pipeline.import_authors import check_imported_inputs, is_imported_session
+
+        if is_imported_session(ctx.capture) or is_imported_session(ctx.dynamic):
+            check_imported_inputs(ctx.capture, ctx.dynamic, ctx.frames)
+        else:
+            store = _open_capture(ctx) if stereo else _load_geometry(ctx)[0]
+        if ctx.dynamic is not None and not is_imported_session(ctx.dynamic):  # finished, same rig, frames
             from polarface.pipeline.dynamic import open_dynamic_capture
 
             open_dynamic_capture(ctx.dynamic, store.rig, store.root / "rig.json", ctx.frames)

@@ -75,6 +75,8 @@ def resolve_reconstruct_inputs(
     capture = storage_path(capture)
     if not capture.exists():
         raise FileNotFoundError(f"capture '{capture}' does not exist")
+    if isinstance(capture, Path) and (capture / "imported.json").is_file():
+        return _imported_inputs(capture, geometry, mesh, poses)
     sim_root = None
     if (capture / "static" / "manifest.json").exists():
         sim_root, capture = capture, capture / "static"
@@ -94,6 +96,19 @@ def resolve_reconstruct_inputs(
         if summary is not None and summary.exists():
             resolution = int(json.loads(summary.read_text())["preset"]["texture_resolution"])
     return ReconstructInputs(capture, mesh_path, poses_path, int(resolution), geometry_dir)
+
+
+def _imported_inputs(folder: Path, *given) -> ReconstructInputs:
+    """The inputs of an imported authors' session (``polarface import-authors``; its own mesh, poses and
+    texture resolution: docs/authors_dataset.md)."""
+    from polarface.pipeline.import_authors import read_imported
+
+    if any(value is not None for value in given):
+        raise ValueError(f"'{folder}' is an imported session with its own geometry: drop '--geometry', "
+                         "'--mesh' and '--poses'")
+    record = read_imported(folder, "static")
+    return ReconstructInputs(folder, folder / "mesh.obj", folder / "poses.json",
+                             int(record["texture_resolution"][0]), None)
 
 
 def check_capture_manifest(store) -> None:

@@ -11,6 +11,12 @@ bounded for any texture size and view count.
 """
 
 from polarface.texture.footprint import footprint_sees_surface
+from polarface.texture.texture_maps import (
+    grid_mesh,
+    texel_geometry_from_maps,
+    texture_view_samples,
+    write_texture_unwrap,
+)
 from polarface.texture.unwrap import UnwrapConfig, sample_view, unwrap_capture
 from polarface.texture.unwrap_store import (
     TEXTURE_OBSERVATION_NAMES,
@@ -28,7 +34,11 @@ __all__ = [
     "ViewSpec",
     "build_views",
     "footprint_sees_surface",
+    "grid_mesh",
     "sample_view",
     "texel_geometry",
+    "texel_geometry_from_maps",
+    "texture_view_samples",
     "unwrap_capture",
+    "write_texture_unwrap",
 ]
