@@ -64,6 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-calibration", dest="no_calibration", action="store_true",
         help="leave rig.json ideal (the sensor was not calibrated)",
     )
+    parser.set_defaults(no_calibration=False)
     add_executor_arguments(parser, "frames")
     add_force_argument(parser)
 
