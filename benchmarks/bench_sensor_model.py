@@ -9,9 +9,10 @@ an ideal sensor; a sensor with the given extinction ratio and random analyzer or
 ``--angle-error-deg``, per camera, colour and analyzer) whose calibration is written into ``rig.json``
 ("calibration supplied"); and the same sensor with ``--no-calibration`` ("not supplied": demosaicing
 assumes ideal analyzers). Each is reconstructed with the known geometry (``polarface reconstruct SIM
---geometry SIM/ground_truth``, so only the sensor differs) and evaluated against the simulator's ground
-truth (``polarface evaluate``). Prints the table of ``docs/sensors.md`` (``--markdown``: as markdown) and
-the seconds of each run. Folders under ``--work`` are reused when complete (delete them to rerun).
+--geometry SIM/ground_truth`` at the preset's texture resolution, so only the sensor differs) and
+evaluated against the simulator's ground truth (``polarface evaluate``). Prints the table of
+``docs/sensors.md`` (``--markdown``: as markdown) and the seconds of each run. Folders under ``--work``
+are reused when complete (delete them to rerun).
 """
 
 from __future__ import annotations
@@ -53,9 +54,12 @@ def run_condition(work: Path, name: str, preset: str, sensor_args: list[str]) ->
             "simulate", "--preset", preset, "--sequences", "static", "--out", str(sim), *sensor_args
         )
     if not (result / "result.json").is_file():
+        from polarface.simulate.presets import get_preset
+
+        texture = str(get_preset(preset).texture_resolution)  # the ground truth's atlas
         seconds["reconstruct_s"] = _polarface(
             "reconstruct", str(sim / "static"), "--geometry", str(sim / "ground_truth"), "--out", str(result),
-            "--quiet", *(["--resume"] if result.exists() else []),
+            "--texture-resolution", texture, "--quiet", *(["--resume"] if result.exists() else []),
         )
     if not metrics_path.is_file():
         started = time.perf_counter()
