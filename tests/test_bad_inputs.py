@@ -303,6 +303,12 @@ def _stokes_rows() -> list[Row]:
         row("stokes-out-is-file", "stokes {png} --sensor color-polarization --out {png}", "raw.png"),
         row("stokes-out-foreign", STOKES, "out", foreign("out")),
         row("stokes-out-readonly", STOKES.replace("{ws}/out", "{ws}/ro/out"), "ro", readonly("ro"), True),
+        row("stokes-rig-without-camera", STOKES + " --rig {rig}", "camera"),
+        row("stokes-camera-without-rig", STOKES + " --camera pol_upper", "rig"),
+        row("stokes-rig-missing", STOKES + " --rig {ws}/nope.json --camera pol_upper", "nope.json"),
+        row("stokes-rig-unknown-camera", STOKES + " --rig {rig} --camera pol_sideways", "pol_sideways"),
+        row("stokes-rig-stereo-camera", STOKES + " --rig {rig} --camera stereo0_a", "camera"),
+        *_analyzer_rows("stokes", STOKES + " --rig {rig} --camera pol_upper"),
     ]
     for arg, values in {
         "--bit-depth": ("0", "-1", "33", "64"),
@@ -352,6 +358,25 @@ def _rig_rows(command: str, argv: str, rel: str) -> list[Row]:
     return [
         row(f"{command}-rig-{name}", argv, f"{Path(rel).name}|{names.get(name, Path(rel).name)}", setup)
         for name, setup in cases.items()
+    ]
+
+
+def _analyzer_rows(command: str, argv: str) -> list[Row]:
+    """A polarization camera's ``analyzer`` calibration in ``rig.json`` (docs/sensors.md) gone bad: the
+    error names the field ``cameras[0].analyzer``."""
+    cases = {
+        "ratio-below-one": {"extinction_ratio": 0.5},
+        "ratio-text": {"extinction_ratio": "high"},
+        "angles-three": {"extinction_ratio": 100, "analyzer_angles_deg": [0, 45, 90]},
+        "angles-out-of-order": {"analyzer_angles_deg": [45, 0, 90, 135]},
+        "unknown-field": {"extinction": 100},
+        "colour-ratio-below-one": {"R": {"extinction_ratio": 1.0}},
+        "string": "ideal",
+    }
+    field = ["cameras", 0, "analyzer"]
+    return [
+        row(f"{command}-rig-analyzer-{name}", argv, "analyzer", edit_json("rig.json", _set(field, value)))
+        for name, value in cases.items()
     ]
 
 
@@ -427,7 +452,7 @@ def _ingest_rows() -> list[Row]:
         row("ingest-out-readonly", INGEST.replace("{ws}/out", "{ws}/ro/out"), "ro", readonly("ro"), True),
     ]
     rows += [row(f"ingest-fps={v}", f"{INGEST} --fps {v}", "fps") for v in ("0", "-20", "nan", "inf")]
-    return rows + _rig_rows("ingest", INGEST, "rig.json")
+    return rows + _rig_rows("ingest", INGEST, "rig.json") + _analyzer_rows("ingest", INGEST)
 
 
 def folder(rel: str) -> Setup:
@@ -635,6 +660,7 @@ def _spectra_edit(change: Callable[[np.ndarray], object]) -> Setup:
 
 def _simulate_demo_bench_rows() -> list[Row]:
     sim = "simulate --preset tiny --out {ws}/out"
+    angle = sim + " --analyzer-angle-error-deg"
     rows = [
         row("simulate-skin-type-VII", sim + " --skin-type VII", "skin"),
         row("simulate-skin-type-empty", sim + " --skin-type x", "skin"),
@@ -643,6 +669,18 @@ def _simulate_demo_bench_rows() -> list[Row]:
         row("simulate-seed-negative", sim + " --seed -1", "seed"),
         row("simulate-seed-text", sim + " --seed lucky", "--seed"),
         row("simulate-preset-unknown", sim + " --preset huge", "--preset"),
+        row("simulate-extinction-ratio-one", sim + " --extinction-ratio 1", "--extinction-ratio"),
+        row("simulate-extinction-ratio-nan", sim + " --extinction-ratio nan", "--extinction-ratio"),
+        row("simulate-extinction-ratio-text", sim + " --extinction-ratio high", "--extinction-ratio"),
+        row("simulate-extinction-ratio-two", sim + " --extinction-ratio 100,50", "--extinction-ratio"),
+        row("simulate-angle-error-negative", angle + " -1", "--analyzer-angle-error"),
+        row("simulate-angle-error-inf", angle + " inf", "--analyzer-angle-error"),
+        row("simulate-angle-error-three", angle + " 1,2,3", "--analyzer-angle-error"),
+        row("simulate-angle-error-large", angle + " 0,0,30,0", "--analyzer-angle-error"),
+        row("simulate-angle-error-text", angle + " one", "--analyzer-angle-error"),
+        row("simulate-analyzer-seed-negative", sim + " --analyzer-seed -1", "--analyzer-seed"),
+        row("simulate-analyzer-seed-text", sim + " --analyzer-seed x", "--analyzer-seed"),
+        row("simulate-calibration-both", sim + " --write-calibration --no-calibration", "calibration"),
         row("simulate-no-out", "simulate --preset tiny", "--out"),
         row("simulate-out-is-file", "simulate --preset tiny --out {ws}/f", "f", text("f", "mine\n")),
         row("simulate-out-foreign", sim, "out", foreign("out")),

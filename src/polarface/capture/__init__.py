@@ -4,6 +4,7 @@ Modules:
     rig              ``rig.json`` schema (pydantic): cameras, light modules, spectral calibration.
     sensor           forward model of the IMX250MZR / IMX250MYR mosaics and raw noise.
     demosaic         raw -> I0, I45, I90, I135 (bilinear and residual interpolation), masks.
+    analyzers        a camera's calibrated (non-ideal) analyzers applied to its demosaiced images.
     observations     I_sss, I_zeta, I_s, DoP, AoLP; registration of the two Dolby cameras.
     stokes_images    one raw frame -> analyzer, DoP and AoLP images on disk (``polarface stokes``).
     store            the capture store directory (raw PNGs, manifest, zarr derived arrays).
@@ -17,6 +18,13 @@ Modules:
     authors_rig      the rig of such a session (its cameras and the paper's LED ring).
 """
 
+from polarface.capture.analyzers import (
+    analyzer_record,
+    applied_analyzers,
+    camera_analyzer_models,
+    ideal_analyzer_intensities,
+    measured_analyzer_intensities,
+)
 from polarface.capture.authors_layout import AuthorsSession, scan_session
 from polarface.capture.authors_rig import authors_rig
 from polarface.capture.calibration import (
@@ -129,12 +137,15 @@ __all__ = [
     "SpectralModel",
     "StereoResult",
     "StokesOptions",
+    "analyzer_record",
     "angle_index_map",
+    "applied_analyzers",
     "authors_rig",
     "calibrate_analyzers",
     "calibrate_intrinsics",
     "calibrate_rig",
     "calibrate_stereo",
+    "camera_analyzer_models",
     "central_roi",
     "chessboard_object_points",
     "colour_index_map",
@@ -145,10 +156,12 @@ __all__ = [
     "detect_charuco",
     "detect_chessboard",
     "frame_marker_path",
+    "ideal_analyzer_intensities",
     "ingest_directory",
     "lattices",
     "manifest_problems",
     "measure_demosaic",
+    "measured_analyzer_intensities",
     "merge_six_channels",
     "mosaic",
     "observations_from_intensities",

@@ -23,16 +23,24 @@ Two methods, both vectorised (OpenCV filters and warps on the sub-lattices of th
 Output radiometry: ``(raw - black_level) / (white_level - black_level) / exposure`` in float32,
 i.e. 1.0 = the saturation level at unit exposure (the signal unit of
 :func:`polarface.capture.sensor.simulate_raw`).
+
+Non-ideal analyzers (``docs/sensors.md``): :func:`demosaic_camera` maps the demosaiced intensities of
+a camera whose ``rig.json`` carries an ``analyzer`` calibration to those ideal 0/45/90/135 deg
+analyzers would have measured (:func:`polarface.capture.analyzers.ideal_analyzer_intensities`: the
+least-squares analysis matrix of :class:`polarface.optics.analyzer.AnalyzerModel`), per colour for a
+colour camera, so every stage downstream keeps its ideal-analyzer formulas. Ideal cameras are passed
+through bit for bit.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Literal
 
 import cv2
 import numpy as np
 
+from polarface.capture.analyzers import camera_analyzer_models, ideal_analyzer_intensities
 from polarface.capture.sensor import Lattice, lattices, pattern_period
 
 if TYPE_CHECKING:
@@ -362,6 +370,11 @@ def demosaic_camera(
         exposure: overrides ``camera.exposure``.
         **kwargs: passed to :func:`demosaic` (``defect_threshold``, ``defect_mask``).
 
+    Returns:
+        :class:`PolarizationStack` whose intensities are those of ideal analyzers: a camera with an
+        ``analyzer`` calibration is corrected by
+        :func:`polarface.capture.analyzers.ideal_analyzer_intensities` (module docstring).
+
     Raises:
         ValueError: for an ``rgb`` camera, or a frame whose size differs from the camera's.
     """
@@ -373,7 +386,7 @@ def demosaic_camera(
             f"raw frame of camera '{camera.id}' has shape {raw.shape}; the rig declares "
             f"(height, width) = ({camera.height}, {camera.width})"
         )
-    return demosaic(
+    stack = demosaic(
         raw,
         camera.sensor,
         method=method,
@@ -384,3 +397,5 @@ def demosaic_camera(
         exposure=camera.exposure if exposure is None else exposure,
         **kwargs,
     )
+    corrected = ideal_analyzer_intensities(stack.intensities, camera_analyzer_models(camera))
+    return stack if corrected is stack.intensities else replace(stack, intensities=corrected)

@@ -20,7 +20,8 @@ Each frame is one executor unit (:class:`IngestUnit`, :func:`run_ingest_unit`;
 marker into the store itself; the submitting process sizes the derived arrays first, rebuilds
 ``manifest.json`` as frames finish and finalizes the store after them
 (:mod:`polarface.capture.store`, "Frames written in parallel"). ``CAPTURE/ingest.json`` records the
-executor, the seconds and the host of every frame, and the timings.
+executor, the seconds and the host of every frame, the timings and the non-ideal analyzer models
+demosaicing applied (``analyzers``, None when every camera is ideal; ``docs/sensors.md``).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from typing import Any, Literal
 
 from tqdm import tqdm
 
+from polarface.capture.analyzers import applied_analyzers
 from polarface.capture.demosaic import DemosaicMethod
 from polarface.capture.manifest import raw_bit_depth_ok
 from polarface.capture.rig import Rig
@@ -235,7 +237,7 @@ def ingest_directory(
         raise
     write_json_atomic(out / INGEST_JSON, {
         "format": "polarface-ingest", "version": 1, "raw_dir": str(root.absolute()), "method": method,
-        "frames": sorted(frames),
+        "analyzers": applied_analyzers(rig), "frames": sorted(frames),
         "executor": {**executor.describe(), "units": placements},
         "timings": {"check_s": check_s, "total_s": time.perf_counter() - started},
     })

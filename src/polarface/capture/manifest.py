@@ -1,7 +1,9 @@
 """The capture store's manifest and frame markers: schema, reading, writing and checks against the files.
 
 ``manifest.json`` lists the completed frames (index, timestamp, raw file per camera, derived state,
-demosaicing method); ``frames/<frame:06d>.json`` is the completion marker of one frame, written last.
+demosaicing method) and, when some camera's analyzers are not ideal, the models demosaicing applied
+(``analyzers``: camera id -> ``{"extinction_ratio", "analyzer_angles_deg"}`` or one per colour;
+``docs/sensors.md``); ``frames/<frame:06d>.json`` is the completion marker of one frame, written last.
 The manifest is rebuilt from the markers after every frame. Layout: ``docs/capture_store.md``.
 """
 
@@ -12,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from polarface.capture.analyzers import applied_analyzers
 from polarface.capture.observations import OBSERVATION_NAMES
 from polarface.capture.rig import Camera, Rig
 from polarface.io.atomic import write_json_atomic
@@ -107,6 +110,9 @@ def write_manifest(root: PathOrUrl, rig: Rig, sequence: str, *, complete: bool) 
         "observations": list(OBSERVATION_NAMES),
         "frames": frames,
     }
+    analyzers = applied_analyzers(rig)
+    if analyzers:  # absent: every camera ideal, nothing applied (ideal stores keep their bytes)
+        manifest["analyzers"] = analyzers
     write_json_atomic(root / "manifest.json", manifest)
     return manifest
 

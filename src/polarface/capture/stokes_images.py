@@ -3,7 +3,10 @@
 Outputs in the folder: ``i0.exr i45.exr i90.exr i135.exr dop.exr aolp.exr`` (float32; ``Y`` for a mono
 sensor, ``R G B`` for a colour one; AoLP in radians in [0, pi)), ``saturated.png`` (255 where a
 sample was at the white level), colour-mapped previews ``*.png`` and ``summary.json``. Every file is
-written atomically (:mod:`polarface.io.atomic`).
+written atomically (:mod:`polarface.io.atomic`). With a rig camera (``StokesOptions.rig`` and
+``camera``) whose ``analyzer`` calibration is not ideal, the analyzer images are mapped to ideal
+analyzers first (:func:`polarface.capture.analyzers.ideal_analyzer_intensities`, as in the capture
+store; ``docs/sensors.md``), so DoP and AoLP are unbiased; ``summary.json`` records the model applied.
 """
 
 from __future__ import annotations
@@ -15,8 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from polarface.capture.analyzers import analyzer_record, camera_analyzer_models, ideal_analyzer_intensities
 from polarface.capture.demosaic import DEMOSAIC_METHODS, DemosaicMethod, check_phase, demosaic
 from polarface.capture.observations import observations_from_intensities
+from polarface.capture.rig import Camera, Rig
 from polarface.io import colormap_png, read_png, write_exr, write_json_atomic, write_png
 
 __all__ = ["StokesOptions", "write_stokes_images"]
@@ -33,6 +38,8 @@ class StokesOptions:
         white_level: saturation count; None: ``2**bit_depth - 1``.
         phase: mosaic phase ``(row, col)`` of the readout.
         exposure: relative exposure to divide by (> 0).
+        rig, camera: a ``rig.json`` and the id of the camera that took the frame, whose ``analyzer``
+            calibration is applied (both or neither; None: ideal analyzers).
     """
 
     method: DemosaicMethod = "residual"
@@ -41,6 +48,8 @@ class StokesOptions:
     white_level: float | None = None
     phase: tuple[int, int] = (0, 0)
     exposure: float = 1.0
+    rig: str | os.PathLike[str] | None = None
+    camera: str | None = None
 
     def __post_init__(self) -> None:
         """Check the options before any work (ValueError naming the argument); the phase is checked
@@ -60,6 +69,22 @@ class StokesOptions:
             )
         if not (math.isfinite(self.exposure) and self.exposure > 0):
             raise ValueError(f"argument 'exposure' must be finite and > 0; got {self.exposure}")
+        if (self.rig is None) != (self.camera is None):
+            raise ValueError("arguments 'rig' and 'camera' go together: give both (the camera's analyzer "
+                             "calibration is applied) or neither (ideal analyzers)")
+
+
+def _rig_camera(options: StokesOptions, sensor: str) -> Camera | None:
+    """The rig camera of ``options`` (checked against ``sensor``), or None without a rig."""
+    if options.rig is None:
+        return None
+    camera = Rig.load(options.rig).camera(str(options.camera))
+    if camera.sensor != sensor:
+        raise ValueError(
+            f"argument 'camera': camera '{camera.id}' of '{options.rig}' has sensor {camera.sensor!r}, "
+            f"not {sensor!r}"
+        )
+    return camera
 
 
 def _preview_intensity(image: np.ndarray, scale: float) -> np.ndarray:
@@ -87,9 +112,12 @@ def write_stokes_images(
 
     Raises:
         ValueError: an unknown sensor, a phase outside the mosaic period (checked before the file is
-            read), a multi-channel file, or a mosaic that :func:`demosaic` rejects.
+            read), a multi-channel file, or a mosaic that :func:`demosaic` rejects; an invalid rig, or a
+            camera not in it or of another sensor.
+        FileNotFoundError: the raw file or the rig does not exist.
     """
     check_phase(sensor, options.phase)
+    camera = _rig_camera(options, sensor)
     raw = read_png(raw_path)
     if raw.ndim != 2:
         raise ValueError(f"raw file '{raw_path}' must be a single-channel mosaic; got shape {raw.shape}")
@@ -104,6 +132,10 @@ def write_stokes_images(
         bit_depth=bit_depth,
         exposure=options.exposure,
     )
+    if camera is not None:
+        stack = dataclasses.replace(
+            stack, intensities=ideal_analyzer_intensities(stack.intensities, camera_analyzer_models(camera))
+        )
     obs = observations_from_intensities(*stack.intensities)
     colour = stack.intensities.ndim == 4
     names = ["R", "G", "B"] if colour else ["Y"]
@@ -129,6 +161,7 @@ def write_stokes_images(
         "method": options.method,
         "bit_depth": bit_depth,
         "shape": list(raw.shape),
+        "analyzer": None if camera is None else analyzer_record(camera),
         "saturated_fraction": float(stack.saturated.mean()),
         "defects_repaired": int(stack.defects.sum()),
         "median_dop": float(np.median(grey["dop"][valid])) if valid.any() else None,

@@ -5,7 +5,8 @@ Layout (documented in ``docs/capture_store.md``)::
     CAPTURE/
       rig.json                    the rig (polarface.capture.rig.Rig)
       manifest.json               frames, timestamps, sequence kind, raw file names (rewritten after
-                                  every frame; ``complete`` becomes true in finalize)
+                                  every frame; ``complete`` becomes true in finalize); ``analyzers``:
+                                  the non-ideal analyzer models demosaicing applied (docs/sensors.md)
       raw/<camera_id>/<frame:06d>.png   raw counts, 16-bit PNG (8-bit for <= 8-bit cameras)
       frames/<frame:06d>.json     completion marker of one frame (written last, atomically)
       derived.zarr/               zarr v3 group (Blosc-LZ4 + shuffle), one slot per frame index on axis 0:
@@ -45,6 +46,7 @@ from typing import Literal
 
 import numpy as np
 
+from polarface.capture.analyzers import applied_analyzers
 from polarface.capture.demosaic import DemosaicMethod, PolarizationStack, demosaic_camera
 from polarface.capture.manifest import (
     FrameRecord,
@@ -226,13 +228,14 @@ class CaptureStore:
         for cam_id, raw in arrays.items():
             raw_bit_depth_ok(raw, self.rig.camera(cam_id))
         digests = {cam_id: _digest(raw) for cam_id, raw in arrays.items()}
+        analyzers = applied_analyzers(self.rig) if process else None
         marker_path = self._marker(frame_index)
         if marker_path.exists():
             old = json.loads(marker_path.read_text(encoding="utf-8"))
             if (
                 old.get("digests") == digests
                 and old.get("derived", False) >= process
-                and (not process or old.get("method") == method)
+                and (not process or (old.get("method"), old.get("analyzers")) == (method, analyzers))
             ):
                 return False
             marker_path.unlink()  # the frame is rewritten: untrust it first
@@ -259,6 +262,8 @@ class CaptureStore:
             "derived": bool(process),
             "method": method if process else None,
         }
+        if analyzers:
+            marker["analyzers"] = analyzers  # absent: ideal analyzers, nothing applied (docs/sensors.md)
         write_json_atomic(marker_path, marker)
         if update_manifest:
             self._write_manifest(complete=False)

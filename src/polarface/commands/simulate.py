@@ -6,6 +6,9 @@ OUT/simulation.json. Layout: docs/simulate.md. Resumable: rerun the same command
 OUT must be absent, empty or a previous simulation (``--force`` replaces it); it is locked while running.
 ``--executor ray [--ray-address ADDR] [--workers N]`` renders the frames as Ray tasks (``docs/cluster.md``);
 an unreachable address is refused before anything is written.
+``--extinction-ratio ER[,ER_G,ER_B] --analyzer-angle-error-deg SIGMA|E0,E45,E90,E135 [--analyzer-seed N]``
+simulates a non-ideal sensor; its true analyzers go into rig.json (default, "calibration supplied") or not
+(``--no-calibration``); simulation.json records them either way (``docs/sensors.md``).
 """
 
 from __future__ import annotations
@@ -41,8 +44,64 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="torch threads of the renders (default 1; Ray workers adopt it: more than 1 per worker on a "
         "machine whose cores all run workers makes OpenMP threads spin against each other)",
     )
+    sensor = parser.add_argument_group("sensor analyzers (docs/sensors.md; default: ideal)")
+    sensor.add_argument(
+        "--extinction-ratio", default=None, metavar="ER",
+        help="extinction ratio of the micro-polarizers, one value or three (R,G,B) (default: infinite)",
+    )
+    sensor.add_argument(
+        "--analyzer-angle-error-deg", default="0", metavar="SIGMA|E0,E45,E90,E135",
+        help="analyzer orientation errors in degrees: one sigma (random per camera, colour and analyzer) "
+        "or four offsets (default 0)",
+    )
+    sensor.add_argument("--analyzer-seed", type=int, default=0, help="seed of the random orientation errors")
+    supplied = sensor.add_mutually_exclusive_group()
+    supplied.add_argument(
+        "--write-calibration", dest="no_calibration", action="store_false",
+        help="write the true analyzers into rig.json (default: the calibration is supplied)",
+    )
+    supplied.add_argument(
+        "--no-calibration", dest="no_calibration", action="store_true",
+        help="leave rig.json ideal (the sensor was not calibrated)",
+    )
+    parser.set_defaults(no_calibration=False)
     add_executor_arguments(parser, "frames")
     add_force_argument(parser)
+
+
+def _numbers(text: str | None, option: str) -> tuple[float, ...] | None:
+    """``"100"`` or ``"100,80,60"`` as floats; ValueError naming ``option`` otherwise."""
+    if text is None:
+        return None
+    try:
+        return tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise ValueError(
+            f"argument '{option}' must be a number or a comma list of numbers; got {text!r}"
+        ) from None
+
+
+def _analyzers_from_args(args: argparse.Namespace):
+    """The :class:`polarface.simulate.analyzers.SimulatedAnalyzers` of the sensor options (ValueError
+    naming the option)."""
+    from polarface.simulate.analyzers import SimulatedAnalyzers
+
+    ratio = _numbers(args.extinction_ratio, "--extinction-ratio")
+    errors = _numbers(args.analyzer_angle_error_deg, "--analyzer-angle-error-deg")
+    try:
+        return SimulatedAnalyzers(
+            extinction_ratio=ratio[0] if ratio is not None and len(ratio) == 1 else ratio,
+            angle_error_deg=errors[0] if errors is not None and len(errors) == 1 else errors,
+            seed=args.analyzer_seed,
+            calibration_supplied=not args.no_calibration,
+        )
+    except ValueError as exc:
+        message = str(exc)
+        for field, option in (("extinction_ratio", "--extinction-ratio"),
+                              ("angle_error_deg", "--analyzer-angle-error-deg"),
+                              ("analyzer_seed", "--analyzer-seed")):
+            message = message.replace(f"'{field}'", f"'{option}'")
+        raise ValueError(message) from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -62,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         subsurface_blur=not args.no_blur,
         sequences=tuple(s.strip() for s in args.sequences.split(",") if s.strip()),
         static_frames=args.static_frames,
+        analyzers=_analyzers_from_args(args),
     )
     owned = json_manifest("simulation.json")
     with executor_from_args(args) as executor:

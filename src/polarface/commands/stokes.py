@@ -3,6 +3,7 @@
 Outputs in DIR: ``i0.exr i45.exr i90.exr i135.exr dop.exr aolp.exr`` (float32; ``Y`` for a mono
 sensor, ``R G B`` for a colour one; AoLP in radians in [0, pi)), ``saturated.png`` (255 where a
 sample was at the white level), colour-mapped previews ``*.png`` and ``summary.json``.
+``--rig rig.json --camera ID`` applies that camera's analyzer calibration (``docs/sensors.md``).
 """
 
 from __future__ import annotations
@@ -39,6 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="mosaic phase of the readout (default 0 0: row 0 = 90/45 deg)",
     )
     parser.add_argument("--exposure", type=float, default=1.0, help="relative exposure to divide by")
+    parser.add_argument("--rig", type=Path, default=None, help="rig.json whose camera's analyzer calibration "
+                        "is applied (with --camera; default: ideal analyzers)")
+    parser.add_argument("--camera", default=None, help="id of the rig camera that took the frame")
     add_force_argument(parser)
 
 

@@ -5,6 +5,7 @@ the sensor model's noise and writes a capture store plus ``ground_truth/`` (``do
 :func:`make_sphere_capture` is the small sphere-cap capture the tests and the benchmark use.
 """
 
+from polarface.simulate.analyzers import SimulatedAnalyzers
 from polarface.simulate.frames import render_frame
 from polarface.simulate.ground_truth import AppearanceMaps, blood_flow_factor, build_appearance_maps
 from polarface.simulate.pipeline import SimulationConfig, SimulationScene, simulate
@@ -21,6 +22,7 @@ __all__ = [
     "PRESETS",
     "SKIN_TYPES",
     "AppearanceMaps",
+    "SimulatedAnalyzers",
     "SimulationConfig",
     "SimulationPreset",
     "SimulationScene",

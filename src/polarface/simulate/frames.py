@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from polarface.capture.analyzers import measured_analyzer_intensities
 from polarface.capture.rig import Camera, Rig
 from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
 from polarface.capture.store import CaptureStore
@@ -164,8 +165,11 @@ def _stereo_rgb(s0: np.ndarray, rig: Rig) -> np.ndarray:
 def _raw_frames(
     scene: SimulationScene, frame: RenderedFrame, sequence: str, index: int
 ) -> dict[str, np.ndarray]:
-    """Noisy (or noise-free) integer raw frames of every camera."""
+    """Noisy (or noise-free) integer raw frames of every camera; the polarimetric cameras' analyzer images
+    go through the configured analyzers first (:class:`polarface.simulate.analyzers.SimulatedAnalyzers`)."""
     noise = SensorNoise(exposure=float(scene.exposure))
+    analyzers = scene.config.analyzers
+    true_models = {} if analyzers.is_ideal else analyzers.camera_models(scene.rig)
     raws = {}
     for camera_number, camera in enumerate(scene.rig.cameras):
         view = frame.views[camera.id]
@@ -173,9 +177,10 @@ def _raw_frames(
             (scene.config.seed, 0 if sequence == "static" else 1, index, camera_number)
         )
         if camera.role == "polarimetric":
-            images = [
-                torch.from_numpy(np.ascontiguousarray(view.images[k])) for k in ("i0", "i45", "i90", "i135")
-            ]
+            images = [np.ascontiguousarray(view.images[k]) for k in ("i0", "i45", "i90", "i135")]
+            if camera.id in true_models:
+                images = list(measured_analyzer_intensities(np.stack(images), true_models[camera.id]))
+            images = [torch.from_numpy(np.ascontiguousarray(image)) for image in images]
             # Analyzer intensities are >= 0; clip float rounding (~1e-8) of s0 - s1 at dark pixels.
             signal = np.clip(mosaic(*images, sensor=camera.sensor).numpy(), 0.0, None)
             raws[camera.id] = simulate_raw(signal, noise, seed=rng, noiseless=not scene.config.noise)

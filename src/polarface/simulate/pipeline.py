@@ -3,7 +3,8 @@
 ``simulate(out_dir, SimulationConfig(...))`` writes (layout in ``docs/simulate.md``)::
 
     SIM_DIR/
-      simulation.json            configuration, channel order, exposure, timings, peak memory
+      simulation.json            configuration, channel order, exposure, timings, peak memory, the
+                                 sensor's true analyzers (``sensor``; docs/sensors.md)
       static/                    capture store (polarface.capture.store), sequence "static"
       dynamic/                   capture store, sequence "dynamic"
       ground_truth/
@@ -30,6 +31,7 @@ first sequence's frame 0), which this process renders and writes before the othe
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import os
 import resource
@@ -48,6 +50,7 @@ from polarface.geometry.head_asset import HeadAsset, head_placement, load_head_a
 from polarface.geometry.uv_raster import UVRaster, rasterize_uv
 from polarface.io import read_json_object, write_json_atomic
 from polarface.render.subsurface import SubsurfaceModel
+from polarface.simulate.analyzers import SimulatedAnalyzers
 from polarface.simulate.frames import (
     SimulationFrameUnit,
     exposure_from,
@@ -89,6 +92,8 @@ class SimulationConfig:
         static_frames: frames of the static sequence (None: the preset's); the yaw and pitch sweeps
             keep their ranges, so more frames sample them more densely (view-count studies,
             docs/reconstruct.md).
+        analyzers: the sensor's micro-polarizers (:class:`polarface.simulate.analyzers.SimulatedAnalyzers`;
+            default ideal, today's bytes) and whether ``rig.json`` carries them (``docs/sensors.md``).
     """
 
     preset: str = "demo"
@@ -100,9 +105,12 @@ class SimulationConfig:
     sequences: tuple[str, ...] = ("static", "dynamic")
     exposure_fill: float = 0.8
     static_frames: int | None = None
+    analyzers: SimulatedAnalyzers = dataclasses.field(default_factory=SimulatedAnalyzers)
 
     def __post_init__(self) -> None:
         """Check every field before any work (ValueError naming the argument)."""
+        if not isinstance(self.analyzers, SimulatedAnalyzers):
+            raise ValueError(f"argument 'analyzers' must be a SimulatedAnalyzers; got {self.analyzers!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int | np.integer) or self.seed < 0:
             raise ValueError(f"argument 'seed' must be an integer >= 0; got {self.seed!r}")
         get_preset(self.preset)
@@ -152,6 +160,7 @@ class SimulationScene:
         rig = _with_stereo_resolution(
             paper_rig(width=preset.width, height=preset.height), preset.stereo_width, preset.stereo_height
         )
+        rig = config.analyzers.rig_for_folder(rig)  # the true analyzers when the calibration is supplied
         if rig.spectral is None:  # pragma: no cover - the skin module is part of the package
             raise ValueError("the rig has no spectral calibration")
         calibration = rig.spectral.to_calibration()
@@ -344,6 +353,11 @@ def _check_resume(out: Path, config: SimulationConfig, resume: bool) -> dict:
     """
     config_dict = dataclasses.asdict(config)
     config_dict["sequences"] = list(config.sequences)
+    if config.analyzers == SimulatedAnalyzers():  # ideal sensor: the configuration of older folders
+        del config_dict["analyzers"]
+    else:
+        config_dict["analyzers"] = config.analyzers.to_dict()
+    config_dict = json.loads(json.dumps(config_dict))  # as read back from simulation.json
     if out.exists() and not resume and any(out.iterdir()):
         raise ValueError(
             f"output folder '{out}' exists and is not empty; pass '--resume' or choose another --out"
@@ -365,4 +379,5 @@ def _summary_head(config_dict: dict, scene: SimulationScene, *, complete: bool) 
         "config": config_dict,
         "preset": dataclasses.asdict(scene.preset),
         "channel_names": list(scene.calibration.channel_names),
+        "sensor": scene.config.analyzers.record(scene.rig),
     }

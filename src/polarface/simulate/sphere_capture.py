@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from polarface.capture.analyzers import measured_analyzer_intensities
 from polarface.capture.rig import Rig, paper_rig
 from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
 from polarface.capture.store import CaptureStore
@@ -35,6 +36,7 @@ from polarface.optics.pbssrdf import SURFACE_PARAMETER_NAMES
 from polarface.render.renderer import ViewRender, render_view, rig_lighting, shading_normals
 from polarface.render.shading import FrameTextures
 from polarface.render.subsurface import entering_flux
+from polarface.simulate.analyzers import SimulatedAnalyzers
 
 __all__ = [
     "SphereCaptureConfig",
@@ -53,6 +55,8 @@ class SphereCaptureConfig:
         width, height: polarimetric image size (multiples of 4); texture_resolution: atlas side.
         frames: static frames; yaw_range_deg: +- yaw sweep; radius_mm: cap radius; cap_deg: cap half angle.
         noise: shot/read noise; seed: noise and map seed; heights: add a displacement bump field.
+        analyzers: the sensor's micro-polarizers and whether ``rig.json`` carries them (default ideal;
+            :class:`polarface.simulate.analyzers.SimulatedAnalyzers`, ``docs/sensors.md``).
     """
 
     width: int = 160
@@ -65,6 +69,7 @@ class SphereCaptureConfig:
     noise: bool = False
     seed: int = 0
     heights: bool = True
+    analyzers: SimulatedAnalyzers = dataclasses.field(default_factory=SimulatedAnalyzers)
 
 
 def sphere_cap_mesh(radius_mm: float = 70.0, cap_deg: float = 70.0, segments: int = 48) -> TriangleMesh:
@@ -176,14 +181,17 @@ def _store_frames(
     rig = Rig.model_validate(data)
     store = CaptureStore.create(out / "static", rig, sequence="static")
     noise = SensorNoise(exposure=exposure)
+    true_models = {} if config.analyzers.is_ideal else config.analyzers.camera_models(rig)
     for index, views in enumerate(renders):
         raws = {}
         for number, camera in enumerate(rig.cameras):
             if camera.role == "polarimetric":
-                images = [
-                    torch.from_numpy(np.ascontiguousarray(views[camera.id].images[k]))
-                    for k in ("i0", "i45", "i90", "i135")
-                ]
+                view = views[camera.id]
+                images = [np.ascontiguousarray(view.images[k]) for k in ("i0", "i45", "i90", "i135")]
+                if camera.id in true_models:
+                    images = list(measured_analyzer_intensities(np.stack(images), true_models[camera.id]))
+                    images = [np.clip(image, 0.0, None) for image in images]
+                images = [torch.from_numpy(np.ascontiguousarray(image)) for image in images]
                 signal = mosaic(*images, sensor=camera.sensor).numpy()
             else:
                 signal = np.zeros((camera.height, camera.width, 3))
@@ -214,7 +222,7 @@ def make_sphere_capture(out: str | Path, config: SphereCaptureConfig | None = No
     mesh = sphere_cap_mesh(config.radius_mm, config.cap_deg)
     raster = rasterize_uv(mesh, config.texture_resolution)
     maps = sphere_maps(config.texture_resolution, raster.mask, config.seed, config.heights)
-    rig = paper_rig(width=config.width, height=config.height)
+    rig = config.analyzers.rig_for_folder(paper_rig(width=config.width, height=config.height))
     yaws = np.radians(np.linspace(-config.yaw_range_deg, config.yaw_range_deg, config.frames))
     poses = np.stack([sphere_placement(float(yaw)) for yaw in yaws])
     rig = _store_frames(out, rig, _render_frames(mesh, raster, maps, rig, poses), config)
