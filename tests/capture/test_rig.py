@@ -83,6 +83,8 @@ def test_save_load_roundtrip(tmp_path):
         ({"analyzer": {"analyzer_angles_deg": [0, 45, 90]}}, "analyzer(.|\n)*analyzer_angles_deg"),
         ({"analyzer": {"analyzer_angles_deg": [90, 45, 0, 135]}}, "within 22.5 deg"),
         ({"analyzer": {"R": {"extinction_ratio": 100}}}, "color-polarization"),
+        ({"sensor": "color-polarization", "analyzer": {"G": {"extinction_ratio": 1}}},
+         "analyzer(.|\n)*G: extinction_ratio"),
     ],
 )
 def test_camera_errors_name_field(overrides, field):

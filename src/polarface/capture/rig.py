@@ -223,9 +223,15 @@ class Camera(_Model):
             return value
         if not isinstance(value, dict):
             raise ValueError("must be an object {extinction_ratio, analyzer_angles_deg} or {R, G, B: ...}")
+        if value and set(value) <= {"R", "G", "B"}:
+            per_colour = {}
+            for colour, entry in value.items():
+                try:
+                    per_colour[colour] = AnalyzerCalibration.model_validate(entry)
+                except ValidationError as exc:
+                    raise ValueError(f"{colour}: {_one_line(exc)}") from None
+            return per_colour
         try:
-            if value and set(value) <= {"R", "G", "B"}:
-                return {colour: AnalyzerCalibration.model_validate(entry) for colour, entry in value.items()}
             return AnalyzerCalibration.model_validate(value)
         except ValidationError as exc:
             raise ValueError(_one_line(exc)) from None
