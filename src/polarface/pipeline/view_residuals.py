@@ -17,9 +17,11 @@ uncertainty"):
 * a **camera** whose median view score exceeds ``ratio`` times the median score of the other cameras'
   views (and the floor): a wrong camera pose or intrinsics shows in all of its views, so it is judged
   against the other cameras rather than among views (with two cameras it is half of them);
-* a **frame** whose median view score, each view's score first divided by its camera's median score
-  (so that a bad camera does not make its worst frames look bad), exceeds ``ratio`` times that of the
-  other frames, with a raw median above the floor: a wrong head pose shows in every camera of that frame.
+* a **frame** whose *least* view score, each view's score first divided by its camera's median score
+  (so that a bad camera does not make its worst frames look bad), exceeds ``ratio`` times the median
+  of the other frames' views, with a raw median above the floor: a wrong head pose shows in every camera
+  of that frame, while a bad camera's held-out frame (not fitted, so its residual grows most) shows in
+  one camera only.
 
 The same pass gives the one-sigma uncertainty of eta per texel (``maps/eta_std.exr``) and of the lobe
 parameters (summarised in ``result.json``).
@@ -99,7 +101,8 @@ def _group_flags(rows: list[dict], key: str, config: ViewCheckConfig,
         own = [r for r in scored if str(r[key]) == value]
         other = [relative[id(r)] for r in scored if str(r[key]) != value]
         median = float(np.median([r["score"] for r in own]))
-        compared = float(np.median([relative[id(r)] for r in own]))
+        # a frame's head pose shows in every camera: the least of its views must stand out
+        compared = float((np.min if key == "frame" else np.median)([relative[id(r)] for r in own]))
         reference = float(np.median(other)) if other else None
         entry: dict[str, Any] = {"views": len(own), "median_score": median,
                                  "ratio_to_others": compared / reference if reference else None}
