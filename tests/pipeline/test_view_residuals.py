@@ -68,7 +68,7 @@ def test_calibrated_rig_flags_nothing(results):
 
 @pytest.mark.slow
 def test_turned_camera_is_flagged_and_the_other_is_not(results):
-    _, root, good, bad = results
+    _, root, _, bad = results
     check = bad["view_check"]
     assert check["flagged_cameras"] == ["pol_lower"]
     assert any(w.startswith("camera pol_lower") for w in check["warnings"])
@@ -113,5 +113,5 @@ def test_flags_on_a_synthetic_table():
 
 
 def test_result_without_unwrap_store_is_a_clear_error(tmp_path):
-    with pytest.raises(FileNotFoundError, match="unwrap.zarr"):
+    with pytest.raises(FileNotFoundError, match=r"unwrap\.zarr"):
         check_view_residuals(ResultFolder(tmp_path))
