@@ -82,6 +82,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "SampleBatch", "SamplePrediction", "benchmark_problem", "build_fused_samples",
         "build_patch_fused_samples", "build_patch_samples", "data_losses", "dynamic_regularisers",
         "fit_dynamic_frame", "fit_polarimetric", "fused_data_loss",
+        "FitDiagnostics", "UNCERTAINTY_PARAMETERS", "fit_diagnostics",
         "fused_loss_and_grad", "init_albedos", "init_eta", "initial_raw", "laplacian_penalty",
         "maps_from_raw", "nan_median_filter", "optimise_patch", "pack_parameters",
         "precompute_samples", "raw_from_maps", "refine_lobes", "refine_patch_lobes",
@@ -122,6 +123,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "resolve_reconstruct_inputs", "run_biophysical_stage", "run_demo_pipeline",
         "run_sphere_demo", "run_stages", "texel_correspondence", "validate_ior", "write_figures",
         "import_authors", "reconstruct_dynamic_imported",
+        "ViewCheckConfig", "check_view_residuals", "flag_view_residuals",
     ),
     "polarface.render": (
         "DemoParameters", "DemoRender", "FragmentMaterial", "FragmentRecord", "FrameTextures",

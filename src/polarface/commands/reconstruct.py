@@ -28,6 +28,7 @@ before anything is written, or removes the RESULT folder this run created.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from polarface.commands import (
@@ -133,6 +134,10 @@ def run(args: argparse.Namespace) -> int:
     with executor_from_args(args) as executor, folder as out:
         result = _reconstruct(args, out, executor)
     print(reconstruct_summary_line(Path(args.out), result))
+    check = result.get("stages", {}).get("polarimetric", {}).get("view_check", {})
+    for line in check.get("warnings", []):  # flagged cameras/frames/views (docs/reconstruct.md)
+        if not line.startswith("view "):
+            print(f"polarface reconstruct: warning: {line}", file=sys.stderr)
     return 0
 
 

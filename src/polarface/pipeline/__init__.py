@@ -58,6 +58,7 @@ from polarface.pipeline.skin_fit import (
     fit_spectra_file,
     read_reflectance_csv,
 )
+from polarface.pipeline.view_residuals import ViewCheckConfig, check_view_residuals, flag_view_residuals
 
 __all__ = [
     "ANALYZER_IMAGE_NAMES",
@@ -75,15 +76,18 @@ __all__ = [
     "ReconstructInputs",
     "SkinFitSummary",
     "SpectraFitOptions",
+    "ViewCheckConfig",
     "biophysical_metrics",
     "calibrate_polarization",
     "check_stereo_pairs",
+    "check_view_residuals",
     "dynamic_metrics",
     "estimate_ior_from_folder",
     "evaluate",
     "evaluate_biophysical",
     "export_result",
     "fit_spectra_file",
+    "flag_view_residuals",
     "folder_info",
     "format_info",
     "format_polarization_table",

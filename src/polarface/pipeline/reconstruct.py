@@ -224,7 +224,10 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
     folder.write_polarimetric_maps(fit.maps, fit.mask, {"view_count": fit.view_count})
     folder.write_loss_curve(fit.loss_curve)
     masked = {k: float(np.median(v[fit.mask])) for k, v in fit.maps.items() if v.ndim == 2}
+    from polarface.pipeline.view_residuals import check_view_residuals  # docs/reconstruct.md
+
     return {
+        "view_check": check_view_residuals(folder),
         "config": json_values(dataclasses.asdict(config)),
         "device": str(device),
         "patches": fit.patches,

@@ -185,6 +185,29 @@ def _add_view_sections(page: HtmlPage, folder: ResultFolder, maps: dict[str, np.
         ).image_grid(dop_items, columns=_COLUMNS)
 
 
+def _add_view_check_section(page: HtmlPage, folder: ResultFolder) -> None:
+    """Per-camera/per-frame residual check of ``view_residuals.json`` (docs/reconstruct.md, "Per-view
+    residual check and eta uncertainty"): the warnings and a short table of the views."""
+    import json
+
+    path = folder.root / "view_residuals.json"
+    if not path.is_file():
+        return
+    table = json.loads(path.read_text())
+    warnings = table.get("warnings", [])
+    section = page.section(
+        "Per-view residual check",
+        "Relative re-render residual of every view (RMSE / mean observed I_sss over its texels in the mask); "
+        + ("flagged: " + " ".join(warnings) if warnings else "no camera or frame flagged."),
+    )
+    section.table(
+        [(r["view"], r["frame"], r["camera"], "yes" if r["held_out"] else "", r.get("i_sss_residual"),
+          r.get("i_s_residual")) for r in table.get("rows", [])],
+        header=("view", "frame", "camera", "held out", "I_sss residual", "I_s residual"),
+        column_classes=("num", "num", "", "", "num", "num"),
+    )
+
+
 def write_report(
     result_dir: str | Path | ResultFolder, extra_sections: Sequence[Callable[[HtmlPage], Any]] = ()
 ) -> Path:
@@ -218,6 +241,7 @@ def write_report(
     _add_map_section(page, folder, stage, maps, mask)
     _add_loss_section(page, folder)
     _add_view_sections(page, folder, maps)
+    _add_view_check_section(page, folder)
     page.section("Stage summary").table({k: v for k, v in stage.items() if not isinstance(v, dict)})
     for add_section in extra_sections:
         add_section(page)

@@ -70,14 +70,17 @@ from polarface.inverse.polarimetric.refine import (
     smoothness_hessian,
     weighted_residuals,
 )
+from polarface.inverse.polarimetric.uncertainty import UNCERTAINTY_PARAMETERS, FitDiagnostics, fit_diagnostics
 
 __all__ = [
     "DYNAMIC_VARIABLES",
     "PARAMETER_NAMES",
     "POLARIMETRIC_ENGINES",
+    "UNCERTAINTY_PARAMETERS",
     "DynamicConfig",
     "DynamicPatchProblem",
     "DynamicWeights",
+    "FitDiagnostics",
     "FusedSamples",
     "LobeRefinement",
     "LossWeights",
@@ -93,6 +96,7 @@ __all__ = [
     "build_patch_samples",
     "data_losses",
     "dynamic_regularisers",
+    "fit_diagnostics",
     "fit_dynamic_frame",
     "fit_polarimetric",
     "fused_data_loss",
