@@ -38,7 +38,7 @@ def _reconstruct(capture, sim, out):
     out.mkdir()
     ctx = ReconstructContext(capture, out, sim / "ground_truth" / "mesh_rest.obj",
                              sim / "ground_truth" / "static" / "poses.json", RES, "cpu", False, False, 4,
-                             {"iterations": 30})
+                             {"iterations": 30}, view_check=True)
     ctx.folder.record_stage("prepare", stage_prepare(ctx))
     return stage_polarimetric(ctx)
 

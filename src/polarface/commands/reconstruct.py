@@ -93,6 +93,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="Levenberg-Marquardt iterations on the lobe maps after each patch (default 0; see docs)",
     )
     parser.add_argument(
+        "--view-check", action="store_true",
+        help="after the polarimetric fit, re-render every view and warn about a camera or frame whose "
+        "residuals stand out (a miscalibrated camera, a wrong head pose); also writes the eta uncertainty "
+        "map maps/eta_std.exr (docs/reconstruct.md, 'Per-view residual check and eta uncertainty')",
+    )
+    parser.add_argument(
         "--holdout-every",
         type=int,
         default=4,
@@ -167,6 +173,7 @@ def _reconstruct(args: argparse.Namespace, out: Path, executor=None) -> dict:
         out,
         fit_options=options,
         holdout_every=args.holdout_every,
+        view_check=args.view_check,
         device=args.device or "auto",
         threads=args.threads,
         resume=args.resume,

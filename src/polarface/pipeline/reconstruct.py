@@ -89,6 +89,7 @@ class ReconstructContext:
     dynamic: Path | None = None
     frames: str | None = None
     executor: Any = None
+    view_check: bool = False
 
     @property
     def folder(self) -> ResultFolder:
@@ -224,10 +225,13 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
     folder.write_polarimetric_maps(fit.maps, fit.mask, {"view_count": fit.view_count})
     folder.write_loss_curve(fit.loss_curve)
     masked = {k: float(np.median(v[fit.mask])) for k, v in fit.maps.items() if v.ndim == 2}
-    from polarface.pipeline.view_residuals import check_view_residuals  # docs/reconstruct.md
+    record: dict[str, Any] = {}
+    if ctx.view_check:  # opt-in: it costs about one more pass over the samples (docs/reconstruct.md)
+        from polarface.pipeline.view_residuals import check_view_residuals
 
+        record["view_check"] = check_view_residuals(folder)
     return {
-        "view_check": check_view_residuals(folder),
+        **record,
         "config": json_values(dataclasses.asdict(config)),
         "device": str(device),
         "patches": fit.patches,
@@ -385,6 +389,7 @@ def reconstruct(
     dynamic: str | Path | None = None,
     frames: str | None = None,
     executor: Any = None,
+    view_check: bool = False,
 ) -> dict[str, Any]:
     """Validate the inputs, then run :data:`STAGES` into ``out``; returns ``result.json``'s content.
 
@@ -401,6 +406,8 @@ def reconstruct(
         executor: runs the geometry frames, the polarimetric patches and the dynamic frames
             (:class:`polarface.executors.Executor`, started before anything is written; None: in this
             process, in order).
+        view_check: after the polarimetric stage, re-render every view to flag a miscalibrated camera or
+            a wrongly posed frame and write ``maps/eta_std.exr`` (:mod:`polarface.pipeline.view_residuals`).
 
     Raises:
         ValueError, FileNotFoundError: bad input; a RESULT folder this call created is removed.
@@ -422,7 +429,7 @@ def reconstruct(
         geometry_dir / "mesh.obj" if stereo else inputs.mesh_path,
         geometry_dir / "poses.json" if stereo else inputs.poses_path,
         inputs.texture_resolution, device, resume, progress, holdout_every, options, threads=threads,
-        geometry_dir=geometry_dir, stereo=stereo,
+        geometry_dir=geometry_dir, stereo=stereo, view_check=view_check,
     )
     if dynamic is not None:
         from polarface.pipeline.dynamic import resolve_dynamic_capture
