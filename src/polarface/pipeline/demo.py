@@ -67,24 +67,26 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
     from polarface.simulate.pipeline import SimulationConfig, simulate
 
     sim, result = out / "sim", out / "result"
-    # The simulator's frames spend most of their time in Embree, which holds Python's lock: on a machine
-    # with more than one core they run in worker processes (docs/performance.md).
+    # The simulator's frames, the stereo frames, the patches and the dynamic frames are independent units;
+    # on a machine with more than one core they run in worker processes (docs/performance.md).
     workers = os.cpu_count() or 1
     executor = ProcessExecutor(workers) if workers > 1 else LocalExecutor()
+    on_workers = f" --executor processes --workers {workers}" if workers > 1 else ""
     say(f"polarface demo: polarface simulate --preset {preset} --skin-type {skin_type} --out {sim}"
-        + (f" --executor processes --workers {workers}" if workers > 1 else ""))
+        + on_workers)
     config = SimulationConfig(
         preset=preset, seed=0, skin_type=skin_type, noise=True, subsurface_blur=True,
         sequences=("static", "dynamic"),
     )
     with executor:
         summary = simulate(str(sim), config, executor=executor)
-    say(json.dumps({"out": str(sim), "timings": summary["timings"], "peak_rss_mb": summary["peak_rss_mb"]},
-                   indent=2))
-    resume = result.exists()
-    say(f"polarface demo: polarface reconstruct {sim} --dynamic {sim} --out {result}"
-        f"{' --resume' if resume else ''}")
-    record = reconstruct(resolve_reconstruct_inputs(sim), result, resume=resume, dynamic=sim)
+        say(json.dumps({"out": str(sim), "timings": summary["timings"],
+                        "peak_rss_mb": summary["peak_rss_mb"]}, indent=2))
+        resume = result.exists()
+        say(f"polarface demo: polarface reconstruct {sim} --dynamic {sim} --out {result}"
+            f"{' --resume' if resume else ''}{on_workers}")
+        record = reconstruct(resolve_reconstruct_inputs(sim), result, resume=resume, dynamic=sim,
+                             executor=executor)
     say(reconstruct_summary_line(result, record))
     figures = out / "figures"
     say(f"polarface demo: polarface evaluate {result} --gt {sim} --out {out / 'metrics.json'} "

@@ -16,7 +16,8 @@ mesh ``mesh.obj`` with its atlas, ``maps/``, ``rig.json``) and a capture of the 
                            unwrap.zarr, maps/ (all polarimetric maps and the chromophores), previews/,
                            result.json (its stages: polarimetric, biophysical, render)
     RESULT/result.json     stages.dynamic: frames, completed, failed_frames, anchors, timestamps_s,
-                           alignment, timings, seconds_per_frame
+                           alignment, timings, seconds_per_frame (per-frame work plus its share of
+                           stereo and tracking), wall_seconds_per_frame (this run's wall time / frames)
 
 Steps 1-3 are the sequence geometry (:mod:`polarface.pipeline.dynamic_geometry`): (1) per frame,
 stereo of the rig's pairs fused and meshed (:func:`polarface.pipeline.geometry.frame_geometry`); (2)
@@ -426,6 +427,8 @@ def reconstruct_dynamic(
         "timings": {"geometry_s": geometry_s, "tracking_s": tracking_s, "frames": per_frame,
                     "stage_s": time.perf_counter() - started},
         "seconds_per_frame": shared_s + (float(np.mean(totals)) if totals else 0.0),
+        # what a user waits per frame: this run's wall time over its frames (units may run in parallel)
+        "wall_seconds_per_frame": (time.perf_counter() - started) / max(len(completed), 1),
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "config": config.to_json(),
         "executor": {**executor.describe(), "units": {k: placements[k] for k in sorted(placements, key=int)}},
