@@ -28,7 +28,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from mitsuba_sphere import perturb_scene, render_mitsuba_sphere, sensor_images
-from polarface.inverse.ior import PAPER_OBJECTS, default_sphere_scene, estimate_ior
+from polarface.inverse.ior import estimate_ior
+from polarface.inverse.ior_validation import PAPER_OBJECTS, default_sphere_scene
 from polarface.optics.analyzer import AnalyzerModel
 
 CONDITIONS = ("ideal analyzers", "extinction ratio 100", "ER 100 + 1 deg angles", "calibration errors", "all")

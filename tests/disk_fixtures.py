@@ -11,7 +11,8 @@ import numpy as np
 
 from polarface.capture.rig import paper_rig
 from polarface.geometry.mesh import TriangleMesh, save_obj
-from polarface.inverse.ior import SphereScene, default_sphere_scene, render_sphere
+from polarface.inverse.ior_scene import SphereScene
+from polarface.inverse.ior_validation import default_sphere_scene, render_sphere
 from polarface.io import write_exr, write_png
 
 __all__ = ["plane_mesh", "sphere_scene_payload", "write_ior_capture", "write_plane_result"]

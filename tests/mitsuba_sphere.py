@@ -19,12 +19,12 @@ import numpy as np
 from mitsuba_capture import _cast, _lobe_stokes, _mitsuba, _pplastic
 from polarface.capture.sensor import SensorNoise, simulate_raw
 from polarface.geometry.camera import PinholeCamera
-from polarface.inverse.ior import SphereScene
+from polarface.inverse.ior_scene import SphereScene
 from polarface.optics.analyzer import AnalyzerModel
 
 __all__ = ["LIGHT_INTENSITY", "perturb_scene", "render_mitsuba_sphere", "sensor_images"]
 
-#: Radiant intensity of each LED (as :func:`polarface.inverse.ior.render_sphere`).
+#: Radiant intensity of each LED (as :func:`polarface.inverse.ior_validation.render_sphere`).
 LIGHT_INTENSITY = 1.0e6
 
 

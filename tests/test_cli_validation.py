@@ -13,7 +13,7 @@ import pytest
 from disk_fixtures import write_ior_capture, write_plane_result
 from polarface.capture.rig import paper_rig
 from polarface.cli import main
-from polarface.inverse.ior import default_sphere_scene
+from polarface.inverse.ior_validation import default_sphere_scene
 from polarface.io import write_png
 
 

@@ -9,11 +9,11 @@ import pytest
 
 from disk_fixtures import sphere_scene_payload, write_ior_capture
 from polarface.cli import main
-from polarface.inverse.ior import (
+from polarface.inverse.ior import estimate_ior
+from polarface.inverse.ior_scene import SphereScene
+from polarface.inverse.ior_validation import (
     PAPER_OBJECTS,
-    SphereScene,
     default_sphere_scene,
-    estimate_ior,
     render_sphere,
     validate_paper_objects,
 )

@@ -12,7 +12,9 @@ import pytest
 from disk_fixtures import sphere_scene_payload
 from mitsuba_sphere import perturb_scene, render_mitsuba_sphere, sensor_images
 from polarface.cli import main
-from polarface.inverse.ior import SphereScene, default_sphere_scene, estimate_ior, render_sphere
+from polarface.inverse.ior import estimate_ior
+from polarface.inverse.ior_scene import SphereScene
+from polarface.inverse.ior_validation import default_sphere_scene, render_sphere
 from polarface.io import write_exr
 from polarface.optics.analyzer import AnalyzerModel
 

@@ -8,7 +8,8 @@ the paper's validation table. This facade holds each stage's entry point; the su
 """
 
 from polarface.inverse.biophysical import BiophysicalConfig, BiophysicalFit, fit_biophysical
-from polarface.inverse.ior import IorResult, SphereScene, estimate_ior
+from polarface.inverse.ior import IorResult, estimate_ior
+from polarface.inverse.ior_scene import SphereScene
 from polarface.inverse.polarimetric import (
     POLARIMETRIC_ENGINES,
     DynamicConfig,

@@ -39,27 +39,18 @@ import numpy as np
 import torch
 from scipy import ndimage, stats
 
-from polarface.inverse.ior_refine import LightCheck, SphereRefinement, check_lights, refine_sphere
-from polarface.inverse.ior_scene import SphereScene, sphere_pixels
-from polarface.inverse.ior_validation import (
-    PAPER_OBJECTS,
-    default_sphere_scene,
-    render_sphere,
-    validate_paper_objects,
+from polarface.inverse.ior_refine import (
+    LightCheck,
+    SphereRefinement,
+    check_lights,
+    refine_sphere,
+    scene_warnings,
 )
+from polarface.inverse.ior_scene import SphereScene, sphere_pixels
 from polarface.optics.analyzer import AnalyzerModel
 from polarface.optics.image_formation import subsurface_exit_stokes
 
-__all__ = [
-    "PAPER_OBJECTS",
-    "IorResult",
-    "SphereScene",
-    "default_sphere_scene",
-    "estimate_ior",
-    "render_sphere",
-    "sphere_pixels",
-    "validate_paper_objects",
-]
+__all__ = ["IorResult", "estimate_ior"]
 
 #: An eta one-sigma uncertainty above this is reported as untrustworthy (``IorResult.warnings``).
 UNCERTAINTY_WARNING = 0.01
@@ -349,40 +340,6 @@ def _ideal_images(images: list[np.ndarray], polarizer: AnalyzerModel) -> list[np
     return [np.ascontiguousarray(ideal[..., k]) for k in range(4)]
 
 
-def _scene_warnings(
-    refinement: SphereRefinement | None, refine: bool, lights: LightCheck | None
-) -> list[str]:
-    """One line per disagreement between scene.json and the images (docs/ior.md, "Checks")."""
-    warnings = []
-    if refine and refinement is None:
-        warnings.append("no sphere silhouette found: the supplied sphere centre is used unrefined")
-    if refinement is not None:
-        if refinement.shift_px > max(1.0, 3.0 * refinement.centre_std_px):
-            warnings.append(
-                f"the sphere's silhouette lies {refinement.shift_px:.2f} px from where scene.json's camera "
-                "and sphere.center put it (camera pose/principal point or sphere centre miscalibrated; "
-                "the centre was refined from the image)"
-            )
-        if abs(refinement.angular_radius_change) > 0.01:
-            warnings.append(
-                f"the silhouette's angular size differs by {100 * refinement.angular_radius_change:+.1f} % "
-                "from sphere.radius at its distance (focal length, radius or depth miscalibrated; the "
-                "normals follow the silhouette)"
-            )
-        if refinement.edge_rms_px > 1.0:
-            warnings.append(
-                f"the silhouette is not a sphere's under camera.K (edge rms "
-                f"{refinement.edge_rms_px:.2f} px): check the intrinsics, distortion and the background"
-            )
-    if lights is not None and lights.flagged:
-        listed = ", ".join(f"lights[{i}] (gain {lights.gains[i]:.2f})" for i in lights.flagged)
-        warnings.append(
-            f"the shading disagrees with {listed}: position or intensity miscalibrated "
-            "(eta does not depend on the lights)"
-        )
-    return warnings
-
-
 def estimate_ior(
     intensities: dict[str, np.ndarray],
     scene: SphereScene,
@@ -446,7 +403,7 @@ def estimate_ior(
     lights = check_lights(
         fitted_scene, shading, normal[widest.rows, widest.cols], position[widest.rows, widest.cols], eta
     )
-    warnings = _scene_warnings(refinement, refine, lights)
+    warnings = scene_warnings(refinement, refine, lights)
     if eta_std > UNCERTAINTY_WARNING:
         warnings.append(
             f"eta uncertainty {eta_std:.3g} exceeds {UNCERTAINTY_WARNING}: the measurement cannot be trusted"

@@ -26,7 +26,14 @@ from scipy import ndimage, optimize
 from polarface.inverse.ior_scene import SphereScene
 from polarface.optics.image_formation import subsurface_entry_flux, subsurface_exit_stokes
 
-__all__ = ["LightCheck", "SphereRefinement", "check_lights", "refine_sphere", "silhouette_edges"]
+__all__ = [
+    "LightCheck",
+    "SphereRefinement",
+    "check_lights",
+    "refine_sphere",
+    "scene_warnings",
+    "silhouette_edges",
+]
 
 #: The silhouette's angular radius replaces the supplied one when they differ by more than this many
 #: pixels. 0: always, since eta is very sensitive to it (a 0.2 % focal-length error, 0.08 px at a 41 px
@@ -194,3 +201,37 @@ def check_lights(
         gains.append(float(alone / others) if others > 0 else float("inf"))
     flagged = tuple(i for i, gain in enumerate(gains) if not abs(gain - 1.0) <= tolerance)
     return LightCheck(tuple(gains), shading_rms, flagged)
+
+
+def scene_warnings(
+    refinement: SphereRefinement | None, refine: bool, lights: LightCheck | None
+) -> list[str]:
+    """One line per disagreement between scene.json and the images (docs/ior.md, "Checks")."""
+    warnings = []
+    if refine and refinement is None:
+        warnings.append("no sphere silhouette found: the supplied sphere centre is used unrefined")
+    if refinement is not None:
+        if refinement.shift_px > max(1.0, 3.0 * refinement.centre_std_px):
+            warnings.append(
+                f"the sphere's silhouette lies {refinement.shift_px:.2f} px from where scene.json's camera "
+                "and sphere.center put it (camera pose/principal point or sphere centre miscalibrated; "
+                "the centre was refined from the image)"
+            )
+        if abs(refinement.angular_radius_change) > 0.01:
+            warnings.append(
+                f"the silhouette's angular size differs by {100 * refinement.angular_radius_change:+.1f} % "
+                "from sphere.radius at its distance (focal length, radius or depth miscalibrated; the "
+                "normals follow the silhouette)"
+            )
+        if refinement.edge_rms_px > 1.0:
+            warnings.append(
+                f"the silhouette is not a sphere's under camera.K (edge rms "
+                f"{refinement.edge_rms_px:.2f} px): check the intrinsics, distortion and the background"
+            )
+    if lights is not None and lights.flagged:
+        listed = ", ".join(f"lights[{i}] (gain {lights.gains[i]:.2f})" for i in lights.flagged)
+        warnings.append(
+            f"the shading disagrees with {listed}: position or intensity miscalibrated "
+            "(eta does not depend on the lights)"
+        )
+    return warnings

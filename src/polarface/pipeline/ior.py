@@ -2,7 +2,7 @@
 
 The folder holds ``I0.exr, I45.exr, I90.exr, I135.exr`` (float32 linear; one channel ``Y`` or R, G, B)
 and ``scene.json`` (camera, lights and sphere in mm, optional ``polarizer`` calibration; schema in
-docs/ior.md and :meth:`polarface.inverse.ior.SphereScene.from_dict`). The estimator is
+docs/ior.md and :meth:`polarface.inverse.ior_scene.SphereScene.from_dict`). The estimator is
 :func:`polarface.inverse.ior.estimate_ior` (analyzer calibration applied, sphere refined from its
 silhouette, jackknife uncertainty, shading check of the lights).
 """
@@ -14,7 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from polarface.inverse.ior import IorResult, SphereScene, estimate_ior, validate_paper_objects
+from polarface.inverse.ior import IorResult, estimate_ior
+from polarface.inverse.ior_scene import SphereScene
+from polarface.inverse.ior_validation import validate_paper_objects
 from polarface.io import read_exr, read_json_object
 
 __all__ = ["ANALYZER_IMAGE_NAMES", "estimate_ior_from_folder", "read_analyzer_image", "validate_ior"]
@@ -80,7 +82,7 @@ def validate_ior(noise: bool = False) -> dict:
 
     Returns:
         ``{"rows": [...], "mean_abs_error": float, "noise": bool}``, rows as returned by
-        :func:`polarface.inverse.ior.validate_paper_objects`.
+        :func:`polarface.inverse.ior_validation.validate_paper_objects`.
     """
     rows = validate_paper_objects(noise=noise)
     return {
