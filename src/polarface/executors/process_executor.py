@@ -71,12 +71,14 @@ class ProcessExecutor:
         outcomes: list[UnitOutcome | None] = [None] * len(units)
         futures = {self._pool.submit(run_unit, fn, unit, failures, settings): index
                    for index, unit in enumerate(units)}
+        broken = False
         try:
             for future in concurrent.futures.as_completed(futures):
                 index = futures[future]
                 try:
                     outcome = future.result()
                 except BrokenProcessPool as exc:
+                    broken = True
                     reason = f"its worker process died ({' '.join(str(exc).split()) or 'BrokenProcessPool'})"
                     outcome = UnitOutcome(units[index], None, reason)
                 outcomes[index] = outcome
@@ -87,8 +89,7 @@ class ProcessExecutor:
                 future.cancel()
             raise
         finally:
-            if any(outcome is not None and outcome.error and "worker process died" in outcome.error
-                   for outcome in outcomes):
+            if broken:
                 self.close()  # a broken pool cannot run more units: the next call starts a new one
         return [outcome for outcome in outcomes if outcome is not None]
 
