@@ -897,6 +897,7 @@ def _reconstruct_rows() -> list[Row]:
         "--iterations": ("0", "-1"),
         "--lr": ("0", "-0.03", "nan", "inf"),
         "--refine-lobes": ("-1",),
+        "--unwrap-cache-mb": ("-1", "lots"),
         "--holdout-every": ("-1",),
         "--threads": ("0", "-1"),
     }.items():

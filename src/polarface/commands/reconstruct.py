@@ -93,6 +93,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="Levenberg-Marquardt iterations on the lobe maps after each patch (default 0; see docs)",
     )
     parser.add_argument(
+        "--unwrap-cache-mb", type=int, default=None, metavar="MB",
+        help="decoded unwrap-store chunks kept per process while fitting (default 256; 0: none); memory "
+        "only, the maps do not depend on it (docs/performance.md)",
+    )
+    parser.add_argument(
         "--view-check", action="store_true",
         help="after the polarimetric fit, re-render every view and warn about a camera or frame whose "
         "residuals stand out (a miscalibrated camera, a wrong head pose); also writes the eta uncertainty "
@@ -165,6 +170,7 @@ def _reconstruct(args: argparse.Namespace, out: Path, executor=None) -> dict:
             ("optimizer", args.optimizer),
             ("refine_lobes_iterations", args.refine_lobes),
             ("lobes", args.lobes),
+            ("unwrap_cache_mb", args.unwrap_cache_mb),
         )
         if v is not None
     }

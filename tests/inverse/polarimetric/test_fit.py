@@ -75,6 +75,7 @@ def test_reparameterisation_round_trip_and_ranges():
         ("init_alpha_ss", 0.1),
         ("h_scale_mm", 0.0),
         ("lobes", "three"),
+        ("unwrap_cache_mb", -1),
     ],
 )
 def test_config_errors(field, value):

@@ -1,8 +1,9 @@
 """The static fit's patches as executor units (inverse/polarimetric/patch_units.py): the wavefront
 schedule runs overlapping patches in row-major order and never two overlapping patches at once; the
 fit (local executor) gives the maps and loss curve of the row-major patch loop it replaced, bit for bit;
-a unit run twice gives the same result; a run stopped in the middle of a front, or a checkpoint of the
-row-major loop, resumes to the same maps.
+a unit run twice gives the same result; a worker process keeps one cached store for its units (the same
+results as uncached reads, opened again for a store replaced on disk); a run stopped in the middle of a
+front, or a checkpoint of the row-major loop, resumes to the same maps.
 
 A synthetic sphere capture with a 48 x 48 atlas and 8-texel patches: a 6 x 6 patch grid (32 patches with
 atlas texels), 14 fronts of up to 3 patches.
@@ -10,7 +11,9 @@ atlas texels), 14 fronts of up to 3 patches.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
+import shutil
 
 import numpy as np
 import pytest
@@ -18,7 +21,7 @@ import pytest
 from polarface.capture.store import CaptureStore
 from polarface.geometry.mesh import load_mesh
 from polarface.geometry.poses import load_poses
-from polarface.inverse.polarimetric import PolarimetricConfig, fit_polarimetric
+from polarface.inverse.polarimetric import PolarimetricConfig, fit_polarimetric, patch_units
 from polarface.inverse.polarimetric.patch_units import (
     PatchUnit,
     haloed_slices,
@@ -115,6 +118,31 @@ def test_a_unit_run_twice_gives_the_same_result_and_changes_nothing_it_was_given
         assert np.array_equal(first.starts[name], second.starts[name])
     assert first.curve == second.curve
     assert all(np.array_equal(unit.raw[k], given[k]) for k in given)
+
+
+def test_a_worker_keeps_one_cached_store_and_reopens_a_replaced_one(sphere, tmp_path):
+    unwrap, _ = sphere
+    path = tmp_path / "unwrap.zarr"
+    shutil.copytree(unwrap.path, path)
+    unit = dataclasses.replace(_unit(unwrap, 14), unwrap=str(path))
+    neighbour = dataclasses.replace(_unit(unwrap, 15), unwrap=str(path))
+    uncached = [run_patch_unit(dataclasses.replace(u, config=dataclasses.replace(CONFIG, unwrap_cache_mb=0)))
+                for u in (unit, neighbour)]
+    patch_units._HELD.clear()
+    cached = [run_patch_unit(u) for u in (unit, neighbour)]  # outside shared_unwrap: as in a worker
+    held = patch_units._HELD["store"][1]
+    counts = held.cache_counts
+    assert counts["hits"] > 0 and counts["misses"] > 0  # the neighbour reused chunks the first decoded
+    for a, b in zip(uncached, cached, strict=True):
+        assert all(np.array_equal(a.interior[k], b.interior[k]) for k in a.interior)
+        assert a.curve == b.curve
+    run_patch_unit(unit)
+    assert patch_units._HELD["store"][1] is held  # same store: kept
+    shutil.rmtree(path)
+    shutil.copytree(unwrap.path, path)  # written again at the same path
+    run_patch_unit(unit)
+    assert patch_units._HELD["store"][1] is not held
+    patch_units._HELD.clear()
 
 
 def test_a_run_stopped_mid_front_resumes_to_the_same_maps(sphere, tmp_path):

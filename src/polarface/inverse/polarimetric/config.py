@@ -44,6 +44,11 @@ class PolarimetricConfig:
             lr, warmup: linear learning-rate warm-up steps (rmsprop and adam only).
         patch: largest patch side (texels); halo: halo width (texels, >= 2 for the 5x5 window);
         sample_budget: most samples (texel x view) held per patch.
+        unwrap_cache_mb: decoded unwrap-store chunks kept per process while the patches are fitted (MiB;
+            0: none), so a haloed patch does not decode again what its neighbours decoded. A memory
+            knob only: cached reads equal uncached ones, the maps do not depend on it. The cache fills
+            up to this size whatever the number of views (docs/performance.md, "Memory against the
+            number of views").
         eta_range, alpha_range: reparameterisation ranges; rho_max: largest lobe albedo;
         h_scale_mm: H per unit of its raw variable.
         init_eta, init_alpha_s, init_alpha_ss, init_rho_ss: initial values.
@@ -80,6 +85,7 @@ class PolarimetricConfig:
     patch: int = 64
     halo: int = 4
     sample_budget: int = 300_000
+    unwrap_cache_mb: int = 256
     eta_range: tuple[float, float] = (1.05, 2.5)
     alpha_range: tuple[float, float] = (0.02, 1.5)
     rho_max: float = 2.0
@@ -119,6 +125,8 @@ class PolarimetricConfig:
             )
         if int(self.sample_budget) < 1000:
             raise ValueError(f"argument 'sample_budget' must be >= 1000; got {self.sample_budget}")
+        if int(self.unwrap_cache_mb) < 0:
+            raise ValueError(f"argument 'unwrap_cache_mb' must be >= 0; got {self.unwrap_cache_mb}")
         lo, hi = self.eta_range
         if not 1.0 < lo < self.init_eta < hi:
             raise ValueError(

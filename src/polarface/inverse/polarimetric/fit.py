@@ -160,7 +160,7 @@ def fit_polarimetric(
     spec = "auto" if isinstance(device, str) and device == "auto" else str(torch.device(device))
     resolve_engine(engine, resolve_device(spec))  # a bad engine or device is refused here
     options = _PatchOptions(str(unwrap.path), config or PolarimetricConfig(), spec, engine, threads)
-    with torch_fit_settings(threads), shared_unwrap(options.unwrap):
+    with torch_fit_settings(threads), shared_unwrap(options.unwrap, options.config.unwrap_cache_mb << 20):
         return _fit(unwrap, options, checkpoint, progress, stop_after_patches, on_patch,
                     executor or LocalExecutor())
 

@@ -22,17 +22,19 @@ patch writes (:class:`PatchResult`) and changes nothing else, so a unit can be r
 died. Nothing in a patch's fit is random (``torch.manual_seed(config.seed)`` is set per unit all the
 same); torch's thread count and denormal flushing are set per unit (:func:`torch_fit_settings`).
 
-Reads: inside :func:`shared_unwrap` (the fit holds it around its fronts) the units of this process that
-read that store share one store object with a chunk cache of :data:`UNWRAP_CACHE_BYTES`
-(:mod:`polarface.texture.unwrap_store`), so a patch does not decode again the chunks its neighbours
-decoded; elsewhere (a Ray worker) each unit opens the store itself, uncached. The maps do not depend on
-it (cached reads equal uncached ones).
+Reads: a patch should not decode again the chunks its neighbours decoded, so units read the unwrap store
+through a chunk cache of ``config.unwrap_cache_mb`` (:mod:`polarface.texture.unwrap_store`). Inside
+:func:`shared_unwrap` (the fit holds it around its fronts) the units of the fit's process share one
+cached store object; a worker process of an executor (``processes``, Ray) keeps one cached store for the
+units it runs next and opens it again when they read another store, or when the store on disk was
+replaced. The maps do not depend on it (cached reads equal uncached ones).
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import os
 import time
 from collections.abc import Iterator, Sequence
 
@@ -54,7 +56,6 @@ from polarface.texture import UnwrapStore
 
 __all__ = [
     "STARTED_VARIABLES",
-    "UNWRAP_CACHE_BYTES",
     "PatchResult",
     "PatchUnit",
     "haloed_slices",
@@ -69,15 +70,12 @@ STARTED_VARIABLES = ("rho_sss_bar", "rho_s", "eta", "alpha_s")
 
 _FLUSH_DEPTH = [0]  # nesting depth of torch_fit_settings (the outermost one sets and clears flushing)
 
-#: Bytes of decoded chunks that the store shared by the units of a fit keeps (:func:`shared_unwrap`):
-#: the static wavefront on a 512 x 512 texture with 36 fitting views reuses every chunk with it (about
-#: four chunk rows of ~6.6 MB chunk positions); with more views it stays this size and reuses less.
-UNWRAP_CACHE_BYTES = 256 << 20
 _SHARED: dict[str, UnwrapStore] = {}  # store path -> the cached store of the fit running (shared_unwrap)
+_HELD: dict[str, tuple[tuple, UnwrapStore]] = {}  # "store": (identity, store) a worker keeps (_unit_store)
 
 
 @contextlib.contextmanager
-def shared_unwrap(path: str, cache_bytes: int = UNWRAP_CACHE_BYTES) -> Iterator[UnwrapStore]:
+def shared_unwrap(path: str, cache_bytes: int) -> Iterator[UnwrapStore]:
     """While open, :func:`run_patch_unit` in this process reads the unwrap store at ``path`` through one
     read-only store object with a chunk cache of ``cache_bytes`` (released on exit; nested: the outer
     one's). The store must not be written meanwhile."""
@@ -228,10 +226,36 @@ def run_patch_unit(unit: PatchUnit) -> PatchResult:
 
     device = resolve_device(unit.device)
     engine = resolve_engine(unit.engine, device)
-    unwrap = _SHARED.get(str(unit.unwrap)) or UnwrapStore.open(unit.unwrap)
+    unwrap = _unit_store(unit)
     with torch_fit_settings(unit.threads):
         torch.manual_seed(unit.config.seed)
         return _fit_region(unwrap, unit, device, engine.fused_samples)
+
+
+def _store_identity(path: str, cache_bytes: int) -> tuple:
+    """What tells a store apart from one written again at the same path: the local folder's and its
+    metadata file's inode and modification time (a URL: its path only)."""
+    stamps = []
+    for candidate in (path, os.path.join(path, "zarr.json"), os.path.join(path, ".zattrs")):
+        with contextlib.suppress(OSError):
+            status = os.stat(candidate)
+            stamps.append((status.st_ino, status.st_mtime_ns))
+    return (path, cache_bytes, tuple(stamps))
+
+
+def _unit_store(unit: PatchUnit) -> UnwrapStore:
+    """The store a unit reads (module docstring): the fit's shared one in the fit's process, else the one
+    this worker process keeps, opened again for another store or a store replaced on disk."""
+    path = str(unit.unwrap)
+    if path in _SHARED:
+        return _SHARED[path]
+    cache_bytes = int(unit.config.unwrap_cache_mb) << 20
+    identity = _store_identity(path, cache_bytes)
+    held = _HELD.get("store")
+    if held is None or held[0] != identity:
+        _HELD.clear()  # the previous store's cache goes before the next one fills
+        _HELD["store"] = (identity, UnwrapStore.open(path, cache_bytes=cache_bytes))
+    return _HELD["store"][1]
 
 
 def _fit_region(unwrap: UnwrapStore, unit: PatchUnit, device: torch.device, fused: bool) -> PatchResult:
