@@ -68,6 +68,8 @@ class RegistrationConfig:
         scales: multi-scale point-to-plane ICP, coarse -> fine: ``(voxel_mm, max correspondence distance
             mm, iterations)`` per level. The coarse level (12 mm) captures a first step of ~8 deg with no
             velocity prediction (~15 mm at the face); the fine level (1.5 mm) sees only true neighbours.
+        icp_tolerance: an ICP level stops early once an iteration changes its fitness and its inlier RMSE
+            (mm) by less than this (Open3D's ``relative_fitness`` / ``relative_rmse``, absolute changes).
         robust_kernel_mm: scale of the Tukey robust kernel on point-to-plane residuals at the finest level
             (0: plain least squares).
         min_confidence: points below this confidence are ignored.
@@ -101,6 +103,7 @@ class RegistrationConfig:
 
     voxel_mm: float = 1.0
     scales: tuple[tuple[float, float, int], ...] = ((4.0, 12.0, 30), (2.0, 4.0, 30), (1.0, 1.5, 50))
+    icp_tolerance: float = 1e-4
     robust_kernel_mm: float = 1.0
     min_confidence: float = 0.1
     loop_offsets: tuple[int, ...] = (2, 4)
@@ -120,6 +123,7 @@ class RegistrationConfig:
             "voxel_mm": self.voxel_mm > 0,
             "scales": len(self.scales) > 0
             and all(len(s) == 3 and s[0] > 0 and s[1] > 0 and int(s[2]) > 0 for s in self.scales),
+            "icp_tolerance": self.icp_tolerance > 0,
             "robust_kernel_mm": self.robust_kernel_mm >= 0,
             "min_confidence": 0.0 <= self.min_confidence <= 1.0,
             "loop_offsets": all(int(o) >= 2 for o in self.loop_offsets),

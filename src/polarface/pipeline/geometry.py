@@ -346,12 +346,18 @@ def reconstruct_geometry(
     def load(frame: int) -> PointCloud:
         return load_point_cloud(_paths(out, frame)[0])
 
+    timings = {"stereo_and_frame_meshes_s": stereo_s}
+    lap = _Laps(timings)
     registration = register_sequence(usable, load, reference, config.registration, progress=progress)
     poses = _all_poses(frames, usable, registration.poses)
+    lap("registration_s")
     fused = fuse_registered(usable, load, registration, config.reference_voxel_mm)
+    lap("fusion_s")
     atlas = _reference_atlas(store, poses, frames.index(reference), fused, config)
     save_obj(out / "mesh.obj", atlas.mesh)
     save_poses(out / "poses.json", poses)
+    lap("reference_mesh_and_atlas_s")
+    timings["total_s"] = time.perf_counter() - started  # the report page shows this one
     rejected = {str(f): reason for f, reason in {**failed, **registration.rejected}.items()}
     summary = {
         **header,
@@ -361,15 +367,28 @@ def reconstruct_geometry(
         "registration": registration.to_json(),
         "atlas": atlas.to_json(),
         "mesh": {"vertices": atlas.mesh.vertex_count, "faces": atlas.mesh.face_count},
-        "timings": {"stereo_and_frame_meshes_s": stereo_s, "total_s": time.perf_counter() - started},
+        "timings": timings,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "executor": {**executor.describe(), "units": {k: placements[k] for k in sorted(placements, key=int)}},
     }
     from polarface.report.geometry import write_geometry_report
 
     write_geometry_report(out, summary, atlas.mesh, poses, store.rig, frames)
+    lap("report_s")
+    timings["total_s"] = time.perf_counter() - started  # with the report
     write_json_atomic(out / GEOMETRY_JSON, summary)
     return summary
+
+
+class _Laps:
+    """``lap(name)`` records into ``timings[name]`` the wall seconds since the previous lap (or creation)."""
+
+    def __init__(self, timings: dict[str, float]) -> None:
+        self.timings, self.last = timings, time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        now = time.perf_counter()
+        self.timings[name], self.last = now - self.last, now
 
 
 def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: int, config: GeometryConfig,
