@@ -90,7 +90,9 @@ def information_matrix(target_points: np.ndarray) -> np.ndarray:
     ``t_i`` under a small motion (rotation vector first, then translation): the edge weight of Open3D's pose
     graph (Choi, Zhou and Koltun 2015, "Robust reconstruction of indoor scenes"). In closed form:
     ``[[tr(M) I - M, [s]x], [-[s]x, N I]]`` with ``M = sum t_i t_i^T`` and ``s = sum t_i``."""
-    points = np.asarray(target_points, dtype=np.float64).reshape(-1, 3)
+    points = np.asarray(target_points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"argument 'target_points' must have shape (N, 3); got {points.shape}")
     moment = points.T @ points
     total = points.sum(axis=0)
     cross = np.array([[0.0, -total[2], total[1]], [total[2], 0.0, -total[0]], [-total[1], total[0], 0.0]])

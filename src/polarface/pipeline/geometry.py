@@ -36,7 +36,7 @@ import os
 import resource
 import socket
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -193,15 +193,24 @@ def frame_geometry(store: CaptureStore, frame: int, config: GeometryConfig) -> F
     return FrameGeometry(pairs, cloud, mesh, error, time.perf_counter() - started)
 
 
-def _write_frame(out: Path, frame: int, result: FrameGeometry, previews: bool) -> dict[str, Any]:
-    """Write a frame's mesh, previews and cloud into GEOM (:func:`write_frame_geometry`); returns its
-    summary entry."""
-    if previews:
-        from polarface.report.geometry import write_depth_previews
-
-        write_depth_previews(out / "previews", result.pairs)
+def _write_frame(out: Path, frame: int, result: FrameGeometry) -> dict[str, Any]:
+    """Write a frame's mesh and cloud into GEOM (:func:`write_frame_geometry`); returns its summary entry."""
     cloud_path, mesh_path = _paths(out, frame)
     return write_frame_geometry(result, mesh_path, cloud_path)
+
+
+def _write_previews_meanwhile(out: Path, result: FrameGeometry | None) -> Future | None:
+    """Start writing the depth and confidence previews of ``result``'s pairs (the reference frame) in a
+    thread, so that they overlap the other frames' units instead of delaying them; None when there is
+    nothing to write. The caller waits on the returned future."""
+    if result is None:
+        return None
+    from polarface.report.geometry import write_depth_previews
+
+    pool = ThreadPoolExecutor(max_workers=1)
+    future = pool.submit(write_depth_previews, out / "previews", result.pairs)
+    pool.shutdown(wait=False)
+    return future
 
 
 def write_frame_geometry(result: FrameGeometry, mesh_path: Path, cloud_path: Path | None) -> dict[str, Any]:
@@ -406,6 +415,7 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
                                                 "executor": {**executor.describe(), "units": placements}})
 
     done = {f for f in frames if _paths(out, f)[0].exists() and str(f) in entries}
+    first = None
     if reference not in done:
         started = time.perf_counter()
         first = frame_geometry(store, reference, config)
@@ -416,7 +426,7 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
                 "--poses POSES')"
             )
         out.mkdir(parents=True, exist_ok=True)
-        entries[str(reference)] = _write_frame(out, reference, first, previews=True)
+        entries[str(reference)] = _write_frame(out, reference, first)
         placements[str(reference)] = UnitOutcome(
             reference, seconds=time.perf_counter() - started, host=socket.gethostname(), pid=os.getpid()
         ).placement()
@@ -430,7 +440,13 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
         placements[str(frame)] = outcome.placement()
         save()
 
-    run_stereo_units(executor, units, record, desc="geometry: stereo", total=len(frames), progress=progress)
+    previews = _write_previews_meanwhile(out, first)
+    try:
+        run_stereo_units(executor, units, record, desc="geometry: stereo", total=len(frames),
+                         progress=progress)
+    finally:  # also when the units are interrupted: the previews belong to the finished reference frame
+        if previews is not None:
+            previews.result()
     return {str(frame): entries[str(frame)] for frame in frames}
 
 
