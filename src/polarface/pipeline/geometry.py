@@ -36,7 +36,7 @@ import os
 import resource
 import socket
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -193,26 +193,6 @@ def frame_geometry(store: CaptureStore, frame: int, config: GeometryConfig) -> F
     return FrameGeometry(pairs, cloud, mesh, error, time.perf_counter() - started)
 
 
-def _write_frame(out: Path, frame: int, result: FrameGeometry) -> dict[str, Any]:
-    """Write a frame's mesh and cloud into GEOM (:func:`write_frame_geometry`); returns its summary entry."""
-    cloud_path, mesh_path = _paths(out, frame)
-    return write_frame_geometry(result, mesh_path, cloud_path)
-
-
-def _write_previews_meanwhile(out: Path, result: FrameGeometry | None) -> Future | None:
-    """Start writing the depth and confidence previews of ``result``'s pairs (the reference frame) in a
-    thread, so that they overlap the other frames' units instead of delaying them; None when there is
-    nothing to write. The caller waits on the returned future."""
-    if result is None:
-        return None
-    from polarface.report.geometry import write_depth_previews
-
-    pool = ThreadPoolExecutor(max_workers=1)
-    future = pool.submit(write_depth_previews, out / "previews", result.pairs)
-    pool.shutdown(wait=False)
-    return future
-
-
 def write_frame_geometry(result: FrameGeometry, mesh_path: Path, cloud_path: Path | None) -> dict[str, Any]:
     """Write a frame's mesh to ``mesh_path`` (when meshing succeeded) and then its cloud to ``cloud_path``
     (None: not kept; written last, it marks the frame complete), atomically; returns the frame's summary
@@ -356,7 +336,7 @@ def reconstruct_geometry(
         return load_point_cloud(_paths(out, frame)[0])
 
     timings = {"stereo_and_frame_meshes_s": stereo_s}
-    lap = _Laps(timings)
+    lap = _lap_timer(timings)
     registration = register_sequence(usable, load, reference, config.registration, progress=progress)
     poses = _all_poses(frames, usable, registration.poses)
     lap("registration_s")
@@ -389,15 +369,23 @@ def reconstruct_geometry(
     return summary
 
 
-class _Laps:
-    """``lap(name)`` records into ``timings[name]`` the wall seconds since the previous lap (or creation)."""
+def _write_depth_previews(out: Path, first: FrameGeometry | None) -> None:
+    """The reference frame's depth and confidence previews (``first``: None when it was done before)."""
+    if first is not None:
+        from polarface.report.geometry import write_depth_previews
 
-    def __init__(self, timings: dict[str, float]) -> None:
-        self.timings, self.last = timings, time.perf_counter()
+        write_depth_previews(out / "previews", first.pairs)
 
-    def __call__(self, name: str) -> None:
+
+def _lap_timer(timings: dict[str, float]):
+    """``lap(name)`` records into ``timings[name]`` the wall seconds since the previous lap (or this call)."""
+    last = [time.perf_counter()]
+
+    def lap(name: str) -> None:
         now = time.perf_counter()
-        self.timings[name], self.last = now - self.last, now
+        timings[name], last[0] = now - last[0], now
+
+    return lap
 
 
 def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: int, config: GeometryConfig,
@@ -426,7 +414,7 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
                 "--poses POSES')"
             )
         out.mkdir(parents=True, exist_ok=True)
-        entries[str(reference)] = _write_frame(out, reference, first)
+        entries[str(reference)] = write_frame_geometry(first, *reversed(_paths(out, reference)))
         placements[str(reference)] = UnitOutcome(
             reference, seconds=time.perf_counter() - started, host=socket.gethostname(), pid=os.getpid()
         ).placement()
@@ -440,13 +428,11 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
         placements[str(frame)] = outcome.placement()
         save()
 
-    previews = _write_previews_meanwhile(out, first)
-    try:
+    with ThreadPoolExecutor(max_workers=1) as thread:  # previews overlap the units, not delay them
+        previews = thread.submit(_write_depth_previews, out, first)
         run_stereo_units(executor, units, record, desc="geometry: stereo", total=len(frames),
                          progress=progress)
-    finally:  # also when the units are interrupted: the previews belong to the finished reference frame
-        if previews is not None:
-            previews.result()
+    previews.result()
     return {str(frame): entries[str(frame)] for frame in frames}
 
 
