@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_point_cloud
+from polarface.geometry.point_cloud import PointCloud, VoxelAccumulator, load_point_cloud, save_point_cloud
 from polarface.geometry.poses import rigid_transform
 
 
@@ -32,6 +32,23 @@ def test_voxel_downsample_is_the_confidence_weighted_mean():
     first = merged.points[np.argmin(merged.points[:, 0])]
     assert np.allclose(first, 0.25 * 0.1 + 0.75 * 0.3)  # weights 0.25 and 0.75
     assert sorted(merged.confidence.tolist()) == [0.5, 0.75]  # a voxel keeps its best confidence
+
+
+def test_accumulated_clouds_merge_as_if_downsampled_at_once():
+    """Clouds added one by one (voxels shared with the held ones, new ones before, between and after them)
+    give the one-shot downsample of their concatenation: same voxels, means and best confidences."""
+    clouds = [_cloud(400, seed) for seed in range(3)]
+    clouds.append(PointCloud.from_arrays(clouds[0].points - 20.0, clouds[0].normals, clouds[0].confidence))
+    clouds.append(PointCloud.from_arrays(clouds[1].points + 20.0, clouds[1].normals, clouds[1].confidence))
+    grid = VoxelAccumulator(2.5)
+    for cloud in clouds:
+        grid.add(cloud)
+        grid.add(PointCloud.empty())
+    merged, once = grid.cloud(), PointCloud.concatenate(clouds).voxel_downsample(2.5)
+    assert len(merged) == len(once) < sum(len(c) for c in clouds)
+    order_merged, order_once = np.lexsort(merged.points.T), np.lexsort(once.points.T)
+    for name in ("points", "normals", "confidence", "colours"):
+        assert np.allclose(getattr(merged, name)[order_merged], getattr(once, name)[order_once], atol=1e-12)
 
 
 def test_transformed_and_concatenate():

@@ -196,6 +196,8 @@ def test_bad_arguments_name_the_argument():
         register_sequence([0, 1], lambda _: PointCloud.empty(), 0)
     with pytest.raises(ValueError, match="min_fitness"):
         RegistrationConfig(min_fitness=2.0)
+    with pytest.raises(ValueError, match="icp_tolerance"):
+        RegistrationConfig(icp_tolerance=0.0)
 
 
 def test_edges_do_not_keep_open3d_results_alive(head_surface):
@@ -239,3 +241,44 @@ def test_register_pair_names_a_cloud_without_points(head_surface):
         register_pair(cloud, PointCloud.empty())
     with pytest.raises(ValueError, match="'init'"):
         register_pair(cloud, cloud, np.full((4, 4), np.nan))
+
+
+def test_icp_scores_and_information_are_those_of_its_transform(head_surface):
+    """``icp`` takes fitness, RMSE and the information matrix from its last iterate instead of searching the
+    neighbours again: they equal Open3D's ``evaluate_registration`` and
+    ``get_information_matrix_from_point_clouds`` at the returned transform (independent reference)."""
+    from open3d.pipelines import registration as reg
+
+    from polarface.geometry.registration_icp import icp, registration_levels
+
+    config = RegistrationConfig()
+    truth = true_poses(count=2)
+    source, centre = registration_levels(partial_view(head_surface, truth[1], seed=1), None, config)
+    target, _ = registration_levels(partial_view(head_surface, truth[0], seed=0), centre, config)
+    transform, fitness, rmse, information = icp(source, target, np.eye(4), config)
+    distance = config.scales[-1][1]
+    scored = reg.evaluate_registration(source[-1], target[-1], distance, transform)
+    assert fitness == pytest.approx(scored.fitness, abs=1e-9) and fitness > 0.5
+    assert rmse == pytest.approx(scored.inlier_rmse, rel=1e-9)
+    expected = np.asarray(reg.get_information_matrix_from_point_clouds(source[-1], target[-1], distance,
+                                                                       transform))
+    assert np.allclose(information, expected, rtol=1e-9, atol=1e-6 * np.abs(expected).max())
+
+
+def test_information_matrix_is_the_sum_of_point_jacobians():
+    """Closed form against the explicit sum of ``G^T G``, ``G = [-[t]x | I]``; points on one line leave the
+    rotation about that line unconstrained (rank 5); bad shapes name the argument."""
+    from polarface.geometry.registration_icp import information_matrix
+
+    points = np.random.default_rng(3).normal(0.0, 50.0, (40, 3))
+    explicit = np.zeros((6, 6))
+    for x, y, z in points:
+        jacobian = np.array([[0, z, -y, 1, 0, 0], [-z, 0, x, 0, 1, 0], [y, -x, 0, 0, 0, 1]], float)
+        explicit += jacobian.T @ jacobian
+    assert np.allclose(information_matrix(points), explicit, rtol=1e-12, atol=1e-9)
+    assert np.linalg.matrix_rank(information_matrix(points)) == 6
+    line = np.outer(np.linspace(-50.0, 50.0, 20), [1.0, 2.0, -0.5])
+    assert np.linalg.matrix_rank(information_matrix(line), tol=1e-6 * 20 * 50.0**2) == 5
+    assert np.array_equal(information_matrix(np.zeros((0, 3))), np.zeros((6, 6)))
+    with pytest.raises(ValueError, match="'target_points'"):
+        information_matrix(np.zeros((4, 2)))

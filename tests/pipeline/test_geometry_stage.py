@@ -42,6 +42,12 @@ def test_geometry_stage_recovers_mesh_and_poses(sim, geom):
     for name in ("mesh.obj", "poses.json", "report.html", "geometry.json"):
         assert (out / name).is_file()
     assert sorted(p.name for p in (out / "frames").glob("*.ply")) == [f"{i:06d}.ply" for i in range(4)]
+    assert len(list((out / "previews").glob("depth_*.png"))) >= 1  # written in a thread beside the units
+    parts = ("stereo_and_frame_meshes_s", "registration_s", "fusion_s", "reference_mesh_and_atlas_s",
+             "report_s")
+    timings = json.loads((out / "geometry.json").read_text())["timings"]
+    assert all(timings[name] > 0 for name in parts)
+    assert sum(timings[name] for name in parts) <= timings["total_s"] + 1e-6
     poses = load_poses(out / "poses.json")
     truth = load_poses(sim / "ground_truth" / "static" / "poses.json")
     assert np.allclose(poses[reference], np.eye(4))

@@ -193,17 +193,6 @@ def frame_geometry(store: CaptureStore, frame: int, config: GeometryConfig) -> F
     return FrameGeometry(pairs, cloud, mesh, error, time.perf_counter() - started)
 
 
-def _write_frame(out: Path, frame: int, result: FrameGeometry, previews: bool) -> dict[str, Any]:
-    """Write a frame's mesh, previews and cloud into GEOM (:func:`write_frame_geometry`); returns its
-    summary entry."""
-    if previews:
-        from polarface.report.geometry import write_depth_previews
-
-        write_depth_previews(out / "previews", result.pairs)
-    cloud_path, mesh_path = _paths(out, frame)
-    return write_frame_geometry(result, mesh_path, cloud_path)
-
-
 def write_frame_geometry(result: FrameGeometry, mesh_path: Path, cloud_path: Path | None) -> dict[str, Any]:
     """Write a frame's mesh to ``mesh_path`` (when meshing succeeded) and then its cloud to ``cloud_path``
     (None: not kept; written last, it marks the frame complete), atomically; returns the frame's summary
@@ -346,12 +335,18 @@ def reconstruct_geometry(
     def load(frame: int) -> PointCloud:
         return load_point_cloud(_paths(out, frame)[0])
 
+    timings = {"stereo_and_frame_meshes_s": stereo_s}
+    lap = _lap_timer(timings)
     registration = register_sequence(usable, load, reference, config.registration, progress=progress)
     poses = _all_poses(frames, usable, registration.poses)
+    lap("registration_s")
     fused = fuse_registered(usable, load, registration, config.reference_voxel_mm)
+    lap("fusion_s")
     atlas = _reference_atlas(store, poses, frames.index(reference), fused, config)
     save_obj(out / "mesh.obj", atlas.mesh)
     save_poses(out / "poses.json", poses)
+    lap("reference_mesh_and_atlas_s")
+    timings["total_s"] = time.perf_counter() - started  # the report page shows this one
     rejected = {str(f): reason for f, reason in {**failed, **registration.rejected}.items()}
     summary = {
         **header,
@@ -361,15 +356,36 @@ def reconstruct_geometry(
         "registration": registration.to_json(),
         "atlas": atlas.to_json(),
         "mesh": {"vertices": atlas.mesh.vertex_count, "faces": atlas.mesh.face_count},
-        "timings": {"stereo_and_frame_meshes_s": stereo_s, "total_s": time.perf_counter() - started},
+        "timings": timings,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "executor": {**executor.describe(), "units": {k: placements[k] for k in sorted(placements, key=int)}},
     }
     from polarface.report.geometry import write_geometry_report
 
     write_geometry_report(out, summary, atlas.mesh, poses, store.rig, frames)
+    lap("report_s")
+    timings["total_s"] = time.perf_counter() - started  # with the report
     write_json_atomic(out / GEOMETRY_JSON, summary)
     return summary
+
+
+def _write_depth_previews(out: Path, first: FrameGeometry | None) -> None:
+    """The reference frame's depth and confidence previews (``first``: None when it was done before)."""
+    if first is not None:
+        from polarface.report.geometry import write_depth_previews
+
+        write_depth_previews(out / "previews", first.pairs)
+
+
+def _lap_timer(timings: dict[str, float]):
+    """``lap(name)`` records into ``timings[name]`` the wall seconds since the previous lap (or this call)."""
+    last = [time.perf_counter()]
+
+    def lap(name: str) -> None:
+        now = time.perf_counter()
+        timings[name], last[0] = now - last[0], now
+
+    return lap
 
 
 def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: int, config: GeometryConfig,
@@ -387,6 +403,7 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
                                                 "executor": {**executor.describe(), "units": placements}})
 
     done = {f for f in frames if _paths(out, f)[0].exists() and str(f) in entries}
+    first = None
     if reference not in done:
         started = time.perf_counter()
         first = frame_geometry(store, reference, config)
@@ -397,7 +414,7 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
                 "--poses POSES')"
             )
         out.mkdir(parents=True, exist_ok=True)
-        entries[str(reference)] = _write_frame(out, reference, first, previews=True)
+        entries[str(reference)] = write_frame_geometry(first, *reversed(_paths(out, reference)))
         placements[str(reference)] = UnitOutcome(
             reference, seconds=time.perf_counter() - started, host=socket.gethostname(), pid=os.getpid()
         ).placement()
@@ -411,7 +428,11 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
         placements[str(frame)] = outcome.placement()
         save()
 
-    run_stereo_units(executor, units, record, desc="geometry: stereo", total=len(frames), progress=progress)
+    with ThreadPoolExecutor(max_workers=1) as thread:  # previews overlap the units, not delay them
+        previews = thread.submit(_write_depth_previews, out, first)
+        run_stereo_units(executor, units, record, desc="geometry: stereo", total=len(frames),
+                         progress=progress)
+    previews.result()
     return {str(frame): entries[str(frame)] for frame in frames}
 
 
