@@ -193,7 +193,7 @@ def test_blurred_small_mask_in_large_map_equals_whole_map_render(table, calibrat
     assert torch.allclose(channels, ref_channels, atol=1e-12, rtol=1e-10)
     assert torch.allclose(spectral, ref_spectral, atol=1e-12, rtol=1e-10)
     assert float(channels[~mask].abs().max()) == 0.0
-    # a mask whose box is narrower than the widest Gaussian's reach: rendered on the whole map
+    # a box far narrower than the widest Gaussian (the FFT blur shortens its kernel to the box)
     tiny = torch.zeros(64, 80, dtype=torch.bool)
     tiny[30:33, 30:33] = True
     got = blurred_channel_albedo(params, table, calibration.weights, shapes, 0.05, tiny)

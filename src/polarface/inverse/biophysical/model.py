@@ -48,7 +48,6 @@ from polarface.skin.layers import (
     _layer_optics,
     _layer_totals,
 )
-from polarface.skin.sog import sog_variances
 
 __all__ = [
     "PARAMETER_ORDER",
@@ -313,7 +312,7 @@ def blurred_channel_albedo(
     """
     mask_b = mask.bool()
     height, width = mask_b.shape
-    box = _render_box(mask_b, shapes, texel_size_mm, stretch)
+    box = _render_box(mask_b, stretch)
     sub_mask = mask_b[box]
     rows, cols = torch.nonzero(sub_mask, as_tuple=True)
     maps = table.layer_totals(parameters[box][rows, cols])  # each (N, L)
@@ -335,22 +334,12 @@ def blurred_channel_albedo(
     return (channels, nnf.pad(spectral, padding)) if return_spectral else channels
 
 
-def _render_box(mask: torch.Tensor, shapes: ProfileShapes, texel_size_mm: float,
-                stretch: torch.Tensor | None) -> tuple[slice, slice]:
-    """The bounding box of ``mask`` ``(H, W)`` bool where blurring it alone equals blurring the whole
-    map (:func:`blurred_channel_albedo`); the whole map with a ``stretch``, an empty mask, or a box too
-    small for the widest Gaussian (the FFT blur shortens its kernels to the map's size)."""
-    whole = (slice(0, mask.shape[0]), slice(0, mask.shape[1]))
+def _render_box(mask: torch.Tensor, stretch: torch.Tensor | None) -> tuple[slice, slice]:
+    """The bounding box of ``mask`` ``(H, W)`` bool, where blurring it alone equals blurring the whole
+    map (:func:`blurred_channel_albedo`: the FFT blur pads with zeros and its texel-integrated kernel
+    taps do not depend on the map's size); the whole map with a ``stretch`` or an empty mask."""
     if stretch is not None or not bool(mask.any()):
-        return whole
+        return slice(0, mask.shape[0]), slice(0, mask.shape[1])
     rows = torch.nonzero(mask.any(1))[:, 0]
     cols = torch.nonzero(mask.any(0))[:, 0]
-    box = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
-    widest_texels = float(sog_variances(count=shapes.r_out_f.shape[-1]).max().sqrt()) / texel_size_mm
-    size = max(box[0].stop - box[0].start, box[1].stop - box[1].start)
-    return box if size - 1 >= math.ceil(_BOX_MARGIN_SIGMAS * widest_texels) else whole
-
-
-#: Kernel reach (in standard deviations of the widest Gaussian) a cropped blur box must hold; wider
-#: than the FFT blur's own kernel radius (polarface.skin.sog), so cropping never shortens a kernel.
-_BOX_MARGIN_SIGMAS = 6.0
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
