@@ -222,9 +222,7 @@ def _fit(inputs: dict[str, Any], config: BiophysicalConfig, table: TotalsTable, 
                 config,
                 stretch=torch.from_numpy(inputs["stretch"]).to(target),
                 progress=lambda name: (bar.set_postfix_str(name), bar.update(1)),
-                start=None if start is None else dataclasses.replace(
-                    start, parameters=start.parameters.to(target), valid=start.valid.to(target)
-                ),
+                start=start,
             )
     finally:
         torch.set_num_threads(previous_threads)
