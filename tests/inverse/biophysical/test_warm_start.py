@@ -28,7 +28,9 @@ def setup():
 def _static_truth(size: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
     """Smooth chromophore maps with a dark spot (freckle) and a masked border."""
     y, x = torch.meshgrid(torch.linspace(0, 1, size), torch.linspace(0, 1, size), indexing="ij")
-    params = torch.stack([0.03 + 0.05 * x, 0.05 + 0.1 * y, 0.02 + 0.03 * x * y, 0.03 + 0.08 * (1 - x) * y], -1)
+    params = torch.stack(
+        [0.03 + 0.05 * x, 0.05 + 0.1 * y, 0.02 + 0.03 * x * y, 0.03 + 0.08 * (1 - x) * y], -1
+    )
     params[20:23, 6:9, 0] = 0.15
     mask = torch.ones(size, size, dtype=torch.bool)
     mask[:3] = False
@@ -85,7 +87,7 @@ def test_unchanged_frame_stays_at_the_static_fit(setup, frame_problem):
 
 def test_start_without_shapes_fits_them(setup, frame_problem):
     table, weights = setup
-    static, frame, mask, _, observed, start = frame_problem
+    _, frame, mask, _, observed, start = frame_problem
     no_shapes = BiophysicalStart(start.parameters, start.valid)
     fit = fit_biophysical(observed, mask, table, weights, TEXEL_MM, BiophysicalConfig(), start=no_shapes)
     expected, _ = median_shapes(fit.parameters, mask, table)
@@ -109,7 +111,7 @@ def test_start_parameters_fill_and_order(frame_problem):
 
 def test_bad_starts_are_refused(setup, frame_problem):
     table, weights = setup
-    static, _, mask, _, observed, start = frame_problem
+    static, _, mask, _, observed, _ = frame_problem
     with pytest.raises(ValueError, match=r"parameters must be \(H, W, 4\)"):
         BiophysicalStart(static[..., :3], mask)
     with pytest.raises(ValueError, match="valid must be a bool"):
