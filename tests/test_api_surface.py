@@ -70,10 +70,10 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "fit_dynamic_frame", "fit_polarimetric",
     ),
     "polarface.inverse.biophysical": (
-        "BiophysicalConfig", "BiophysicalFit", "PARAMETER_ORDER", "TotalsTable",
+        "BiophysicalConfig", "BiophysicalFit", "BiophysicalStart", "PARAMETER_ORDER", "TotalsTable",
         "blurred_channel_albedo", "check_parameter_maps", "fit_biophysical", "fit_local_parameters",
         "gamut_distance", "local_channel_albedo", "local_channel_albedo_with_jacobian",
-        "median_shapes", "per_texel_relative_residual", "relative_rmse",
+        "median_shapes", "per_texel_relative_residual", "relative_rmse", "start_parameters",
     ),
     "polarface.inverse.polarimetric": (
         "DYNAMIC_VARIABLES", "DynamicConfig", "DynamicPatchProblem", "DynamicWeights",

@@ -17,7 +17,7 @@ from polarface.capture.store import CaptureStore
 from polarface.cli import main
 from polarface.io import read_exr, write_png
 from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
-from polarface.pipeline.dynamic import parse_frame_selection, reconstruct_dynamic
+from polarface.pipeline.dynamic import DynamicStageConfig, parse_frame_selection, reconstruct_dynamic
 from polarface.results import ResultFolder
 from polarface.simulate.pipeline import SimulationConfig, simulate
 
@@ -99,6 +99,22 @@ def test_outputs_and_records(sequence):
     assert (result / "tracking" / "stereo" / "000001.ply").is_file()
     render = read_exr(result / "frames" / "0001" / "render" / "srgb_linear.exr")
     assert set(render) == {"R", "G", "B"} and float(render["G"].max()) > 0  # the frame, rendered
+    # the chromophore fit started from the static result (the default), recorded per frame
+    biophysical = folder.frame(1).stage_record("biophysical")
+    assert biophysical["start"] == str(result) and biophysical["timings_s"]["coarse_s"] < 0.05
+    assert record["config"]["biophysical_start"] == "static"
+
+
+def test_biophysical_start_from_scratch_is_recorded_and_bad_values_refused(tiny, tmp_path):
+    sim, static = tiny
+    result = tmp_path / "result"
+    shutil.copytree(static, result)
+    record = reconstruct_dynamic(result, sim, DynamicStageConfig(biophysical_start="scratch"), frames="1",
+                                 progress=False)
+    assert record["completed"] == [1]
+    assert ResultFolder(result).frame(1).stage_record("biophysical")["start"] == "scratch"
+    with pytest.raises(ValueError, match="biophysical_start"):
+        DynamicStageConfig(biophysical_start="previous")
 
 
 def test_resume_after_an_interruption_mid_sequence_gives_identical_maps(tiny, sequence, tmp_path,

@@ -301,7 +301,7 @@ def track_mesh(
     graph = MeshGraph(reference)
     rest = reference.vertices.copy()
     first = _prepare(load_frame(indices[0]), indices[0], cameras, config)
-    visibility = propagate.visible(rest, sorted(first.images))
+    visibility = propagate.visible_from(first.index, rest, sorted(first.images))
     visible_first = np.any([weight > 0 for _, weight in visibility.values()], axis=0)
     if not visible_first.any():
         raise ValueError(f"argument 'reference': no vertex is visible in the images of frame {indices[0]}")
@@ -318,20 +318,20 @@ def track_mesh(
         if frame.surface is None:
             failed[index] = f"frame {index}: no surface (no stereo geometry)"
             continue
-        caster = RayCaster(frame.surface)
+        from_source = _OncePerSource(propagate, frame, RayCaster(frame.surface))
         estimate, quality, is_anchor = None, None, False
         if use_anchors and frame_similarity(first, frame, samples) >= config.anchor_similarity:
-            estimate, quality = propagate(rest, first, frame, caster)
+            estimate, quality = from_source((first, rest))
             direct_fraction = float((quality > 0)[visible_first].mean())
             is_anchor = direct_fraction >= config.min_tracked_fraction
         if is_anchor:
-            chained = propagate(last_good[1], last_good[0], frame, caster)
+            chained = from_source(last_good)
             missing = ~(quality > 0)
             estimate[missing], quality[missing] = chained[0][missing], chained[1][missing]
         else:
-            estimates = [propagate(last_good[1], last_good[0], frame, caster)]
+            estimates = [from_source(last_good)]
             if use_anchors and anchor[0].index != last_good[0].index:
-                estimates.append(propagate(anchor[1], anchor[0], frame, caster))
+                estimates.append(from_source(anchor))
             estimate, quality = blend_estimates(estimates)
         tracked = quality > 0
         fraction = float(tracked[visible_first].mean())
@@ -346,7 +346,25 @@ def track_mesh(
         if is_anchor:
             anchors.append(index)
             anchor = last_good
+        propagate.keep_sources([first.index, anchor[0].index, last_good[0].index])
     return TrackedSequence(indices, vertices, confidence, tuple(anchors), failed)
+
+
+class _OncePerSource:
+    """The propagations into one target frame, each source frame propagated once: a source's positions
+    are fixed (the first frame's rest positions, an anchor's or the last good frame's tracked ones),
+    so e.g. frame 1's chained propagation from the first frame is its direct one. Returns copies."""
+
+    def __init__(self, propagate: Propagator, target: PreparedFrame, caster: RayCaster):
+        self.propagate, self.target, self.caster = propagate, target, caster
+        self.done: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def __call__(self, source: tuple[PreparedFrame, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        frame, positions = source
+        if frame.index not in self.done:
+            self.done[frame.index] = self.propagate(positions, frame, self.target, self.caster)
+        estimate, quality = self.done[frame.index]
+        return estimate.copy(), quality.copy()
 
 
 # ---- files -----------------------------------------------------------------------------------------

@@ -171,17 +171,36 @@ class Propagator:
         self.flow = cv2.DISOpticalFlow_create(DIS_PRESETS[config.flow_preset])
         self.flow.setFinestScale(int(config.flow_finest_scale))
         self.flow.setVariationalRefinementIterations(int(config.variational_iterations))
+        # source frame index -> (positions, camera ids, visibility): a source (the first frame, an
+        # anchor) is propagated from several times with the same positions
+        self._visibility: dict[int, tuple[np.ndarray, tuple[str, ...], dict]] = {}
 
     def visible(self, positions: np.ndarray, camera_ids: Sequence[str]
                 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """:func:`visibility` of the reference mesh moved to ``positions`` (N, 3) mm."""
         return visibility(self.reference.with_vertices(positions), self.cameras, camera_ids, self.config)
 
+    def visible_from(self, source: int, positions: np.ndarray, camera_ids: Sequence[str]
+                     ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """:meth:`visible`, remembered per source frame index (recomputed when its positions or cameras
+        differ from the remembered ones)."""
+        cached = self._visibility.get(int(source))
+        if cached is not None and cached[1] == tuple(camera_ids) and np.array_equal(cached[0], positions):
+            return cached[2]
+        result = self.visible(positions, camera_ids)
+        self._visibility[int(source)] = (positions.copy(), tuple(camera_ids), result)
+        return result
+
+    def keep_sources(self, sources: Sequence[int]) -> None:
+        """Forget the remembered visibility of every source frame but ``sources``."""
+        keep = {int(s) for s in sources}
+        self._visibility = {k: v for k, v in self._visibility.items() if k in keep}
+
     def __call__(self, positions: np.ndarray, source: PreparedFrame, target: PreparedFrame,
                  target_caster: RayCaster) -> tuple[np.ndarray, np.ndarray]:
         """``(positions (N, 3) mm, NaN where untracked; quality (N,) in [0, 1])`` at ``target``."""
         camera_ids = sorted(set(source.images) & set(target.images))
-        visibility = self.visible(positions, camera_ids)
+        visibility = self.visible_from(source.index, positions, camera_ids)
         count = len(positions)
         points = np.full((len(camera_ids), count, 3), np.nan)
         normals = np.full((len(camera_ids), count, 3), np.nan)

@@ -17,7 +17,8 @@ Reads (:class:`polarface.results.ResultFolder`, layout ``docs/result_folder.md``
 * previews (:mod:`polarface.pipeline.biophysical_previews`);
 * ``result.json``: ``stages.biophysical`` with timings, the re-render relative RMSE against the input
   over all valid texels (``rho_sss_bar_relative_rmse``) and over the in-gamut ones, the gamut floor
-  and the number of out-of-gamut texels.
+  and the number of out-of-gamut texels, and ``start``: ``"scratch"`` or the RESULT folder whose
+  maps started the fit (``start_from``; a dynamic frame's static result, ``docs/dynamic.md``).
 
 Texel size and per-texel stretch come from the mesh (:func:`polarface.geometry.uv_raster.rasterize_uv`).
 """
@@ -39,6 +40,7 @@ from polarface.inverse.biophysical import (
     PARAMETER_ORDER,
     BiophysicalConfig,
     BiophysicalFit,
+    BiophysicalStart,
     TotalsTable,
     fit_biophysical,
     per_texel_relative_residual,
@@ -48,7 +50,7 @@ from polarface.pipeline.evaluate_biophysical import check_ground_truth
 from polarface.results import RESULT_FORMAT, RESULT_VERSION, RHO_SSS_BAR, ResultFolder
 from polarface.results import layout as names_
 
-__all__ = ["load_stage_inputs", "run_biophysical_stage"]
+__all__ = ["load_stage_inputs", "load_start", "run_biophysical_stage"]
 
 LOGGER = logging.getLogger(__name__)
 
@@ -123,6 +125,41 @@ def load_stage_inputs(result_dir: str | Path | ResultFolder) -> dict[str, Any]:
     }
 
 
+def load_start(result_dir: str | Path | ResultFolder, calibration, resolution: tuple[int, int]
+               ) -> BiophysicalStart:
+    """A finished biophysical stage's maps as the start of another fit on the same atlas (a dynamic
+    frame from the static RESULT): ``maps/{c_m,beta_m,c_h_in,c_h_out}.exr`` on ``maps/mask.png``, and
+    the SoG shapes of ``maps/sog.json`` when they are on ``calibration``'s wavelength grid (else None:
+    the fit re-fits them).
+
+    Raises:
+        ValueError: the folder's biophysical stage is not complete, or its maps are not ``resolution``
+            ``(H, W)`` texels (naming the folder). FileNotFoundError: a map is missing.
+    """
+    from polarface.skin.heterogeneous import ProfileShapes
+
+    folder = result_dir if isinstance(result_dir, ResultFolder) else ResultFolder(result_dir)
+    if not folder.stage_complete("biophysical"):
+        raise ValueError(
+            f"'{folder.root}' holds no finished biophysical stage to start from; run 'polarface "
+            "biophysical' on it first or fit from scratch"
+        )
+    parameters = np.stack([folder.read_scalar_map(name) for name in PARAMETER_ORDER], axis=-1)
+    if parameters.shape[:2] != tuple(resolution):
+        raise ValueError(
+            f"'{folder.root}': chromophore maps of {parameters.shape[:2]} texels cannot start a fit of "
+            f"{tuple(resolution)} texels (another texture resolution)"
+        )
+    valid = folder.read_mask(parameters.shape[:2])
+    sog = folder.read_sog() or {}
+    shapes = None
+    layers = sog.get("layers", {})
+    grid = [float(w) for w in calibration.wavelengths_nm.tolist()]
+    if sog.get("wavelengths_nm") == grid and all(name in layers for name in names_.SOG_LAYERS):
+        shapes = ProfileShapes(*(torch.tensor(layers[n], dtype=torch.float64) for n in names_.SOG_LAYERS))
+    return BiophysicalStart(torch.from_numpy(parameters.astype(np.float32)), torch.from_numpy(valid), shapes)
+
+
 def _write_maps(
     folder: ResultFolder, fit: BiophysicalFit, calibration, mask: np.ndarray, observed: np.ndarray
 ) -> None:
@@ -164,7 +201,8 @@ def _write_maps(
 
 
 def _fit(inputs: dict[str, Any], config: BiophysicalConfig, table: TotalsTable, target: torch.device,
-         threads: int | None, progress: bool) -> tuple[BiophysicalFit, int]:
+         threads: int | None, progress: bool, start: BiophysicalStart | None = None
+         ) -> tuple[BiophysicalFit, int]:
     """Run :func:`fit_biophysical` on ``target`` (CPU threads set and restored); results on the CPU.
 
     Returns the fit and the torch thread count before the call.
@@ -184,6 +222,7 @@ def _fit(inputs: dict[str, Any], config: BiophysicalConfig, table: TotalsTable, 
                 config,
                 stretch=torch.from_numpy(inputs["stretch"]).to(target),
                 progress=lambda name: (bar.set_postfix_str(name), bar.update(1)),
+                start=start,
             )
     finally:
         torch.set_num_threads(previous_threads)
@@ -222,6 +261,7 @@ def run_biophysical_stage(
     progress: bool = True,
     threads: int | None = 1,
     ground_truth: str | Path | None = None,
+    start_from: str | Path | ResultFolder | None = None,
 ) -> dict[str, Any]:
     """Run the biophysical stage on a RESULT folder (module docstring); returns its summary.
 
@@ -238,6 +278,9 @@ def run_biophysical_stage(
             :func:`~polarface.pipeline.evaluate_biophysical.evaluate_biophysical` will read; checked
             first (:func:`~polarface.pipeline.evaluate_biophysical.check_ground_truth`), so a bad one
             fails before the fit and before anything is written.
+        start_from: a RESULT folder on the same atlas whose finished biophysical maps start the fit
+            (:func:`load_start`; a dynamic frame's static RESULT): no coarse search, the previous maps
+            as start and prior (``polarface.inverse.biophysical.warm_start``). None: from scratch.
 
     Raises:
         ValueError: ``threads < 1`` and the input errors of :func:`load_stage_inputs`.
@@ -257,8 +300,9 @@ def run_biophysical_stage(
     inputs = load_stage_inputs(folder)
     calibration = inputs["calibration"]
     table = TotalsTable(calibration.wavelengths_nm, config.constants)
+    start = None if start_from is None else load_start(start_from, calibration, inputs["mask"].shape)
     read_s = time.perf_counter() - started
-    fit, previous_threads = _fit(inputs, config, table, target, threads, progress)
+    fit, previous_threads = _fit(inputs, config, table, target, threads, progress, start)
     write_started = time.perf_counter()
     mask = inputs["mask"]
     _write_maps(folder, fit, calibration, mask, inputs["rho_sss_bar"])
@@ -277,6 +321,9 @@ def run_biophysical_stage(
         int(threads) if threads is not None and target.type == "cpu" else previous_threads
     )
     summary["config"] = {k: v for k, v in vars(config).items() if k != "constants"}
+    summary["start"] = "scratch" if start_from is None else str(
+        start_from.root if isinstance(start_from, ResultFolder) else start_from
+    )
     folder.update_result(
         defaults={
             "format": RESULT_FORMAT,

@@ -44,7 +44,7 @@ import resource
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -89,6 +89,12 @@ class DynamicStageConfig:
         tracking: :class:`polarface.geometry.tracking.TrackingConfig`.
         fit: :class:`polarface.inverse.polarimetric.dynamic.DynamicConfig`.
         biophysical: run the chromophore fit per frame.
+        biophysical_start: where a frame's chromophore fit starts. ``"static"`` (default): from the
+            static RESULT's maps (chromophores and SoG shapes), which also regularise it, with no
+            coarse search (paper, main text: over a short sequence mainly the haemoglobin changes;
+            ``polarface.inverse.biophysical.warm_start``); ``"scratch"``: the static stage's full fit
+            of each frame (coarse multi-start search, shape rounds). Recorded per frame in
+            ``frames/NNNN/result.json`` (``stages.biophysical.start``). Measured in docs/dynamic.md.
     """
 
     geometry: GeometryConfig = dataclasses.field(default_factory=GeometryConfig)
@@ -97,6 +103,13 @@ class DynamicStageConfig:
     tracking: TrackingConfig = dataclasses.field(default_factory=TrackingConfig)
     fit: DynamicConfig = dataclasses.field(default_factory=DynamicConfig)
     biophysical: bool = True
+    biophysical_start: Literal["static", "scratch"] = "static"
+
+    def __post_init__(self) -> None:
+        if self.biophysical_start not in ("static", "scratch"):
+            raise ValueError(
+                f"biophysical_start must be 'static' or 'scratch'; got {self.biophysical_start!r}"
+            )
 
     def to_json(self) -> dict[str, Any]:
         """The configuration as plain JSON values."""
@@ -264,7 +277,10 @@ def _process_frame(store: CaptureStore, folder: ResultFolder, frame: int, frames
         })
     if config.biophysical and not frame_folder.stage_complete("biophysical"):
         started = time.perf_counter()
-        summary = run_biophysical_stage(frame_folder, device=device, progress=False)
+        start_from = None  # a static RESULT without chromophores: the frame is fitted from scratch
+        if config.biophysical_start == "static" and folder.stage_complete("biophysical"):
+            start_from = folder
+        summary = run_biophysical_stage(frame_folder, device=device, progress=False, start_from=start_from)
         frame_folder.record_stage("biophysical", summary)
         timings["biophysical_s"] = time.perf_counter() - started
     if config.biophysical and not frame_folder.stage_complete("render"):

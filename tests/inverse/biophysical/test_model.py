@@ -162,3 +162,40 @@ def test_numpy_free_device_agnostic(table, calibration):
     rho = local_channel_albedo(params, table, calibration.weights.float())
     assert rho.dtype == torch.float64 and rho.device == params.device
     assert np.isfinite(rho.numpy()).all()
+
+
+def _blurred_on_whole_map(params, table, weights, shapes, texel_size_mm, mask):
+    """Independent reference: Eq. simple_sss on the whole map, totals of every texel masked to 0."""
+    from polarface.skin.heterogeneous import render_layered_subsurface
+
+    mask_t = mask.to(params.dtype)
+    totals = tuple((m * mask_t[..., None]).permute(2, 0, 1) for m in table.layer_totals(params))
+    light = mask_t[None].expand_as(totals[0])
+    spectral = render_layered_subsurface(light, totals, shapes, texel_size_mm, mask=light)
+    return spectral.permute(1, 2, 0) @ weights.to(spectral).T, spectral
+
+
+def test_blurred_small_mask_in_large_map_equals_whole_map_render(table, calibration):
+    """A mask in one corner of a large atlas (a frame seen by two cameras): rendering its bounding box
+    alone gives the whole map's render (no light leaves the mask), 0 outside the mask."""
+    g = torch.Generator().manual_seed(3)
+    params = torch.tensor([0.04, 0.1, 0.03, 0.06], dtype=torch.float64).expand(64, 80, 4).clone()
+    params = params + 0.02 * torch.rand(64, 80, 4, generator=g, dtype=torch.float64)
+    mask = torch.zeros(64, 80, dtype=torch.bool)
+    mask[5:40, 30:70] = True
+    mask[20:25, 40:50] = False  # a hole
+    shapes, _ = median_shapes(params, mask, table)
+    channels, spectral = blurred_channel_albedo(
+        params, table, calibration.weights, shapes, 0.25, mask, return_spectral=True
+    )
+    ref_channels, ref_spectral = _blurred_on_whole_map(params, table, calibration.weights, shapes, 0.25, mask)
+    assert channels.shape == (64, 80, 6) and spectral.shape == (table.wavelengths_nm.numel(), 64, 80)
+    assert torch.allclose(channels, ref_channels, atol=1e-12, rtol=1e-10)
+    assert torch.allclose(spectral, ref_spectral, atol=1e-12, rtol=1e-10)
+    assert float(channels[~mask].abs().max()) == 0.0
+    # a box far narrower than the widest Gaussian (the FFT blur shortens its kernel to the box)
+    tiny = torch.zeros(64, 80, dtype=torch.bool)
+    tiny[30:33, 30:33] = True
+    got = blurred_channel_albedo(params, table, calibration.weights, shapes, 0.05, tiny)
+    expected, _ = _blurred_on_whole_map(params, table, calibration.weights, shapes, 0.05, tiny)
+    assert torch.allclose(got, expected, atol=1e-12, rtol=1e-10)

@@ -5,7 +5,8 @@
 :mod:`~polarface.inverse.biophysical.model` (:class:`TotalsTable`, :func:`local_channel_albedo`,
 :func:`blurred_channel_albedo`). Modules: ``model`` (forward model and its Jacobian), ``local_fit``
 (bounded Levenberg-Marquardt per texel, gamut distance), ``fit`` (coarse-to-fine stages),
-``residuals`` (re-render residuals of the fitted maps).
+``residuals`` (re-render residuals of the fitted maps), ``warm_start`` (a previous fit as the start:
+a dynamic frame from the static result).
 """
 
 from polarface.inverse.biophysical.fit import (
@@ -24,11 +25,13 @@ from polarface.inverse.biophysical.model import (
     local_channel_albedo_with_jacobian,
 )
 from polarface.inverse.biophysical.residuals import per_texel_relative_residual, relative_rmse
+from polarface.inverse.biophysical.warm_start import BiophysicalStart, start_parameters
 
 __all__ = [
     "PARAMETER_ORDER",
     "BiophysicalConfig",
     "BiophysicalFit",
+    "BiophysicalStart",
     "TotalsTable",
     "blurred_channel_albedo",
     "check_parameter_maps",
@@ -40,4 +43,5 @@ __all__ = [
     "median_shapes",
     "per_texel_relative_residual",
     "relative_rmse",
+    "start_parameters",
 ]

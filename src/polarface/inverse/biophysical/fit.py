@@ -53,7 +53,8 @@ import torch.nn.functional as nnf
 
 from polarface._validation import as_float_tensor, check_range
 from polarface.inverse.biophysical.local_fit import fit_local_parameters, gamut_screen
-from polarface.inverse.biophysical.model import TotalsTable, blurred_channel_albedo
+from polarface.inverse.biophysical.model import TotalsTable, blurred_channel_albedo, local_channel_albedo
+from polarface.inverse.biophysical.warm_start import BiophysicalStart, start_parameters
 from polarface.skin.heterogeneous import ProfileShapes, fit_layer_shapes
 from polarface.skin.layers import SkinLayerConstants, _layer_optics
 from polarface.skin.sog import default_radial_grid
@@ -209,6 +210,7 @@ def fit_biophysical(
     *,
     stretch: torch.Tensor | None = None,
     progress: Callable[[str], None] | None = None,
+    start: BiophysicalStart | None = None,
 ) -> BiophysicalFit:
     """Recover chromophore maps and SoG shapes from ``rho_sss_bar`` (module docstring).
 
@@ -222,9 +224,13 @@ def fit_biophysical(
         config: :class:`BiophysicalConfig`.
         stretch: optional ``(H, W, 2)`` per-texel size / ``texel_size_mm`` (used if ``config.use_stretch``).
         progress: optional callback receiving a stage name after each step.
+        start: a previous fit on the same atlas (:class:`BiophysicalStart`: a dynamic frame's static
+            result); None fits from scratch. With it the coarse search is skipped and the fit starts
+            from, and is regularised towards, the previous maps (:mod:`.warm_start`).
 
     Raises:
-        ValueError: bad shapes, values outside [0, 1], NaN/inf, no valid texel.
+        ValueError: bad shapes, values outside [0, 1], NaN/inf, no valid texel, a ``start`` on
+            another atlas.
     """
     rho, mask_b = _checked_inputs(rho_sss_bar, mask, channel_weights, texel_size_mm)
     timings: dict[str, float] = {}
@@ -232,34 +238,46 @@ def fit_biophysical(
     weights = channel_weights.to(torch.float32)
 
     started = time.perf_counter()
-    coarse_rho, coarse_mask = _downsample(rho, mask_b, config.coarse_factor)
-    coarse_params = _local_fit(coarse_rho[coarse_mask], table, weights, config, config.coarse_iterations)
-    coarse = torch.zeros(*coarse_mask.shape, 4, device=rho.device)
-    coarse[coarse_mask] = coarse_params
+    coarse = None
+    if start is None:
+        coarse_rho, coarse_mask = _downsample(rho, mask_b, config.coarse_factor)
+        coarse = torch.zeros(*coarse_mask.shape, 4, device=rho.device)
+        coarse[coarse_mask] = _local_fit(coarse_rho[coarse_mask], table, weights, config,
+                                         config.coarse_iterations)
+        prior = _upsampled_coarse(coarse, coarse_mask, mask_b)
+    else:
+        prior = start_parameters(start, mask_b)
     timings["coarse_s"] = time.perf_counter() - started
     notify("coarse")
 
     started = time.perf_counter()
     local_target = rho[mask_b].clamp(1e-4, 0.999)
-    start, params_valid = _fine_local(local_target, coarse, coarse_mask, mask_b, table, weights, config)
+    params_valid = _local_fit(local_target, table, weights, config, config.fine_iterations, prior, prior)
     timings["fine_local_s"] = time.perf_counter() - started
     notify("fine-local")
 
     started = time.perf_counter()
-    screened = _screened_fit(rho, mask_b, local_target, start, params_valid, coarse, table, weights, config)
+    screened = _screened_fit(rho, mask_b, local_target, prior, params_valid, coarse, table, weights, config)
     params = torch.zeros(*mask_b.shape, 4, device=rho.device)
-    params[mask_b] = screened.params_valid
+    params[mask_b] = screened.params_valid if start is None else prior
     timings["gamut_s"] = time.perf_counter() - started
     notify("gamut")
 
     blur_stretch = stretch if config.use_stretch else None
+    shapes = None if start is None else start.shapes
     started = time.perf_counter()
     if config.albedo_model == "blurred":
-        _blurred_stage(params, mask_b, screened, table, weights, texel_size_mm, config, blur_stretch, notify)
+        # from scratch: the corrections start at the local fit; warm: at the previous fit's fixed point
+        target = None if start is None else local_channel_albedo(prior, table, weights).clamp(1e-4, 0.999)
+        _blurred_stage(params, mask_b, screened, table, weights, texel_size_mm, config, blur_stretch, notify,
+                       target=target, shapes=shapes)
+    elif start is not None:
+        params[mask_b] = screened.params_valid
     timings["fine_blurred_s"] = time.perf_counter() - started
 
     started = time.perf_counter()
-    shapes, _ = median_shapes(params, mask_b, table)  # the shapes of the final parameters
+    if shapes is None:
+        shapes, _ = median_shapes(params, mask_b, table)  # the shapes of the final parameters
     with torch.no_grad():
         rendered, spectral = _render(
             params, mask_b, table, weights, shapes, texel_size_mm, config, blur_stretch
@@ -317,21 +335,8 @@ def _screened_fit(
     if bool(out_of_gamut.any()):
         observed = torch.where(out_of_gamut[:, None], projection, observed)
         local_target = observed.clamp(1e-4, 0.999)
-        # The coarse maps (warm start and prior) come from the in-gamut texels only: an out-of-gamut
-        # value is no measurement of the region's skin, not even after projection (which sits on the
-        # gamut's edge, e.g. the whitest skin for a saturated fit). With no in-gamut texel at all the
-        # first coarse maps are kept.
-        reliable = mask_b.clone()
-        reliable[mask_b] = ~out_of_gamut
-        coarse_rho, coarse_mask = _downsample(rho, reliable, config.coarse_factor)
-    if bool(out_of_gamut.any()) and bool(coarse_mask.any()):
-        coarse_params = _local_fit(
-            coarse_rho[coarse_mask], table, weights, config, config.coarse_iterations, coarse[coarse_mask]
-        )
-        coarse = torch.zeros_like(coarse)
-        coarse[coarse_mask] = coarse_params
-        median = coarse[coarse_mask].median(dim=0).values
-        start = _upsample(coarse, coarse_mask, tuple(mask_b.shape), median.float())[mask_b]
+        if coarse is not None:  # a warm start's prior (the previous maps) stays
+            start = _in_gamut_coarse_prior(rho, mask_b, out_of_gamut, coarse, table, weights, config, start)
     # Refine (with the prior) the texels whose target, prior or parameters changed; the others would
     # solve the same problem again.
     todo = refitted | out_of_gamut | ((start - prior).abs().amax(-1) > 1e-7)
@@ -344,11 +349,32 @@ def _screened_fit(
     return _Screened(params_valid, observed, local_target, start, out_of_gamut, distance, projection)
 
 
-def _blurred_stage(params, mask_b, screened, table, weights, texel_size_mm, config, stretch, notify) -> None:
-    """Residual correction of the blurred model (module docstring, stage 3), in place on ``params``."""
-    target, prior = screened.local_target.clone(), screened.start
+def _in_gamut_coarse_prior(rho, mask_b, out_of_gamut, coarse, table, weights, config, start) -> torch.Tensor:
+    """The coarse maps (warm start and prior ``(N, 4)``) re-fitted from the in-gamut texels only: an
+    out-of-gamut value is no measurement of the region's skin, not even after projection (which sits on
+    the gamut's edge, e.g. the whitest skin for a saturated fit). With no in-gamut texel at all the
+    first coarse maps (``start``) are kept."""
+    reliable = mask_b.clone()
+    reliable[mask_b] = ~out_of_gamut
+    coarse_rho, coarse_mask = _downsample(rho, reliable, config.coarse_factor)
+    if not bool(coarse_mask.any()):
+        return start
+    refitted = torch.zeros_like(coarse)
+    refitted[coarse_mask] = _local_fit(
+        coarse_rho[coarse_mask], table, weights, config, config.coarse_iterations, coarse[coarse_mask]
+    )
+    return _upsampled_coarse(refitted, coarse_mask, mask_b)
+
+
+def _blurred_stage(params, mask_b, screened, table, weights, texel_size_mm, config, stretch, notify, *,
+                   target=None, shapes=None) -> None:
+    """Residual correction of the blurred model (module docstring, stage 3), in place on ``params``;
+    ``target`` ``(N, C)``: the first local targets (default: the input's), ``shapes``: fixed SoG shapes
+    (default: re-fitted at the median texel every round)."""
+    target = screened.local_target.clone() if target is None else target
+    prior, fixed_shapes = screened.start, shapes
     for _ in range(config.shape_rounds):
-        shapes, _ = median_shapes(params, mask_b, table)
+        shapes = fixed_shapes if fixed_shapes is not None else median_shapes(params, mask_b, table)[0]
         for _ in range(config.correction_iterations):
             with torch.no_grad():
                 rendered = blurred_channel_albedo(
@@ -409,13 +435,11 @@ def _local_fit(target, table, weights, config, iterations, start=None, prior=Non
     return params
 
 
-def _fine_local(target, coarse, coarse_mask, mask_b, table, weights, config):
-    """Full-resolution local refinement warm-started from the upsampled coarse maps.
-
-    Returns ``(prior (N, 4), parameters (N, 4))`` over the valid texels."""
+def _upsampled_coarse(coarse, coarse_mask, mask_b) -> torch.Tensor:
+    """The coarse maps upsampled to the ``N`` valid texels ``(N, 4)`` (holes: the coarse median): the
+    full-resolution fit's start and prior."""
     median = coarse[coarse_mask].median(dim=0).values
-    start = _upsample(coarse, coarse_mask, tuple(mask_b.shape), median.float())[mask_b]
-    return start, _local_fit(target, table, weights, config, config.fine_iterations, start, start)
+    return _upsample(coarse, coarse_mask, tuple(mask_b.shape), median.float())[mask_b]
 
 
 def _render(params, mask_b, table, weights, shapes, texel_size_mm, config, stretch):

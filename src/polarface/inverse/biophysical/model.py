@@ -36,6 +36,7 @@ import math
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as nnf
 
 from polarface._validation import as_float_tensor, check_range
 from polarface.skin.heterogeneous import ProfileShapes, render_layered_subsurface
@@ -302,14 +303,43 @@ def blurred_channel_albedo(
     Supplement Eq. simple_sss: the per-texel totals of ``parameters`` ``(H, W, 4)`` scale the light at
     each layer, the fixed normalised SoG ``shapes`` (``(L, J)`` weights) blur it in texture space
     (``texel_size_mm`` mm per texel, optional ``stretch`` ``(H, W, 2)``, light kept inside ``mask``
-    ``(H, W)``). Differentiable. With ``return_spectral`` also returns the ``(L, H, W)`` spectra.
+    ``(H, W)``). Differentiable. With ``return_spectral`` also returns the ``(L, H, W)`` spectra; both
+    are 0 outside ``mask``.
+
+    The totals are evaluated on the masked texels only and the blur runs on the mask's bounding box
+    (no light leaves the mask, and the blur pads with zeros), so a small mask in a large atlas (a
+    frame seen by two cameras) costs what its texels cost: same values up to float rounding.
     """
-    maps = table.layer_totals(parameters)  # each (H, W, L)
-    mask_t = mask.to(parameters.dtype)
-    totals = tuple((m * mask_t[..., None]).permute(2, 0, 1) for m in maps)  # (L, H, W)
-    irradiance = mask_t[None].expand_as(totals[0])
+    mask_b = mask.bool()
+    height, width = mask_b.shape
+    box = _render_box(mask_b, stretch)
+    sub_mask = mask_b[box]
+    rows, cols = torch.nonzero(sub_mask, as_tuple=True)
+    maps = table.layer_totals(parameters[box][rows, cols])  # each (N, L)
+    count = maps[0].shape[-1]
+
+    def scattered(values: torch.Tensor) -> torch.Tensor:  # (N, L) -> (L, h, w), zero off the mask
+        grid = values.new_zeros(*sub_mask.shape, count)
+        return grid.index_put((rows, cols), values).permute(2, 0, 1)
+
+    totals = tuple(scattered(m) for m in maps)
+    mask_t = sub_mask.to(totals[0].dtype)[None].expand_as(totals[0])
+    sub_stretch = None if stretch is None else stretch[box]
     spectral = render_layered_subsurface(
-        irradiance, totals, shapes, texel_size_mm, stretch=stretch, mask=mask_t[None].expand_as(totals[0])
+        mask_t, totals, shapes, texel_size_mm, stretch=sub_stretch, mask=mask_t
     )
     channels = spectral.permute(1, 2, 0) @ channel_weights.to(spectral).T
-    return (channels, spectral) if return_spectral else channels
+    padding = (box[1].start, width - box[1].stop, box[0].start, height - box[0].stop)
+    channels = nnf.pad(channels.permute(2, 0, 1), padding).permute(1, 2, 0)
+    return (channels, nnf.pad(spectral, padding)) if return_spectral else channels
+
+
+def _render_box(mask: torch.Tensor, stretch: torch.Tensor | None) -> tuple[slice, slice]:
+    """The bounding box of ``mask`` ``(H, W)`` bool, where blurring it alone equals blurring the whole
+    map (:func:`blurred_channel_albedo`: the FFT blur pads with zeros and its texel-integrated kernel
+    taps do not depend on the map's size); the whole map with a ``stretch`` or an empty mask."""
+    if stretch is not None or not bool(mask.any()):
+        return slice(0, mask.shape[0]), slice(0, mask.shape[1])
+    rows = torch.nonzero(mask.any(1))[:, 0]
+    cols = torch.nonzero(mask.any(0))[:, 0]
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
