@@ -32,6 +32,9 @@ def _stage_rows(stages: dict[str, Any]) -> list[tuple[str, float]]:
     if geometry:
         rows += [("geometry (stereo pairs -> meshes, poses, atlas)", geometry.get("total_s", 0.0)),
                  ("  stereo and frame meshes", geometry.get("stereo_and_frame_meshes_s", 0.0))]
+        parts = (("registration_s", "registration (ICP, pose graph)"), ("fusion_s", "fusion"),
+                 ("reference_mesh_and_atlas_s", "reference mesh and atlas"), ("report_s", "previews"))
+        rows += [(f"  {label}", geometry[key]) for key, label in parts if key in geometry]
     rows.append(("prepare (unwrap into texture space)", stages.get("prepare", {}).get("timings", {})
                  .get("prepare_s", 0.0)))
     polarimetric = stages.get("polarimetric", {}).get("timings", {})
