@@ -102,6 +102,28 @@ def test_obj_seams_are_split(tmp_path):
         np.testing.assert_allclose(mesh.uv[mesh.faces[face_index]], uv_expected)
 
 
+@pytest.mark.parametrize(
+    "variant",
+    [
+        lambda line: "  " + line,  # leading blanks: the line-by-line parser
+        lambda line: line.replace(" ", "\t"),  # tabs: the line-by-line parser
+        lambda line: " ".join(c + "/1" if "/" in c else c for c in line.split()) if line[0] == "f" else line,
+    ],
+    ids=["indented", "tabs", "normals"],
+)
+def test_obj_written_irregularly_loads_as_the_regular_file(tmp_path, uv_sphere, variant):
+    """numpy's reader takes regular files, the line-by-line parser any other: the same mesh either way
+    (``f v/vt/vn`` with normals, a repeated ``vt`` value: one vertex per distinct uv value)."""
+    save_obj(tmp_path / "regular.obj", uv_sphere)
+    lines = (tmp_path / "regular.obj").read_text().splitlines()
+    keywords = ("v", "vt", "f")
+    lines = [variant(line) if line.split() and line.split()[0] in keywords else line for line in lines]
+    (tmp_path / "irregular.obj").write_text("\n".join(["vn 0 0 1", *lines]) + "\n")
+    regular, irregular = load_mesh(tmp_path / "regular.obj"), load_mesh(tmp_path / "irregular.obj")
+    for name in ("vertices", "faces", "uv", "normals"):
+        assert np.array_equal(getattr(regular, name), getattr(irregular, name)), name
+
+
 def test_load_bundled_glb_v_convention():
     raw = trimesh.load(head_data_dir() / "LeePerrySmith.glb", process=False).to_geometry()
     mesh = load_mesh(head_data_dir() / "LeePerrySmith.glb")
