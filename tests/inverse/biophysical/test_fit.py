@@ -11,7 +11,6 @@ import torch.nn.functional as nnf
 
 from polarface.inverse.biophysical import (
     BiophysicalConfig,
-    TotalsTable,
     blurred_channel_albedo,
     fit_biophysical,
     fit_local_parameters,
@@ -20,13 +19,6 @@ from polarface.inverse.biophysical import (
     median_shapes,
 )
 from polarface.skin.layers import PARAMETER_RANGES
-from polarface.skin.spectral import default_spectral_calibration
-
-
-@pytest.fixture(scope="module")
-def setup():
-    calibration = default_spectral_calibration()
-    return TotalsTable(calibration.wavelengths_nm), calibration.weights.float()
 
 
 def smooth_maps(size: int = 32) -> tuple[torch.Tensor, torch.Tensor]:

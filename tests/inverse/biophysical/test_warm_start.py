@@ -8,21 +8,13 @@ import torch
 from polarface.inverse.biophysical import (
     BiophysicalConfig,
     BiophysicalStart,
-    TotalsTable,
     blurred_channel_albedo,
     fit_biophysical,
     median_shapes,
     start_parameters,
 )
-from polarface.skin.spectral import default_spectral_calibration
 
 TEXEL_MM = 0.4
-
-
-@pytest.fixture(scope="module")
-def setup():
-    calibration = default_spectral_calibration()
-    return TotalsTable(calibration.wavelengths_nm), calibration.weights.float()
 
 
 def _static_truth(size: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
