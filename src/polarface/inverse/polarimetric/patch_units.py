@@ -234,12 +234,13 @@ def run_patch_unit(unit: PatchUnit) -> PatchResult:
 
 def _store_identity(path: str, cache_bytes: int) -> tuple:
     """What tells a store apart from one written again at the same path: the local folder's and its
-    metadata file's inode and modification time (a URL: its path only)."""
+    metadata file's inode, modification and status-change times (a copy keeps the modification time and
+    may get a freed inode again, not the status-change time; a URL: its path only)."""
     stamps = []
     for candidate in (path, os.path.join(path, "zarr.json"), os.path.join(path, ".zattrs")):
         with contextlib.suppress(OSError):
             status = os.stat(candidate)
-            stamps.append((status.st_ino, status.st_mtime_ns))
+            stamps.append((status.st_ino, status.st_mtime_ns, status.st_ctime_ns))
     return (path, cache_bytes, tuple(stamps))
 
 
