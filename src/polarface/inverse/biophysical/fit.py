@@ -49,11 +49,11 @@ from collections.abc import Callable
 from typing import Literal
 
 import torch
-import torch.nn.functional as nnf
 
 from polarface._validation import as_float_tensor, check_range
 from polarface.inverse.biophysical.local_fit import fit_local_parameters, gamut_screen
 from polarface.inverse.biophysical.model import TotalsTable, blurred_channel_albedo, local_channel_albedo
+from polarface.inverse.biophysical.resample import downsample_masked, upsampled_coarse
 from polarface.inverse.biophysical.warm_start import BiophysicalStart, start_parameters
 from polarface.skin.heterogeneous import ProfileShapes, fit_layer_shapes
 from polarface.skin.layers import SkinLayerConstants, _layer_optics
@@ -177,29 +177,6 @@ def median_shapes(
     return shapes, median
 
 
-def _downsample(maps: torch.Tensor, mask: torch.Tensor, factor: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mask-weighted area average ``(H, W, C)`` -> ``(H/f, W/f, C)`` and the coarse mask."""
-    weight = mask.to(maps.dtype)[None, None]
-    summed = nnf.avg_pool2d(
-        (maps * mask.to(maps.dtype)[..., None]).permute(2, 0, 1)[None], factor, ceil_mode=True
-    )
-    coverage = nnf.avg_pool2d(weight, factor, ceil_mode=True)
-    coarse = (summed / coverage.clamp_min(1e-12))[0].permute(1, 2, 0)
-    return coarse, coverage[0, 0] > 0.25
-
-
-def _upsample(
-    maps: torch.Tensor, mask: torch.Tensor, shape: tuple[int, int], fill: torch.Tensor
-) -> torch.Tensor:
-    """Mask-normalised bilinear upsampling ``(h, w, C)`` -> ``(H, W, C)``; holes take ``fill``."""
-    weight = mask.to(maps.dtype)[None, None]
-    values = (maps * weight[0, 0][..., None]).permute(2, 0, 1)[None]
-    up = nnf.interpolate(values, size=shape, mode="bilinear", align_corners=False)
-    up_weight = nnf.interpolate(weight, size=shape, mode="bilinear", align_corners=False)
-    out = (up / up_weight.clamp_min(1e-12))[0].permute(1, 2, 0)
-    return torch.where(up_weight[0, 0][..., None] > 1e-6, out, fill.to(out))
-
-
 def fit_biophysical(
     rho_sss_bar: torch.Tensor,
     mask: torch.Tensor,
@@ -240,11 +217,11 @@ def fit_biophysical(
     started = time.perf_counter()
     coarse = None
     if start is None:
-        coarse_rho, coarse_mask = _downsample(rho, mask_b, config.coarse_factor)
+        coarse_rho, coarse_mask = downsample_masked(rho, mask_b, config.coarse_factor)
         coarse = torch.zeros(*coarse_mask.shape, 4, device=rho.device)
         coarse[coarse_mask] = _local_fit(coarse_rho[coarse_mask], table, weights, config,
                                          config.coarse_iterations)
-        prior = _upsampled_coarse(coarse, coarse_mask, mask_b)
+        prior = upsampled_coarse(coarse, coarse_mask, mask_b)
     else:
         prior = start_parameters(start, mask_b)
     timings["coarse_s"] = time.perf_counter() - started
@@ -258,8 +235,10 @@ def fit_biophysical(
 
     started = time.perf_counter()
     screened = _screened_fit(rho, mask_b, local_target, prior, params_valid, coarse, table, weights, config)
+    # the blurred corrections start from scratch at the local fit, warm at the previous fit's fixed point
+    warm_blurred = start is not None and config.albedo_model == "blurred"
     params = torch.zeros(*mask_b.shape, 4, device=rho.device)
-    params[mask_b] = screened.params_valid if start is None else prior
+    params[mask_b] = prior if warm_blurred else screened.params_valid
     timings["gamut_s"] = time.perf_counter() - started
     notify("gamut")
 
@@ -267,12 +246,9 @@ def fit_biophysical(
     shapes = None if start is None else start.shapes
     started = time.perf_counter()
     if config.albedo_model == "blurred":
-        # from scratch: the corrections start at the local fit; warm: at the previous fit's fixed point
-        target = None if start is None else local_channel_albedo(prior, table, weights).clamp(1e-4, 0.999)
+        target = local_channel_albedo(prior, table, weights).clamp(1e-4, 0.999) if warm_blurred else None
         _blurred_stage(params, mask_b, screened, table, weights, texel_size_mm, config, blur_stretch, notify,
-                       target=target, shapes=shapes)
-    elif start is not None:
-        params[mask_b] = screened.params_valid
+                       target=target, fixed_shapes=shapes)
     timings["fine_blurred_s"] = time.perf_counter() - started
 
     started = time.perf_counter()
@@ -356,23 +332,22 @@ def _in_gamut_coarse_prior(rho, mask_b, out_of_gamut, coarse, table, weights, co
     first coarse maps (``start``) are kept."""
     reliable = mask_b.clone()
     reliable[mask_b] = ~out_of_gamut
-    coarse_rho, coarse_mask = _downsample(rho, reliable, config.coarse_factor)
+    coarse_rho, coarse_mask = downsample_masked(rho, reliable, config.coarse_factor)
     if not bool(coarse_mask.any()):
         return start
     refitted = torch.zeros_like(coarse)
     refitted[coarse_mask] = _local_fit(
         coarse_rho[coarse_mask], table, weights, config, config.coarse_iterations, coarse[coarse_mask]
     )
-    return _upsampled_coarse(refitted, coarse_mask, mask_b)
+    return upsampled_coarse(refitted, coarse_mask, mask_b)
 
 
 def _blurred_stage(params, mask_b, screened, table, weights, texel_size_mm, config, stretch, notify, *,
-                   target=None, shapes=None) -> None:
+                   target=None, fixed_shapes=None) -> None:
     """Residual correction of the blurred model (module docstring, stage 3), in place on ``params``;
-    ``target`` ``(N, C)``: the first local targets (default: the input's), ``shapes``: fixed SoG shapes
+    ``target`` ``(N, C)``: the first local targets (default: the input's), ``fixed_shapes``: SoG shapes
     (default: re-fitted at the median texel every round)."""
     target = screened.local_target.clone() if target is None else target
-    prior, fixed_shapes = screened.start, shapes
     for _ in range(config.shape_rounds):
         shapes = fixed_shapes if fixed_shapes is not None else median_shapes(params, mask_b, table)[0]
         for _ in range(config.correction_iterations):
@@ -382,7 +357,8 @@ def _blurred_stage(params, mask_b, screened, table, weights, texel_size_mm, conf
                 )
             target = (target + screened.observed - rendered[mask_b]).clamp(1e-4, 0.999)
             params[mask_b] = _local_fit(
-                target, table, weights, config, config.correction_lm_iterations, params[mask_b], prior
+                target, table, weights, config, config.correction_lm_iterations, params[mask_b],
+                screened.start,
             )
         notify("fine-blurred")
 
@@ -433,13 +409,6 @@ def _local_fit(target, table, weights, config, iterations, start=None, prior=Non
         prior_weight=config.prior_weight,
     )
     return params
-
-
-def _upsampled_coarse(coarse, coarse_mask, mask_b) -> torch.Tensor:
-    """The coarse maps upsampled to the ``N`` valid texels ``(N, 4)`` (holes: the coarse median): the
-    full-resolution fit's start and prior."""
-    median = coarse[coarse_mask].median(dim=0).values
-    return _upsample(coarse, coarse_mask, tuple(mask_b.shape), median.float())[mask_b]
 
 
 def _render(params, mask_b, table, weights, shapes, texel_size_mm, config, stretch):
