@@ -44,6 +44,7 @@ import numpy as np
 
 from polarface.capture.store import CaptureStore
 from polarface.executors import Executor, LocalExecutor, UnitOutcome, map_units_with_progress
+from polarface.executors.timing import StageClock
 from polarface.geometry.atlas import (
     CylindricalAtlasConfig,
     cylindrical_atlas,
@@ -336,16 +337,16 @@ def reconstruct_geometry(
         return load_point_cloud(_paths(out, frame)[0])
 
     timings = {"stereo_and_frame_meshes_s": stereo_s}
-    lap = _lap_timer(timings)
+    clock = StageClock(timings)
     registration = register_sequence(usable, load, reference, config.registration, progress=progress)
     poses = _all_poses(frames, usable, registration.poses)
-    lap("registration_s")
+    clock.lap("registration_s")
     fused = fuse_registered(usable, load, registration, config.reference_voxel_mm)
-    lap("fusion_s")
+    clock.lap("fusion_s")
     atlas = _reference_atlas(store, poses, frames.index(reference), fused, config)
     save_obj(out / "mesh.obj", atlas.mesh)
     save_poses(out / "poses.json", poses)
-    lap("reference_mesh_and_atlas_s")
+    clock.lap("reference_mesh_and_atlas_s")
     timings["total_s"] = time.perf_counter() - started  # the report page shows this one
     rejected = {str(f): reason for f, reason in {**failed, **registration.rejected}.items()}
     summary = {
@@ -363,29 +364,10 @@ def reconstruct_geometry(
     from polarface.report.geometry import write_geometry_report
 
     write_geometry_report(out, summary, atlas.mesh, poses, store.rig, frames)
-    lap("report_s")
+    clock.lap("report_s")
     timings["total_s"] = time.perf_counter() - started  # with the report
     write_json_atomic(out / GEOMETRY_JSON, summary)
     return summary
-
-
-def _write_depth_previews(out: Path, first: FrameGeometry | None) -> None:
-    """The reference frame's depth and confidence previews (``first``: None when it was done before)."""
-    if first is not None:
-        from polarface.report.geometry import write_depth_previews
-
-        write_depth_previews(out / "previews", first.pairs)
-
-
-def _lap_timer(timings: dict[str, float]):
-    """``lap(name)`` records into ``timings[name]`` the wall seconds since the previous lap (or this call)."""
-    last = [time.perf_counter()]
-
-    def lap(name: str) -> None:
-        now = time.perf_counter()
-        timings[name], last[0] = now - last[0], now
-
-    return lap
 
 
 def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: int, config: GeometryConfig,
@@ -428,11 +410,16 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
         placements[str(frame)] = outcome.placement()
         save()
 
+    previews = None  # the reference frame's depth previews, unless it was done before
     with ThreadPoolExecutor(max_workers=1) as thread:  # previews overlap the units, not delay them
-        previews = thread.submit(_write_depth_previews, out, first)
+        if first is not None:
+            from polarface.report.geometry import write_depth_previews
+
+            previews = thread.submit(write_depth_previews, out / "previews", first.pairs)
         run_stereo_units(executor, units, record, desc="geometry: stereo", total=len(frames),
                          progress=progress)
-    previews.result()
+    if previews is not None:
+        previews.result()
     return {str(frame): entries[str(frame)] for frame in frames}
 
 

@@ -32,6 +32,7 @@ from polarface.capture.analyzers import measured_analyzer_intensities
 from polarface.capture.rig import Camera, Rig
 from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
 from polarface.capture.store import CaptureStore
+from polarface.executors.timing import StageClock
 from polarface.geometry.mesh import TriangleMesh, save_ply
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster, reposition
@@ -91,20 +92,6 @@ class RenderedFrame:
     shading_normal: np.ndarray
 
 
-class _StageClock:
-    """Adds the seconds since the previous :meth:`lap` to ``timings[name]`` (None: records nothing)."""
-
-    def __init__(self, timings: dict[str, float] | None) -> None:
-        self.timings = timings
-        self.last = time.perf_counter()
-
-    def lap(self, name: str) -> None:
-        now = time.perf_counter()
-        if self.timings is not None:
-            self.timings[name] = self.timings.get(name, 0.0) + now - self.last
-        self.last = now
-
-
 def render_frame(
     scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps, subsurface: SubsurfaceModel,
     timings: dict[str, float] | None = None,
@@ -113,7 +100,7 @@ def render_frame(
 
     ``timings``: adds the seconds of each stage (:data:`FRAME_STAGES`, render part) to it.
     """
-    clock = _StageClock(timings)
+    clock = StageClock(timings)
     caster = RayCaster(mesh_world)
     raster = reposition(scene.raster, mesh_world)
     shading = shading_normals(raster, maps.displacement_mm)
@@ -227,7 +214,7 @@ def write_frame(scene: SimulationScene, out: Path, sequence: str, index: int, ti
     :meth:`ObservationWriter.mark_done`, with its one handle on the attributes).
     ``timings``: adds the seconds of each stage (:data:`FRAME_STAGES`, write part) to it.
     """
-    clock = _StageClock(timings)
+    clock = StageClock(timings)
     gt = out / "ground_truth"
     store = CaptureStore.open_writer(out / sequence)
     raws = _raw_frames(scene, frame, sequence, index)
