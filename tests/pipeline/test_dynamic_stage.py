@@ -17,7 +17,8 @@ from polarface.capture.store import CaptureStore
 from polarface.cli import main
 from polarface.io import read_exr, write_png
 from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
-from polarface.pipeline.dynamic import DynamicStageConfig, parse_frame_selection, reconstruct_dynamic
+from polarface.pipeline.dynamic import DynamicStageConfig, reconstruct_dynamic
+from polarface.pipeline.dynamic_inputs import parse_frame_selection
 from polarface.results import ResultFolder
 from polarface.simulate.pipeline import SimulationConfig, simulate
 

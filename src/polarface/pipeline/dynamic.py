@@ -55,19 +55,21 @@ from polarface.geometry.poses import invert_rigid
 from polarface.geometry.registration import RegistrationConfig
 from polarface.geometry.tracking import TrackingConfig, load_tracked
 from polarface.inverse.polarimetric.dynamic import DynamicConfig
-from polarface.io import json_values, storage_path
+from polarface.io import json_values
 from polarface.pipeline.dynamic_geometry import TrackingFolder, align_reference, stereo_pass, track_sequence
-from polarface.pipeline.geometry import GeometryConfig, check_stereo_pairs
-from polarface.pipeline.reconstruct_inputs import check_capture_manifest
+from polarface.pipeline.dynamic_inputs import (
+    check_static_result,
+    open_dynamic_capture,
+    parse_frame_selection,
+    resolve_dynamic_capture,
+)
+from polarface.pipeline.geometry import GeometryConfig
 from polarface.results import ResultFolder, layout
 
 __all__ = [
     "DynamicStageConfig",
     "FrameUnit",
-    "open_dynamic_capture",
-    "parse_frame_selection",
     "reconstruct_dynamic",
-    "resolve_dynamic_capture",
     "run_frame_unit",
 ]
 
@@ -114,88 +116,6 @@ class DynamicStageConfig:
     def to_json(self) -> dict[str, Any]:
         """The configuration as plain JSON values."""
         return json_values(dataclasses.asdict(self))
-
-
-def resolve_dynamic_capture(path: str | Path) -> Path:
-    """The dynamic capture store of ``path``: a capture store, or a simulation folder (``SIM/dynamic``).
-
-    Raises:
-        FileNotFoundError: ``path`` does not exist. ValueError: it is not a capture store.
-    """
-    path = storage_path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"dynamic capture '{path}' does not exist")
-    if (path / "dynamic" / "manifest.json").is_file():
-        path = path / "dynamic"
-    if (path / "imported.json").is_file():  # an imported authors' session (pipeline.dynamic_imported)
-        return path
-    if not (path / "manifest.json").is_file():
-        raise ValueError(f"'--dynamic {path}' is not a capture store (no manifest.json)")
-    return path
-
-
-def parse_frame_selection(spec: str | Sequence[int] | None, frames: Sequence[int]) -> list[int]:
-    """Frames selected by ``spec`` (``"0-4,7"``, a list of indices, or None for all) among ``frames``.
-
-    Raises:
-        ValueError: a malformed spec, or a frame that is not in the capture (naming ``--frames``).
-    """
-    frames = [int(f) for f in frames]
-    if spec is None:
-        return frames
-    chosen: set[int] = set()
-    if isinstance(spec, str):
-        for part in (p.strip() for p in spec.split(",")):
-            try:
-                if "-" in part[1:]:
-                    low, high = part.split("-", 1) if not part.startswith("-") else ("", part)
-                    chosen.update(range(int(low), int(high) + 1))
-                else:
-                    chosen.add(int(part))
-            except ValueError:
-                raise ValueError(
-                    f"argument '--frames': {spec!r} is not a list of frames and ranges (e.g. '0-4,7')"
-                ) from None
-    else:
-        chosen = {int(f) for f in spec}
-    unknown = sorted(chosen - set(frames))
-    if unknown:
-        raise ValueError(f"argument '--frames': frame(s) {unknown} are not in the dynamic capture {frames}")
-    return [f for f in frames if f in chosen]
-
-
-def _check_static_result(folder: ResultFolder) -> None:
-    required = (folder.rig_path, folder.mesh_path, folder.map_path("eta"), folder.map_path("mask", ".png"))
-    missing = [path for path in required if not path.is_file()]
-    if missing or not folder.stage_complete("polarimetric"):
-        what = f"'{missing[0]}' is missing" if missing else "its polarimetric stage is not complete"
-        raise ValueError(
-            f"'{folder.root}' holds no static result ({what}); the dynamic stage needs one: run "
-            "'polarface reconstruct STATIC_CAPTURE --out RESULT' first (or add '--dynamic' to it)"
-        )
-
-
-def open_dynamic_capture(capture: Path, rig, rig_path: Path,
-                         frames: str | Sequence[int] | None = None) -> CaptureStore:
-    """The dynamic capture store, checked: finished, its rig's geometry equal to ``rig`` (the static
-    capture's, read from ``rig_path``; :meth:`polarface.capture.rig.Rig.geometry_differences`), stereo
-    pairs that rectify, and ``frames`` among its frames (:func:`parse_frame_selection`).
-
-    Raises:
-        ValueError: naming the rig files and the differing fields, or the bad selection.
-    """
-    store = CaptureStore.open(capture)
-    check_capture_manifest(store)
-    differences = store.rig.geometry_differences(rig)
-    if differences:
-        more = f" (+{len(differences) - 6} more)" if len(differences) > 6 else ""
-        raise ValueError(
-            f"the rig of the dynamic capture '{store.root / 'rig.json'}' differs from the static one "
-            f"'{rig_path}': {', '.join(differences[:6])}{more}; reconstruct captures of one rig"
-        )
-    check_stereo_pairs(store)
-    parse_frame_selection(frames, [record.index for record in store.frames])
-    return store
 
 
 def _static_inputs(folder: ResultFolder) -> tuple[dict[str, np.ndarray], np.ndarray, Any]:
@@ -382,7 +302,7 @@ def reconstruct_dynamic(
     started = time.perf_counter()
     executor = executor or LocalExecutor()
     folder = ResultFolder(result_dir)
-    _check_static_result(folder)
+    check_static_result(folder)
     store = open_dynamic_capture(resolve_dynamic_capture(capture), folder.read_rig(), folder.rig_path, frames)
     records = {record.index: record for record in store.frames}
     all_frames = sorted(records)

@@ -21,14 +21,8 @@ import numpy as np
 from tqdm import tqdm
 
 from polarface.geometry.mesh import load_mesh
-from polarface.pipeline.dynamic import (
-    DynamicStageConfig,
-    _check_static_result,
-    _frame_done,
-    _process_frame,
-    _static_inputs,
-    parse_frame_selection,
-)
+from polarface.pipeline.dynamic import DynamicStageConfig, _frame_done, _process_frame, _static_inputs
+from polarface.pipeline.dynamic_inputs import check_static_result, parse_frame_selection
 from polarface.pipeline.import_authors import copy_unwrap_store, read_imported
 from polarface.results import ResultFolder
 
@@ -61,7 +55,7 @@ def reconstruct_dynamic_imported(
     started = time.perf_counter()
     config = config or DynamicStageConfig()
     folder = ResultFolder(result_dir)
-    _check_static_result(folder)
+    check_static_result(folder)
     record = read_imported(imported, "dynamic")
     all_frames = list(range(len(record["frames"])))
     selected = parse_frame_selection(frames, all_frames)

@@ -18,7 +18,7 @@ from typing import Any
 from polarface.export import EXPORT_FORMATS, ExportOptions, ExportSource
 from polarface.io import write_json_atomic
 from polarface.io.storage import PathOrUrl
-from polarface.pipeline.dynamic import parse_frame_selection
+from polarface.pipeline.dynamic_inputs import parse_frame_selection
 from polarface.results import ResultFolder
 
 __all__ = ["EXPORT_FORMAT", "EXPORT_JSON", "EXPORT_VERSION", "export_result", "write_export_viewer"]

@@ -271,7 +271,7 @@ def prepare_imported(imported: Path, folder, holdout_every: int) -> dict[str, An
 def check_imported_inputs(static: Path, dynamic: Path | None, frames: str | None) -> None:
     """Refuse, before anything is written, a reconstruction mixing an imported session with a capture
     store, an unfinished import, or a dynamic import whose texture differs from the static one's."""
-    from polarface.pipeline.dynamic import parse_frame_selection
+    from polarface.pipeline.dynamic_inputs import parse_frame_selection
 
     if not is_imported_session(static):
         raise ValueError(f"'--dynamic {dynamic}' is an imported authors' session: the static input must be "

@@ -432,7 +432,7 @@ def reconstruct(
         geometry_dir=geometry_dir, stereo=stereo, view_check=view_check,
     )
     if dynamic is not None:
-        from polarface.pipeline.dynamic import resolve_dynamic_capture
+        from polarface.pipeline.dynamic_inputs import resolve_dynamic_capture
 
         ctx.dynamic = resolve_dynamic_capture(dynamic)
     elif frames is not None:
@@ -451,7 +451,7 @@ def reconstruct(
         else:
             store = _open_capture(ctx) if stereo else _load_geometry(ctx)[0]
         if ctx.dynamic is not None and not is_imported_session(ctx.dynamic):  # finished, same rig, frames
-            from polarface.pipeline.dynamic import open_dynamic_capture
+            from polarface.pipeline.dynamic_inputs import open_dynamic_capture
 
             open_dynamic_capture(ctx.dynamic, store.rig, store.root / "rig.json", ctx.frames)
         if executor is not None:  # an unreachable cluster is refused here
