@@ -256,8 +256,10 @@ def test_resume_refuses_other_options_or_capture(sim, tmp_path, capsys):
                  "--texture-resolution", "8"]) == 2
     assert "'texture_resolution' was 16, now 8" in capsys.readouterr().err
     assert (out / "result.json").read_bytes() == before
-    # the same options (threads and device do not count) resume fine
-    assert main(_args(sim, out, "--iterations", "3", "--resume", "--threads", "2")) == 0
+    # the same options (threads, device and the chunk cache's size do not count) resume fine
+    assert "unwrap_cache_mb" not in recorded["options"]
+    assert main(_args(sim, out, "--iterations", "3", "--resume", "--threads", "2",
+                      "--unwrap-cache-mb", "0")) == 0
 
 
 def test_resume_mid_fit_with_other_iterations_is_refused(sim, tmp_path):

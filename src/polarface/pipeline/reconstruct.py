@@ -301,7 +301,8 @@ def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
     """What changes the result: capture, mesh, poses, texture resolution, hold-out and fit options.
 
     The device and the thread count are left out (they change float rounding only, not what is
-    fitted); progress bars too. Keys: ``docs/result_folder.md``, "Resume fingerprint".
+    fitted); progress bars and the memory-only ``unwrap_cache_mb`` too. Keys: ``docs/result_folder.md``,
+    "Resume fingerprint".
     """
     from polarface.inverse.polarimetric import PolarimetricConfig
     from polarface.results.fingerprint import capture_identity, file_identity
@@ -323,7 +324,10 @@ def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
         **geometry,
         "texture_resolution": int(ctx.texture_resolution),
         "holdout_every": int(ctx.holdout_every),
-        "options": json_values(dataclasses.asdict(PolarimetricConfig(**ctx.fit_options))),
+        "options": json_values(
+            {k: v for k, v in dataclasses.asdict(PolarimetricConfig(**ctx.fit_options)).items()
+             if k != "unwrap_cache_mb"}
+        ),
     }
 
 
