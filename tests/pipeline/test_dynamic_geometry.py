@@ -1,6 +1,6 @@
 """RESULT/tracking's summary (pipeline/dynamic_geometry.py TrackingFolder): a resumed run refuses a folder
-written with another capture or configuration, and counts options an older folder did not record as
-their defaults."""
+written with another capture or configuration, including one written before an option existed (its run
+used that option's earlier behaviour, e.g. ICP to the iteration cap and chromophore fits from scratch)."""
 
 from __future__ import annotations
 
@@ -16,23 +16,22 @@ def _header(config: dict) -> dict:
     return {"format": "polarface-tracking", "version": 1, "capture": "CAPTURE", "config": config}
 
 
-def test_an_older_folder_without_a_new_option_resumes_with_its_default(tmp_path):
+def test_the_same_capture_and_configuration_resume(tmp_path):
     defaults = DynamicStageConfig().to_json()
-    older = json.loads(json.dumps(defaults))
-    del older["biophysical_start"]
-    del older["alignment"]["icp_tolerance"]
-    TrackingFolder(tmp_path, _header(older)).save()
-    folder = TrackingFolder(tmp_path, _header(defaults), defaults)
-    assert folder.summary["config"] == defaults
-    with pytest.raises(ValueError, match="another dynamic config"):  # without defaults: a different config
-        TrackingFolder(tmp_path, _header(defaults))
+    TrackingFolder(tmp_path, _header(defaults)).save()
+    assert TrackingFolder(tmp_path, _header(defaults)).summary["config"] == defaults
 
 
-def test_a_folder_with_another_option_value_or_capture_is_refused(tmp_path):
+def test_another_option_value_an_older_configuration_or_another_capture_is_refused(tmp_path):
     defaults = DynamicStageConfig().to_json()
     TrackingFolder(tmp_path, _header(defaults)).save()
     scratch = DynamicStageConfig(biophysical_start="scratch").to_json()
     with pytest.raises(ValueError, match=r"tracking\.json.*another dynamic config"):
-        TrackingFolder(tmp_path, _header(scratch), defaults)
+        TrackingFolder(tmp_path, _header(scratch))
     with pytest.raises(ValueError, match="another dynamic capture"):
-        TrackingFolder(tmp_path, {**_header(defaults), "capture": "OTHER"}, defaults)
+        TrackingFolder(tmp_path, {**_header(defaults), "capture": "OTHER"})
+    older = json.loads(json.dumps(defaults))
+    del older["biophysical_start"]
+    TrackingFolder(tmp_path / "older", _header(older)).save()
+    with pytest.raises(ValueError, match="another dynamic config"):
+        TrackingFolder(tmp_path / "older", _header(defaults))

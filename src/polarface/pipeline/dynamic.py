@@ -313,7 +313,7 @@ def reconstruct_dynamic(
     executor.start()
     header = {"format": "polarface-tracking", "version": 1, "capture": capture_identity(store.root),
               "config": config.to_json()}
-    tracking = TrackingFolder(folder.tracking_dir, header, DynamicStageConfig().to_json())
+    tracking = TrackingFolder(folder.tracking_dir, header)
     tracking.root.mkdir(parents=True, exist_ok=True)
     tracking.save()
     geometry_s = stereo_pass(store, tracking, all_frames, config.geometry, progress, executor)

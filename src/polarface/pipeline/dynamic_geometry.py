@@ -43,21 +43,14 @@ LOGGER = logging.getLogger(__name__)
 
 
 class TrackingFolder:
-    """``RESULT/tracking``: the summary (written after every step) and its files.
+    """``RESULT/tracking``: the summary (written after every step) and its files."""
 
-    ``config_defaults``: the default configuration's JSON; options that a folder written by an older
-    polarface did not record yet count as these defaults when a resumed run compares configurations.
-    """
-
-    def __init__(self, root: Path, header: dict[str, Any], config_defaults: dict[str, Any] | None = None
-                 ) -> None:
+    def __init__(self, root: Path, header: dict[str, Any]) -> None:
         self.root = root
         self.summary: dict[str, Any] = {**header, "frames": {}}
         path = root / layout.TRACKING_JSON
         if path.is_file():
             previous = read_json_object(path)
-            if config_defaults is not None and isinstance(previous.get("config"), dict):
-                previous["config"] = _with_defaults(previous["config"], config_defaults)
             for key in ("capture", "config"):
                 if previous.get(key) != header[key]:
                     raise ValueError(
@@ -74,17 +67,6 @@ class TrackingFolder:
     def save(self) -> None:
         """Write ``tracking.json`` atomically."""
         write_json_atomic(self.root / layout.TRACKING_JSON, self.summary)
-
-
-def _with_defaults(recorded: dict[str, Any], defaults: dict[str, Any]) -> dict[str, Any]:
-    """``recorded`` with the keys it lacks (at any depth) taken from ``defaults``."""
-    merged = dict(recorded)
-    for key, value in defaults.items():
-        if key not in merged:
-            merged[key] = value
-        elif isinstance(merged[key], dict) and isinstance(value, dict):
-            merged[key] = _with_defaults(merged[key], value)
-    return merged
 
 
 def _short(value: Any) -> str:
