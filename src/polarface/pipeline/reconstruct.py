@@ -4,7 +4,8 @@ The run is a sequence of stages over the RESULT folder (:data:`STAGES`); each re
 documented artifacts (``docs/result_folder.md``) through :class:`polarface.results.ResultFolder`,
 records itself in ``result.json`` and is skipped when resuming once done. ``result.json``'s
 ``fingerprint`` (capture, mesh, poses, texture resolution, hold-out, fit options) is recorded when a
-run starts; a resumed run whose inputs or options differ is refused (:func:`check_fingerprint`):
+run starts; a resumed run whose inputs or options differ is refused
+(:func:`polarface.pipeline.reconstruct_fingerprint.check_fingerprint`):
 
 * ``geometry``: ``geometry/`` (mesh, poses, per-frame stereo meshes) from the capture's stereo pairs
   (:mod:`polarface.pipeline.geometry`), unless the geometry is given;
@@ -35,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from polarface.io import json_values
+from polarface.pipeline.reconstruct_fingerprint import check_fingerprint
 from polarface.pipeline.reconstruct_inputs import (
     ReconstructInputs,
     check_capture_manifest,
@@ -45,8 +47,6 @@ from polarface.results import ResultFolder, default_channel_names
 __all__ = [
     "STAGES",
     "ReconstructContext",
-    "check_fingerprint",
-    "input_fingerprint",
     "reconstruct",
     "run_stages",
     "stage_biophysical",
@@ -297,69 +297,11 @@ STAGES: list[tuple[str, Callable[[ReconstructContext], dict]]] = [
 RERUN_ON_RESUME = ("dynamic", "report")
 
 
-def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
-    """What changes the result: capture, mesh, poses, texture resolution, hold-out and fit options.
-
-    The device and the thread count are left out (they change float rounding only, not what is
-    fitted); progress bars and the memory-only ``unwrap_cache_mb`` too. Keys: ``docs/result_folder.md``,
-    "Resume fingerprint".
-    """
-    from polarface.inverse.polarimetric import PolarimetricConfig
-    from polarface.results.fingerprint import capture_identity, file_identity
-
-    if ctx.stereo:
-        from polarface.pipeline.geometry import GeometryConfig
-
-        geometry = {"geometry": GeometryConfig(texture_resolution=ctx.texture_resolution).to_json()}
-    else:
-        geometry = {"mesh": file_identity(ctx.mesh_path), "poses": file_identity(ctx.poses_path)}
-    if ctx.dynamic is not None:
-        from polarface.pipeline.dynamic import DynamicStageConfig
-
-        geometry["dynamic"] = {
-            "capture": capture_identity(ctx.dynamic), "config": DynamicStageConfig().to_json()
-        }
-    return {
-        "capture": capture_identity(ctx.capture),
-        **geometry,
-        "texture_resolution": int(ctx.texture_resolution),
-        "holdout_every": int(ctx.holdout_every),
-        "options": json_values(
-            {k: v for k, v in dataclasses.asdict(PolarimetricConfig(**ctx.fit_options)).items()
-             if k != "unwrap_cache_mb"}
-        ),
-    }
-
-
-def check_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
-    """Record the run's :func:`input_fingerprint` in ``result.json``, or check it when resuming.
-
-    A folder without a recorded fingerprint (new, or written before fingerprints) gets this one.
-
-    Raises:
-        ValueError: resuming a folder whose recorded fingerprint differs, naming every difference.
-    """
-    from polarface.results.fingerprint import fingerprint_differences
-
-    folder = ctx.folder
-    current = input_fingerprint(ctx)
-    recorded = folder.read_result().get("fingerprint")
-    if ctx.resume and isinstance(recorded, dict):
-        differences = fingerprint_differences(recorded, current)
-        if differences:
-            raise ValueError(
-                f"resume of '{ctx.out}': {'; '.join(differences)}; rerun without --resume into a new "
-                "folder or with the same inputs and options"
-            )
-        return recorded
-    folder.update_result({"fingerprint": current})
-    return current
-
-
 def run_stages(ctx: ReconstructContext, stages=None) -> dict[str, Any]:
     """Run ``stages`` (default :data:`STAGES`) in order, skipping completed ones when resuming.
 
-    The fingerprint is checked (resume) or recorded first (:func:`check_fingerprint`).
+    The fingerprint is checked (resume) or recorded first
+    (:func:`polarface.pipeline.reconstruct_fingerprint.check_fingerprint`).
 
     Returns:
         The final ``result.json`` content.
