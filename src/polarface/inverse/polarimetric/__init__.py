@@ -27,13 +27,12 @@ from polarface.inverse.polarimetric.config import (
     maps_from_raw,
     raw_from_maps,
 )
-from polarface.inverse.polarimetric.dynamic import (
+from polarface.inverse.polarimetric.dynamic import DynamicConfig, fit_dynamic_frame
+from polarface.inverse.polarimetric.dynamic_loss import (
     DYNAMIC_VARIABLES,
-    DynamicConfig,
     DynamicPatchProblem,
     DynamicWeights,
     dynamic_regularisers,
-    fit_dynamic_frame,
 )
 from polarface.inverse.polarimetric.engines import POLARIMETRIC_ENGINES, PolarimetricEngine, resolve_engine
 from polarface.inverse.polarimetric.fit import PolarimetricFit, fit_polarimetric
