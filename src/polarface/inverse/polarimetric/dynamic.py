@@ -8,7 +8,9 @@ minimising the loss of :mod:`polarface.inverse.polarimetric.dynamic_loss` (the s
 terms and the temporal and spatial regulariser ``L_reg~`` towards the static maps).
 
 Reparameterisation (ranges from the static :class:`~polarface.inverse.polarimetric.config.PolarimetricConfig`)
-and patch processing with halos are those of :mod:`polarface.inverse.polarimetric.fit`; the optimiser
+and patch processing with halos are those of :mod:`polarface.inverse.polarimetric.fit`, with each patch
+cropped to the texels within ``DynamicConfig.seen_margin`` of a texel a fitting view sees
+(:func:`frame_patches`; a frame's views see ~16 % of the atlas); the optimiser
 is torch's RMSprop (or Adam) with the static stage's learning-rate schedule
 (:func:`~polarface.inverse.polarimetric.optimise.learning_rate_schedule`); only the raw variables of
 ``rho_s, rho_ss, rho_sss_bar, displacement_mm`` are leaves, eta and the roughnesses are constants.
@@ -28,6 +30,7 @@ from collections.abc import Mapping
 
 import numpy as np
 import torch
+from scipy import ndimage
 from tqdm import tqdm
 
 from polarface.inverse.polarimetric.config import (
@@ -59,7 +62,7 @@ from polarface.inverse.polarimetric.problem import (
 )
 from polarface.texture import UnwrapStore
 
-__all__ = ["DynamicConfig", "fit_dynamic_frame"]
+__all__ = ["DynamicConfig", "fit_dynamic_frame", "frame_patches"]
 
 @dataclasses.dataclass(frozen=True)
 class DynamicConfig:
@@ -74,6 +77,14 @@ class DynamicConfig:
             than the static 64); halo: halo width (texels, >= 2); sample_budget: most samples per patch.
         min_views: fewest views that must see a texel for it to enter the result mask.
         boundary_margin: erosion (texels) of the region seen by ``min_views`` views.
+        seen_margin: texels (Chebyshev distance) kept around the texels that at least one fitting view
+            sees; each patch of the atlas grid is cropped to the bounding box of its texels within
+            that distance (patches with none are skipped), so the fit spends no work on the large part
+            of the atlas a frame's few views do not see (:func:`frame_patches`). Texels outside keep
+            their start values. Unseen texels have no data term; they take part only through the H
+            Laplacian's coupling (2 texels) and the normals' finite differences (1 texel), and each
+            patch adds its ``halo`` of free texels beyond the margin. ``None``: the whole atlas grid
+            (the behaviour before this option). Measured on the demo preset in docs/dynamic.md.
         seed: torch seed.
     """
 
@@ -88,6 +99,7 @@ class DynamicConfig:
     sample_budget: int = 300_000
     min_views: int = 2
     boundary_margin: int = 1
+    seen_margin: int | None = 8
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -95,6 +107,10 @@ class DynamicConfig:
             raise ValueError(
                 f"argument 'weights' must be a DynamicWeights; got {type(self.weights).__name__}"
             )
+        margin = self.seen_margin
+        if margin is not None and (isinstance(margin, bool) or not isinstance(margin, int | np.integer)
+                                   or margin < 0):
+            raise ValueError(f"argument 'seen_margin' must be None or an integer >= 0; got {margin!r}")
         self.optimiser_config(PolarimetricConfig())  # validates the shared fields, naming them
 
     def optimiser_config(self, static_config: PolarimetricConfig) -> PolarimetricConfig:
@@ -105,6 +121,44 @@ class DynamicConfig:
         return dataclasses.replace(
             static_config, refine_lobes_iterations=0, **{name: getattr(self, name) for name in shared}
         )
+
+
+def frame_patches(
+    patches: list[tuple[slice, slice]], seen: np.ndarray, margin: int | None
+) -> list[tuple[tuple[slice, slice], tuple[slice, slice]]]:
+    """The patches a frame's fit optimises (:attr:`DynamicConfig.seen_margin`).
+
+    Args:
+        patches: ``(rows, cols)`` slices of the atlas grid (``UnwrapStore.patches(side)``, row-major).
+        seen: ``(Ht, Wt)`` bool texels seen by at least one fitting view.
+        margin: texels (Chebyshev distance) kept around ``seen``; None: every patch as it is.
+
+    Returns:
+        ``(cropped, patch)`` pairs in the order of ``patches``: each patch cropped to the bounding box of
+        its texels within ``margin`` of a seen texel (``(rows, cols)`` slices), with the patch itself;
+        patches without such a texel are left out. Where that region covers a patch's whole extent,
+        ``cropped`` equals the patch.
+
+    Raises:
+        ValueError: ``seen`` not a 2-D bool array; ``margin`` negative.
+    """
+    if margin is None:
+        return [(patch, patch) for patch in patches]
+    seen = np.asarray(seen)
+    if seen.ndim != 2 or seen.dtype != bool:
+        raise ValueError(f"argument 'seen' must be a 2-D bool array; got {seen.dtype} {seen.shape}")
+    if int(margin) < 0:
+        raise ValueError(f"argument 'margin' must be >= 0; got {margin}")
+    region = ndimage.maximum_filter(seen, size=2 * int(margin) + 1, mode="constant", cval=False)
+    out = []
+    for rows, cols in patches:
+        block = region[rows, cols]
+        kept_rows, kept_cols = np.flatnonzero(block.any(axis=1)), np.flatnonzero(block.any(axis=0))
+        if kept_rows.size:
+            cropped = (slice(rows.start + int(kept_rows[0]), rows.start + int(kept_rows[-1]) + 1),
+                       slice(cols.start + int(kept_cols[0]), cols.start + int(kept_cols[-1]) + 1))
+            out.append((cropped, (rows, cols)))
+    return out
 
 
 def _checked_maps(
@@ -167,8 +221,10 @@ def _fit_patch(
     scale: float,
     device: torch.device,
     state: _FrameState,
+    texel_count: int,
 ) -> None:
-    """Fit one patch (interior ``rows x cols`` plus a halo) and write its interior into ``state.start``."""
+    """Fit one patch (interior ``rows x cols`` plus a halo) and write its interior into ``state.start``;
+    ``texel_count``: the loss's normaliser (:class:`DynamicPatchProblem`)."""
     dtype = torch.float32
     hrows, hcols, interior = haloed_slices(rows, cols, config.halo, unwrap.resolution)
     if engine.fused_samples:  # the fused samples alone (no per-sample-and-light reference batch)
@@ -191,6 +247,7 @@ def _fit_patch(
         {k: tensor(state.static[k]) for k in FIXED_VARIABLES},
         {k: tensor(state.static[k]) for k in DYNAMIC_VARIABLES},
         weights,
+        texel_count,
     )
     tick = time.perf_counter()
     start = {k: tensor(state.start[k]) for k in DYNAMIC_VARIABLES}
@@ -258,7 +315,8 @@ def fit_dynamic_frame(
     with torch_fit_settings(threads):
         torch.manual_seed(config.seed)
         fit = _fit_frame(
-            unwrap, static, start, optimiser_config, config.weights, torch.device(device), chosen, progress
+            unwrap, static, start, optimiser_config, config.weights, config.seen_margin, torch.device(device),
+            chosen, progress,
         )
     fit.mask &= mask
     for name in FIXED_VARIABLES:
@@ -272,6 +330,7 @@ def _fit_frame(
     start: dict[str, np.ndarray],
     config: PolarimetricConfig,
     weights: DynamicWeights,
+    seen_margin: int | None,
     device: torch.device,
     engine: PolarimetricEngine,
     progress: bool,
@@ -284,11 +343,16 @@ def _fit_frame(
     scale = unwrap.mean_i_sss(fitting)
     if not scale > 0:
         raise ValueError("argument 'unwrap': no texel is visible in any fitting view")
-    state = _FrameState(_raw_maps(start, config), _raw_maps(static, config))
-    patches = list(unwrap.patches(_patch_side(unwrap, config, fitting)))
-    for rows, cols in tqdm(patches, desc="dynamic fit", unit="patch", disable=not progress):
-        _fit_patch(unwrap, rows, cols, fitting, engine, config, weights, scale, device, state)
     mask_seen, view_count = _coverage(unwrap, config)
+    state = _FrameState(_raw_maps(start, config), _raw_maps(static, config))
+    grid = list(unwrap.patches(_patch_side(unwrap, config, fitting)))
+    patches = frame_patches(grid, view_count > 0, seen_margin)
+    atlas = np.asarray(unwrap.root["texel/mask"][...])
+    for (rows, cols), patch in tqdm(patches, desc="dynamic fit", unit="patch", disable=not progress):
+        # the loss keeps the uncropped patch's normaliser (dynamic_loss module docstring)
+        halo_rows, halo_cols, _ = haloed_slices(*patch, config.halo, unwrap.resolution)
+        texel_count = max(int(atlas[halo_rows, halo_cols].sum()), 1)
+        _fit_patch(unwrap, rows, cols, fitting, engine, config, weights, scale, device, state, texel_count)
     out = _to_maps(state.start, config)
     throughput = state.work / state.optimise_s if state.optimise_s > 0 else 0.0
     timings = {"fit_s": time.perf_counter() - started, "optimise_s": state.optimise_s}

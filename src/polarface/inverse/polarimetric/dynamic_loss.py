@@ -26,7 +26,10 @@ recomputed from the current estimate at every step and treated as a constant (no
 through it): it is 0 where the subsurface albedo has not changed, so a start at the static maps is
 free to move, and it grows with the change, so the term acts as a soft ``|change|^3`` pull on large
 deviations of the channels' mean. Like the static loss, the patch loss is divided by the number of
-atlas texels of the patch.
+atlas texels of the patch (with its halo); where the frame's fit crops a patch to the texels its views
+see (``DynamicConfig.seen_margin``), by those of the uncropped patch, so the objective keeps its scale:
+RMSprop's steps depend on it through its ``eps`` (doubling the loss moved the demo frames' maps as much
+as the crop did with its own count, docs/dynamic.md).
 """
 
 from __future__ import annotations
@@ -135,6 +138,8 @@ class DynamicPatchProblem:
         fixed_raw: raw variables (``(h, w, 1)`` tensors) of ``eta, alpha_s, alpha_ss``.
         reference_raw: raw variables of the static ``rho_s, rho_ss, rho_sss_bar, displacement_mm``.
         weights: :class:`DynamicWeights`.
+        texel_count: the loss's normaliser (atlas texels, module docstring); None: ``problem``'s own
+            count (the atlas texels of its patch with the halo).
     """
 
     def __init__(
@@ -143,9 +148,13 @@ class DynamicPatchProblem:
         fixed_raw: Mapping[str, torch.Tensor],
         reference_raw: Mapping[str, torch.Tensor],
         weights: DynamicWeights,
+        texel_count: int | None = None,
     ) -> None:
+        if texel_count is not None and (isinstance(texel_count, bool) or int(texel_count) < 1):
+            raise ValueError(f"argument 'texel_count' must be None or an integer >= 1; got {texel_count!r}")
         self.problem = problem
         self.weights = weights
+        self.texel_count = problem.texel_count if texel_count is None else int(texel_count)
         self.fixed_raw = {k: fixed_raw[k].detach() for k in FIXED_VARIABLES}
         with torch.no_grad():
             reference = self._maps(dict(reference_raw))
@@ -183,4 +192,4 @@ class DynamicPatchProblem:
             data = wts.sss * terms["sss"] + wts.s * terms["s"] + wts.phi * terms["phi"]
         reg = dynamic_regularisers(maps, self.reference, problem.mask)
         total = data + sum(getattr(wts, name) * value for name, value in reg.items())
-        return total / max(problem.texel_count, 1), {"data": data, **reg}
+        return total / max(self.texel_count, 1), {"data": data, **reg}
