@@ -29,6 +29,7 @@ __all__ = [
     "check_range",
     "check_shape_tail",
     "check_unit_vectors",
+    "inputs_trusted",
     "trusted_inputs",
 ]
 
@@ -47,6 +48,12 @@ def trusted_inputs():
         yield
     finally:
         _TRUSTED.reset(token)
+
+
+def inputs_trusted() -> bool:
+    """True inside a :func:`trusted_inputs` block (for checks written outside this module, e.g. the
+    ray caster's numpy validation, to skip the same value checks)."""
+    return _TRUSTED.get()
 
 
 F = TypeVar("F", bound=Callable[..., Any])

@@ -138,6 +138,25 @@ def test_sample_texture_torch_gradcheck_and_dtype():
     assert out32.dtype == torch.float32 and out32.shape == (2, 2)
 
 
+def test_sample_texture_row_gathers_equal_2d_indexing():
+    """A contiguous texture is read by row gathers of its flattened texels, any other by 2-D indexing:
+    the same values for any batch shape of ``uv``, and the same gradients."""
+    rng = np.random.default_rng(0)
+    texture = torch.from_numpy(rng.random((7, 5, 4)))
+    strided = texture.permute(1, 0, 2).contiguous().permute(1, 0, 2)  # same values, not contiguous
+    assert not strided.is_contiguous()
+    uv = torch.from_numpy(rng.uniform(-0.1, 1.1, (3, 6, 2)))
+    assert torch.equal(sample_texture(texture, uv), sample_texture(strided, uv))
+    assert sample_texture(texture, uv).shape == (3, 6, 4)
+    assert torch.equal(sample_texture(texture[..., 0], uv), sample_texture(strided[..., 0], uv))
+    grads = []
+    for tex in (texture, strided):
+        tex = tex.clone().requires_grad_(True) if tex.is_contiguous() else tex.detach().requires_grad_(True)
+        sample_texture(tex, uv).sum().backward()
+        grads.append(tex.grad)
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-12, atol=1e-12)
+
+
 def test_sample_texture_errors():
     with pytest.raises(ValueError, match="texture"):
         sample_texture(np.zeros(4), np.zeros((1, 2)))

@@ -1,5 +1,7 @@
 """Work the renderer skips changes nothing: shadow rays only above the shading horizon
-(:func:`polarface.render.shading.lit_above_horizon`), ``s0`` alone for RGB cameras (:func:`lobe_stokes`)."""
+(:func:`polarface.render.shading.lit_above_horizon`), ``s0`` alone for RGB cameras (:func:`lobe_stokes`),
+and, in :func:`render_view`, the Stokes components the camera drops and the shadow rays towards modules
+whose lobes are exactly 0."""
 
 from __future__ import annotations
 
@@ -8,9 +10,17 @@ import torch
 
 from polarface.geometry.head_asset import load_head_asset
 from polarface.geometry.raycast import RayCaster
-from polarface.geometry.uv_raster import rasterize_uv
-from polarface.render.renderer import rig_lighting, shading_normals
-from polarface.render.shading import FragmentMaterial, lit_above_horizon, lobe_stokes
+from polarface.geometry.uv_raster import rasterize_uv, reposition
+from polarface.optics import render_polarimetric, subsurface_exit_stokes
+from polarface.render.fragments import cast_fragments
+from polarface.render.renderer import analyzer_images, render_view, rig_lighting, shading_normals
+from polarface.render.shading import (
+    FragmentMaterial,
+    FrameTextures,
+    fragment_material,
+    lit_above_horizon,
+    lobe_stokes,
+)
 from polarface.render.subsurface import entering_flux, visible_entry_flux
 
 
@@ -67,3 +77,58 @@ def test_lobe_stokes_s0_alone_is_the_full_vectors_s0():
     s0 = lobe_stokes(material, position, centre, up, lights, visible, torch.ones(1, 1), start[..., :1])
     assert s0.shape == (count, 6, 1)
     assert torch.equal(s0[..., 0], full[..., 0])
+
+
+def _reference_view(caster, mesh, camera, textures, lights, intensity, channels, polarization):
+    """The renderer's images the straightforward way: every shadow ray cast, the lobes of each module
+    through ``render_polarimetric`` (all four Stokes components), summed times the visibility."""
+    origins, directions = (a.reshape(-1, 3) for a in camera.pixel_rays())
+    fragments = cast_fragments(caster, mesh, origins, directions)
+    position = torch.from_numpy(fragments.position.astype(np.float32))
+    centre = torch.from_numpy(camera.center.astype(np.float32))
+    up = torch.from_numpy(camera.up_vector.astype(np.float32))
+    material = fragment_material(textures, torch.from_numpy(fragments.uv.astype(np.float32)),
+                                 torch.from_numpy(fragments.geometric_normal.astype(np.float32)), position,
+                                 centre, channels)
+    visible = caster.shadow_rays(fragments.position, fragments.geometric_normal, lights, pairwise=True)
+    stokes = material.exitance[..., None] * subsurface_exit_stokes(material.normal, position, centre, up,
+                                                                  material.eta)
+    for k in range(len(lights)):
+        images = render_polarimetric(
+            material.normal, position, centre, up, torch.from_numpy(lights[k : k + 1].astype(np.float32)),
+            torch.full((1, 1), intensity), material.eta, material.alpha_s, material.alpha_ss, material.rho_s,
+            material.rho_ss, 0.0, diffused_exitance=torch.zeros(fragments.count, 1),
+        )
+        stokes = stokes + torch.from_numpy(visible[:, k].astype(np.float32))[:, None, None] * images.stokes
+    return fragments, analyzer_images(stokes, polarization), visible
+
+
+def test_render_view_gives_the_full_paths_bits(small_rig):
+    """The head, turned to face the rig at 1 m: ``render_view`` (s0 alone for RGB, s0..s2 for the
+    polarization camera, shadow rays only towards modules lighting a fragment from the front) gives the
+    bits of the full per-module path, and some shadow rays are skipped."""
+    asset = load_head_asset(texture_resolution=128)
+    turn = np.diag([-1.0, 1.0, -1.0, 1.0])
+    turn[2, 3] = 1000.0
+    mesh = asset.mesh.transformed(turn)
+    raster = reposition(rasterize_uv(asset.mesh, 128), mesh)
+    rng = np.random.default_rng(0)
+    maps = {name: rng.uniform(low, high, raster.mask.shape) for name, low, high in (
+        ("eta", 1.35, 1.45), ("alpha_s", 0.2, 0.5), ("alpha_ss", 0.4, 0.9), ("rho_s", 0.5, 1.0),
+        ("rho_ss", 0.1, 0.4))}
+    textures = FrameTextures.build(maps, shading_normals(raster, np.zeros(raster.mask.shape)),
+                                   rng.uniform(0.0, 1.0, (*raster.mask.shape, 6)), raster.mask)
+    caster = RayCaster(mesh)
+    lights, intensity = rig_lighting(small_rig)
+    for camera, polarization, channels in ((small_rig.cameras[0], True, (0, 2, 4)),
+                                           (small_rig.cameras[-1], False, tuple(range(6)))):
+        pinhole = camera.pinhole()
+        view = render_view(caster, mesh, pinhole, textures, lights, intensity, channels,
+                           polarization=polarization, chunk_pixels=4000)
+        fragments, expected, visible = _reference_view(caster, mesh, pinhole, textures, lights, intensity,
+                                                       channels, polarization)
+        assert fragments.count > 500 and not visible.all()
+        pixel = np.unravel_index(fragments.pixel, view.mask.shape)
+        assert set(view.images) == set(expected)
+        for name, image in expected.items():
+            assert view.images[name][pixel].tobytes() == image.numpy().tobytes()

@@ -12,6 +12,7 @@ import torch
 
 from polarface._validation import broadcast_named, check_last_dim, check_range, check_unit_vectors
 from polarface.optics.fresnel import _amplitudes
+from polarface.optics.microfacet import _g1_over_cos, _ggx_d
 
 #: Incident Stokes vector of the rig's polarized LEDs in their own frame: linear along image x.
 DEFAULT_LIGHT_STOKES = (1.0, 1.0, 0.0, 0.0)
@@ -118,8 +119,6 @@ def _fresnel_t(cos: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torc
     return 1.0 - 0.5 * (r_s2 + r_p2), -0.5 * (r_s2 - r_p2)  # T+, T-
 
 
-
-
 class _Viewer:
     """View geometry at every pixel and the subsurface exit factor (unchecked)."""
 
@@ -140,3 +139,70 @@ class _Viewer:
              torch.zeros_like(t_plus)],
             dim=-1,
         ) / math.pi
+
+
+class _LobeView:
+    """The light-independent part of the specular and single-scattering lobes (unchecked): the view
+    geometry (:class:`_Viewer`), ``cos_o`` ``(..., 1)`` and ``G1_o / cos_o`` of both roughnesses."""
+
+    def __init__(self, normal: Vec3, position: Vec3, camera_center: Vec3, up: Vec3, eta: torch.Tensor,
+                 alpha_s: torch.Tensor, alpha_ss: torch.Tensor) -> None:
+        self.normal, self.eta, self.alpha_s, self.alpha_ss = normal, eta, alpha_s, alpha_ss
+        self.viewer = _Viewer(normal, position, camera_center, up, eta)
+        self.cos_o = self.viewer.cos_o[..., None]
+        self.g1o_s, self.g1o_ss = _g1_over_cos(self.cos_o, alpha_s), _g1_over_cos(self.cos_o, alpha_ss)
+
+
+def _specular_stokes(light: _Light, viewer: _Viewer, normal: Vec3, eta: torch.Tensor, stokes: torch.Tensor,
+                     components: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first ``components`` (1..4) of the unit-kappa specular Stokes ``C(-varphi~_o) F^R(theta_d)
+    C(varphi~_i) s``, ``(..., C, components)``; and ``n . h`` ``(...)``.
+
+    ``s0`` is the first row of the chain, ``R+ s0 + R- (cos 2phi~_i s1 + sin 2phi~_i s2)``: it needs
+    neither the rotation into the camera frame (``varphi~_o``) nor the retarded terms, which are only
+    computed for ``components >= 3``. Each component is the same floating-point expression whatever
+    ``components`` is, so fewer components give the same bits.
+    """
+    w_i, w_o = light.w_i, viewer.w_o
+    half = (w_i[0] + w_o[0], w_i[1] + w_o[1], w_i[2] + w_o[2])
+    norm2 = _dot3(half, half)
+    degenerate = norm2 <= torch.finfo(norm2.dtype).eps ** 2
+    inv = torch.rsqrt(torch.where(degenerate, torch.ones_like(norm2), norm2))
+    h = tuple(torch.where(degenerate, o, c * inv) for c, o in zip(half, w_o, strict=True))
+    c_i, s_i = _double_angle(h, light.direction, light.up_projected)
+    c_i, s_i = -c_i, -s_i  # double angles of the tilde angle (phi - pi/2)
+    u1 = (c_i * stokes[1] + s_i * stokes[2])[..., None]
+    r_s, r_p = _amplitudes(_dot3(h, w_i).clamp(-1.0, 1.0)[..., None], eta)
+    r_s2, r_p2 = r_s * r_s, r_p * r_p
+    r_plus, r_minus = 0.5 * (r_s2 + r_p2), 0.5 * (r_s2 - r_p2)
+    v0 = r_plus * stokes[0] + r_minus * u1
+    if components == 1:
+        return v0[..., None], _dot3(normal, h)
+    c_o, s_o = _double_angle(h, w_o, viewer.up_projected)
+    c_o, s_o = -c_o[..., None], -s_o[..., None]
+    u2 = (-s_i * stokes[1] + c_i * stokes[2])[..., None]
+    r_retarded = r_s * r_p
+    v1 = r_minus * stokes[0] + r_plus * u1
+    v2 = r_retarded * u2
+    rows = [v0, c_o * v1 - s_o * v2, s_o * v1 + c_o * v2, r_retarded * stokes[3]][:components]
+    return torch.stack(torch.broadcast_tensors(*rows), dim=-1), _dot3(normal, h)
+
+
+def _lobe_terms(
+    light: _Light, view: _LobeView, intensity: torch.Tensor, stokes: torch.Tensor, rho_s: torch.Tensor,
+    rho_ss: torch.Tensor, components: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Specular and single-scattering Stokes ``(..., C, components)`` of one light of radiant
+    ``intensity`` ``(C,)`` and polarizer state ``stokes`` ``(4,)``: ``S kappa`` times
+    :func:`_specular_stokes`, exactly 0 unless ``n . w_i > 0`` and ``n . w_o > 0`` (front)."""
+    specular, cos_h = _specular_stokes(light, view.viewer, view.normal, view.eta, stokes, components)
+    front = (light.cos_i[..., None] > 0.0) & (view.cos_o > 0.0)
+    # S kappa = I (n.w_i) / Gamma^2 rho D G1_i G1_o / (4 (n.w_i)(n.w_o))
+    #         = I rho D (G1_i / cos_i)(G1_o / cos_o) cos_i / (4 Gamma^2): no division by cosines.
+    base = intensity * (0.25 * light.cos_i.clamp_min(0.0) * light.inv_distance2)[..., None]
+    cos_h, cos_i = cos_h[..., None], light.cos_i[..., None]
+    k_s = base * rho_s * _ggx_d(cos_h, view.alpha_s) * _g1_over_cos(cos_i, view.alpha_s) * view.g1o_s
+    k_ss = base * rho_ss * _ggx_d(cos_h, view.alpha_ss) * _g1_over_cos(cos_i, view.alpha_ss) * view.g1o_ss
+    k_s = torch.where(front, k_s, 0.0)
+    k_ss = torch.where(front, k_ss, 0.0)
+    return k_s[..., None] * specular, k_ss[..., None] * specular

@@ -38,16 +38,15 @@ from polarface.optics._kernels import (
     DEFAULT_LIGHT_STOKES,
     Vec3,
     _check_geometry,
-    _dot3,
     _double_angle,
     _fresnel_t,
     _Light,
+    _lobe_terms,
+    _LobeView,
     _prepare_lights,
     _split,
     _Viewer,
 )
-from polarface.optics.fresnel import _amplitudes
-from polarface.optics.microfacet import _g1_over_cos, _ggx_d
 
 __all__ = [
     "DEFAULT_LIGHT_STOKES",
@@ -191,31 +190,6 @@ def subsurface_exit_stokes(
     return _exit_stokes(normal, position, camera_center, camera_up, eta)
 
 
-def _specular_stokes(light: _Light, viewer: _Viewer, normal: Vec3, eta: torch.Tensor, stokes: torch.Tensor):
-    """Unit-kappa specular Stokes ``C(-varphi~_o) F^R(theta_d) C(varphi~_i) s``, ``(..., C, 4)``; and n.h."""
-    w_i, w_o = light.w_i, viewer.w_o
-    half = (w_i[0] + w_o[0], w_i[1] + w_o[1], w_i[2] + w_o[2])
-    norm2 = _dot3(half, half)
-    degenerate = norm2 <= torch.finfo(norm2.dtype).eps ** 2
-    inv = torch.rsqrt(torch.where(degenerate, torch.ones_like(norm2), norm2))
-    h = tuple(torch.where(degenerate, o, c * inv) for c, o in zip(half, w_o, strict=True))
-    c_i, s_i = _double_angle(h, light.direction, light.up_projected)
-    c_o, s_o = _double_angle(h, w_o, viewer.up_projected)
-    c_i, s_i, c_o, s_o = -c_i, -s_i, -c_o, -s_o  # double angles of the tilde angles (phi - pi/2)
-    u1 = (c_i * stokes[1] + s_i * stokes[2])[..., None]
-    u2 = (-s_i * stokes[1] + c_i * stokes[2])[..., None]
-    r_s, r_p = _amplitudes(_dot3(h, w_i).clamp(-1.0, 1.0)[..., None], eta)
-    r_s2, r_p2 = r_s * r_s, r_p * r_p
-    r_plus, r_minus, r_retarded = 0.5 * (r_s2 + r_p2), 0.5 * (r_s2 - r_p2), r_s * r_p
-    v0 = r_plus * stokes[0] + r_minus * u1
-    v1 = r_minus * stokes[0] + r_plus * u1
-    v2 = r_retarded * u2
-    v3 = r_retarded * stokes[3]
-    c_o, s_o = c_o[..., None], s_o[..., None]
-    out = torch.stack(torch.broadcast_tensors(v0, c_o * v1 - s_o * v2, s_o * v1 + c_o * v2, v3), dim=-1)
-    return out, _dot3(normal, h)
-
-
 @array_api("normal", "position", "camera_center", "camera_up", "light_positions", "light_intensity", "eta",
            "alpha_s", "alpha_ss", "rho_s", "rho_ss", "rho_sss_bar", "light_stokes", "diffused_exitance")
 def _render(normal, position, camera_center, camera_up, light_positions, light_intensity, eta, alpha_s,
@@ -237,23 +211,11 @@ def _render(normal, position, camera_center, camera_up, light_positions, light_i
     broadcast_named(*named)
 
     normal3, position3, up3 = _split(normal), _split(position), _split(camera_up)
-    viewer = _Viewer(normal3, position3, _split(camera_center), up3, eta)
-    cos_o = viewer.cos_o[..., None]
-    g1o_s, g1o_ss = _g1_over_cos(cos_o, alpha_s), _g1_over_cos(cos_o, alpha_ss)
+    view = _LobeView(normal3, position3, _split(camera_center), up3, eta, alpha_s, alpha_ss)
     specular = single = flux = None
     for k in range(light_positions.shape[0]):
         light = _Light(light_positions[k], position3, normal3, up3)
-        stokes, cos_h = _specular_stokes(light, viewer, normal3, eta, light_stokes[k])
-        front = (light.cos_i[..., None] > 0.0) & (cos_o > 0.0)
-        # S kappa = I (n.w_i) / Gamma^2 rho D G1_i G1_o / (4 (n.w_i)(n.w_o))
-        #         = I rho D (G1_i / cos_i)(G1_o / cos_o) cos_i / (4 Gamma^2): no division by cosines.
-        base = light_intensity[k] * (0.25 * light.cos_i.clamp_min(0.0) * light.inv_distance2)[..., None]
-        cos_h, cos_i = cos_h[..., None], light.cos_i[..., None]
-        k_s = base * rho_s * _ggx_d(cos_h, alpha_s) * _g1_over_cos(cos_i, alpha_s) * g1o_s
-        k_ss = base * rho_ss * _ggx_d(cos_h, alpha_ss) * _g1_over_cos(cos_i, alpha_ss) * g1o_ss
-        k_s = torch.where(front, k_s, 0.0)
-        k_ss = torch.where(front, k_ss, 0.0)
-        term_s, term_ss = k_s[..., None] * stokes, k_ss[..., None] * stokes
+        term_s, term_ss = _lobe_terms(light, view, light_intensity[k], light_stokes[k], rho_s, rho_ss, 4)
         specular = term_s if specular is None else specular + term_s
         single = term_ss if single is None else single + term_ss
         if diffused_exitance is None:
@@ -261,7 +223,8 @@ def _render(normal, position, camera_center, camera_up, light_positions, light_i
             flux = entry if flux is None else flux + entry
 
     exitance = rho_sss_bar * flux if diffused_exitance is None else diffused_exitance
-    subsurface = torch.where((cos_o > 0.0)[..., None], exitance[..., None] * viewer.exit_stokes, 0.0)
+    exit_stokes = view.viewer.exit_stokes
+    subsurface = torch.where((view.cos_o > 0.0)[..., None], exitance[..., None] * exit_stokes, 0.0)
     specular, single, subsurface = torch.broadcast_tensors(specular, single, subsurface)
     total = specular + single + subsurface
     s0, s1, s2 = total[..., 0], total[..., 1], total[..., 2]

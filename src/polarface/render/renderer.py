@@ -7,9 +7,11 @@ coordinate gives the per-texel parameters and the texture-space subsurface exita
 were filled from their nearest atlas texel, so seams do not darken); shadow rays decide which of the
 LED modules see the point; the exit Fresnel transmission with its polarization is applied to the
 diffused exitance (:func:`polarface.optics.subsurface_exit_stokes`) and the specular and
-single-scattering lobes are added light by light through the full Mueller matrices
-(:func:`polarface.render.shading.lobe_stokes`). The texture-space subsurface transport that produces
-the exitance is :mod:`polarface.render.subsurface`.
+single-scattering lobes are added light by light (:func:`polarface.render.shading.lobe_stokes`). Only
+the Stokes components a camera keeps are computed (``s0..s2`` for the analyzer images, ``s0`` for an RGB
+camera), and a shadow ray is cast only towards the modules that light the fragment from the front
+(elsewhere both lobes are exactly 0). The texture-space subsurface transport that produces the exitance
+is :mod:`polarface.render.subsurface`.
 
 Pixels are processed in chunks so memory stays bounded at 2448 x 2048.
 """
@@ -28,6 +30,7 @@ from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster
 from polarface.optics.image_formation import subsurface_exit_stokes
+from polarface.optics.lobes import ShadowTest
 from polarface.render.fragments import cast_fragments
 from polarface.render.shading import FrameTextures, fragment_material, lobe_stokes
 
@@ -82,8 +85,8 @@ def rig_lighting(rig) -> tuple[np.ndarray, float]:
 
 
 def analyzer_images(stokes: torch.Tensor, polarization: bool) -> dict[str, torch.Tensor]:
-    """Analyzer images ``(N, C)`` of Stokes ``(N, C, 4)`` (camera frame): ``i0``, ``i45``, ``i90``,
-    ``i135`` behind linear analyzers, or ``s0`` for an RGB camera (``(N, C, S)``, any ``S >= 1``)."""
+    """Analyzer images ``(N, C)`` of Stokes ``(N, C, S)`` (camera frame): ``i0``, ``i45``, ``i90``,
+    ``i135`` behind linear analyzers (``S >= 3``), or ``s0`` for an RGB camera (any ``S >= 1``)."""
     if not polarization:
         return {"s0": stokes[..., 0]}
     s0, s1, s2 = stokes[..., 0], stokes[..., 1], stokes[..., 2]
@@ -93,6 +96,14 @@ def analyzer_images(stokes: torch.Tensor, polarization: bool) -> dict[str, torch
         "i90": 0.5 * (s0 - s1),
         "i135": 0.5 * (s0 - s2),
     }
+
+
+def _shadow_test(
+    caster: RayCaster, points: np.ndarray, normals: np.ndarray, lights: np.ndarray
+) -> ShadowTest:
+    """Lazy visibility of ``lights`` ``(K, 3)`` mm from fragments ``points`` with geometric ``normals``
+    ``(N, 3)`` (float64): :meth:`RayCaster.shadow_rays_indexed` of module ``k`` from the asked rows."""
+    return lambda module, rows: caster.shadow_rays_indexed(points, normals, lights, rows, module)
 
 
 def render_view(
@@ -135,30 +146,33 @@ def render_view(
     centre = torch.from_numpy(camera.center.astype(np.float32))
     up = torch.from_numpy(camera.up_vector.astype(np.float32))
     unit_intensity = torch.full((1, 1), float(light_intensity), dtype=torch.float32)
+    # the analyzer images need s0..s2, an RGB camera s0 alone: only those components are computed
+    components = 3 if polarization else 1
     for start in range(0, count, chunk_pixels):
         stop = min(start + chunk_pixels, count)
-        fragments = cast_fragments(caster, mesh, origins[start:stop], directions[start:stop], start)
-        if fragments.count == 0:
-            continue
-        index = fragments.pixel
-        position = torch.from_numpy(fragments.position.astype(np.float32))
-        material = fragment_material(
-            textures,
-            torch.from_numpy(fragments.uv.astype(np.float32)),
-            torch.from_numpy(fragments.geometric_normal.astype(np.float32)),
-            position,
-            centre,
-            channels,
-        )
-        visible = caster.shadow_rays(fragments.position, fragments.geometric_normal, lights)  # (N, K)
-        with trusted_inputs():  # validated once above; skip per-call value checks in the hot loop
+        # camera rays and everything derived from them are valid by construction: the value checks of
+        # the ray caster and the physics functions are skipped in this hot loop (shapes still checked)
+        with trusted_inputs():
+            fragments = cast_fragments(caster, mesh, origins[start:stop], directions[start:stop], start)
+            if fragments.count == 0:
+                continue
+            index = fragments.pixel
+            position = torch.from_numpy(fragments.position.astype(np.float32))
+            material = fragment_material(
+                textures,
+                torch.from_numpy(fragments.uv.astype(np.float32)),
+                torch.from_numpy(fragments.geometric_normal.astype(np.float32)),
+                position,
+                centre,
+                channels,
+            )
+            shadow = _shadow_test(caster, fragments.position, fragments.geometric_normal, lights)
             # Subsurface: exit Fresnel transmission with its polarization applied to the exitance.
             exit_stokes = subsurface_exit_stokes(material.normal, position, centre, up, material.eta)
-            # an RGB camera records s0 only: accumulate that component alone (the same sums)
-            stokes = material.exitance[..., None] * exit_stokes[..., : 4 if polarization else 1]
+            stokes = material.exitance[..., None] * exit_stokes[..., :components]
             # Specular and single scattering: spectrally flat (white-normalised LEDs), so one channel
             # is computed and broadcast; each LED module times its shadow-ray visibility.
-            stokes = lobe_stokes(material, position, centre, up, lights, visible, unit_intensity, stokes)
+            stokes = lobe_stokes(material, position, centre, up, lights, shadow, unit_intensity, stokes)
         totals = analyzer_images(stokes, polarization)
         for name in names:
             out[name][index] = totals[name].float().numpy()

@@ -6,10 +6,10 @@ The last stage of the renderer (:mod:`polarface.render.renderer`). Per fragment
 bilinearly at the fragment's ``uv`` (:func:`fragment_material`);
 :func:`polarface.optics.subsurface_exit_stokes` applies the exit Fresnel transmission with its
 polarization to the exitance, and
-:func:`polarface.optics.render_polarimetric` evaluates the specular and single-scattering lobes through
-the full Mueller matrices for each LED module times its shadow-ray visibility (:func:`lobe_stokes`;
-the image formation is linear in the lights). The physics itself lives in
-:mod:`polarface.optics.image_formation`.
+the specular and single-scattering lobes of :func:`polarface.optics.render_polarimetric` are added for
+each LED module times its shadow-ray visibility (:func:`lobe_stokes`; the image formation is linear in
+the lights), computing only the Stokes components the camera keeps. The physics itself lives in
+:mod:`polarface.optics.image_formation` and :mod:`polarface.optics.lobes`.
 
 Frames and units: world mm; Stokes vectors in the camera frame (``docs/conventions.md``); radiance in
 LED intensity units per mm^2 per sr.
@@ -26,7 +26,7 @@ from scipy import ndimage
 from polarface._validation import trusted_inputs
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import sample_texture
-from polarface.optics.image_formation import render_polarimetric
+from polarface.optics.lobes import ShadowTest, add_lobes
 from polarface.optics.pbssrdf import SURFACE_PARAMETER_NAMES
 
 __all__ = [
@@ -200,9 +200,7 @@ def lit_above_horizon(
     rows, modules = np.nonzero(above)
     visible = np.zeros(above.shape, bool)
     if rows.size:
-        visible[rows, modules] = caster.shadow_rays(
-            points[rows], np.asarray(geometric_normal, np.float64)[rows], lights[modules], pairwise=False
-        )
+        visible[rows, modules] = caster.shadow_rays_indexed(points, geometric_normal, lights, rows, modules)
     return visible
 
 
@@ -212,52 +210,44 @@ def lobe_stokes(
     camera_center: torch.Tensor,
     camera_up: torch.Tensor,
     light_positions: np.ndarray,
-    visible: np.ndarray,
+    visible: np.ndarray | ShadowTest,
     intensity: torch.Tensor,
     stokes: torch.Tensor,
     *,
     light_stokes: torch.Tensor | None = None,
     skip_unlit: bool = True,
 ) -> torch.Tensor:
-    """``stokes`` plus the specular and single-scattering Stokes ``(N, C, 4)`` of every visible LED.
+    """``stokes`` plus the specular and single-scattering Stokes ``(N, C, S)`` of every visible LED.
+
+    :func:`polarface.optics.lobes.add_lobes` with the fragments' material: the lobes of
+    :func:`polarface.optics.render_polarimetric` (the same floating-point expressions, so the same
+    bits), light by light, with the view geometry computed once; only the ``S`` components of ``stokes``
+    are computed (``S = 1``: the first row of the Mueller chain, ``s0``, for an RGB camera).
 
     Args:
-        material: the fragments' material; position: ``(N, 3)`` mm.
+        material: the fragments' material; position: ``(N, 3)`` mm (float32 or float64: the dtype of
+            the shading).
         camera_center: ``(3,)`` mm; camera_up: ``(3,)`` world up of the camera (Stokes frame).
         light_positions: ``(K, 3)`` float64 LED module positions, mm.
-        visible: ``(N, K)`` bool shadow-ray visibility of each module.
+        visible: ``(N, K)`` bool shadow-ray visibility of each module; or a
+            :data:`~polarface.optics.lobes.ShadowTest` called
+            per module with the fragments that it lights from the front (``n . w_i > 0`` and
+            ``n . w_o > 0`` with the shading normal, in the shading's dtype: elsewhere both lobes are
+            exactly 0), so shadow rays whose answer cannot matter are never cast.
         intensity: ``(1, C)`` radiant intensity of every module (``(1, 1)`` broadcasts over channels),
             or ``(K, C)`` one row per module.
-        stokes: ``(N, C, 4)`` the Stokes to add to (e.g. the subsurface term), or ``(N, C, S)`` with
-            ``S < 4``: only the first ``S`` components are accumulated (``S = 1``: ``s0`` of an RGB
-            camera; each component is the same sum as in the full vector).
-        light_stokes: incident Stokes vector of the LEDs (default: the image formation's default).
+        stokes: ``(N, C, S)`` the Stokes to add to (e.g. the subsurface term), ``1 <= S <= 4``: the
+            first ``S`` components are accumulated, each the same sum as in the full vector.
+        light_stokes: ``(4,)`` or ``(K, 4)`` incident Stokes vector of the LEDs in their own frame
+            (default: the image formation's default ``[1, 1, 0, 0]``).
         skip_unlit: skip modules that no fragment sees (they add zero).
-    """
-    dtype = position.dtype
-    numpy_dtype = np.float32 if dtype == torch.float32 else np.float64
-    extra = {} if light_stokes is None else {"light_stokes": light_stokes}
-    no_exitance = torch.zeros_like(material.exitance[:, : intensity.shape[-1]])
-    for k in range(light_positions.shape[0]):
-        lit = torch.from_numpy(visible[:, k].astype(numpy_dtype))[:, None, None]
-        if skip_unlit and not bool(lit.any()):
-            continue
-        images = render_polarimetric(
-            material.normal,
-            position,
-            camera_center,
-            camera_up,
-            torch.from_numpy(light_positions[k : k + 1].astype(numpy_dtype)),
-            intensity[k : k + 1] if intensity.shape[0] > 1 else intensity,
-            material.eta,
-            material.alpha_s,
-            material.alpha_ss,
-            material.rho_s,
-            material.rho_ss,
-            0.0,
-            diffused_exitance=no_exitance,
-            **extra,
-        )
-        stokes = stokes + lit * images.stokes[..., : stokes.shape[-1]]
-    return stokes
 
+    Raises:
+        ValueError: shapes that do not match, a ``visible`` test answering the wrong shape, and (outside
+            :func:`polarface._validation.trusted_inputs`) the value checks of ``render_polarimetric``.
+    """
+    return add_lobes(
+        stokes, material.normal, position, camera_center, camera_up, light_positions, intensity,
+        material.eta, material.alpha_s, material.alpha_ss, material.rho_s, material.rho_ss, visible,
+        light_stokes=light_stokes, skip_unlit=skip_unlit,
+    )
