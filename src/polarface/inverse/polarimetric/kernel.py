@@ -30,6 +30,14 @@ AVX-512; in float32 for a float32 fit); a last scalar loop adds each sample's gr
 texel's float64 sums. Vectorising across samples rather than across the lights also vectorises the
 per-sample work (exit Fresnel, losses); docs/reconstruct.md gives the measured effect.
 
+Each light's physics (:func:`_light`, with its partial derivatives) is evaluated once per iteration: the
+forward loop keeps the 22 values per light and sample that the reverse loop needs (channel-weighted
+irradiance, Fresnel Stokes and their eta derivatives, lobe and entry partials) in a second scratch array,
+``saved[22 k + r, i]``, and the reverse loop reads them back instead of evaluating the light again. On a
+CPU whose vector divide and square root are slow this matters most: the reverse pass's 6 square roots
+and 17 divides per light and sample are gone (docs/performance.md, "The fused kernel against this CPU's
+peak").
+
 Threads: ``numba.prange`` over runs of texels with about equal sample counts (each texel's samples
 are summed by one thread, so gradients need no atomics); results do not depend on the thread count.
 Importing this module selects numba's ``workqueue`` threading layer unless ``NUMBA_THREADING_LAYER``
@@ -88,6 +96,7 @@ _B = 32  # samples per block
 ) = range(46)  # fmt: skip
 _SPEC, _FLUX, _OBS, _RHOC, _GSPEC, _GFLUX, _GRHO, _TERMS, _LACC = 46, 55, 58, 67, 70, 79, 82, 85, 89
 _LIGHT = 98  # the current light (7 rows: position, channel intensities, unshadowed), copied from:
+_SAVED = 22  # values per light kept by the forward pass for the reverse pass (in a separate array)
 _LIGHTS = 105  # 7 rows per light (the vectorised loops only address constant rows: LLVM then proves
 # that their loads and stores do not overlap)
 
@@ -169,15 +178,19 @@ def _current_light(work, i, tiny):
     )  # fmt: skip
 
 
-def _forward_lights(work, count, light_count, tiny):
-    """Accumulate the specular Stokes ``(3 channels x 3)`` and the entry flux per channel over lights."""
+def _forward_lights(work, saved, count, light_count, tiny):
+    """Accumulate the specular Stokes ``(3 channels x 3)`` and the entry flux per channel over lights, and
+    keep each light's :data:`_SAVED` values that the reverse pass needs in ``saved`` (rows
+    ``_SAVED * k ...``): each light's physics is evaluated once per iteration."""
     _zero_rows(work, _SPEC, _FLUX + 3, count)
     for k in range(light_count):
         _load_light(work, count, k)
+        b = _SAVED * k
         for i in range(count):
-            (wl, sp0, sp1, sp2, _, _, _, lobe, _, _, _, _, _, _, _, _, entry, _, _, _, _) = _current_light(
-                work, i, tiny
-            )
+            (
+                wl, sp0, sp1, sp2, dsp0, dsp1, dsp2, lobe, dl_nx, dl_ny, dl_nz, dl_co, dl_as, dl_ass,
+                dl_rs, dl_rss, entry, de_nx, de_ny, de_nz, de_eta,
+            ) = _current_light(work, i, tiny)  # fmt: skip
             # the three channels written out: an inner loop would be vectorised instead of this one
             i0 = work[_LIGHT + 3, i] * wl
             i1 = work[_LIGHT + 4, i] * wl
@@ -194,6 +207,14 @@ def _forward_lights(work, count, light_count, tiny):
             work[_FLUX, i] += i0 * entry
             work[_FLUX + 1, i] += i1 * entry
             work[_FLUX + 2, i] += i2 * entry
+            saved[b, i], saved[b + 1, i], saved[b + 2, i] = i0, i1, i2
+            saved[b + 3, i], saved[b + 4, i], saved[b + 5, i] = sp0, sp1, sp2
+            saved[b + 6, i], saved[b + 7, i], saved[b + 8, i] = dsp0, dsp1, dsp2
+            saved[b + 9, i], saved[b + 10, i], saved[b + 11, i] = lobe, dl_nx, dl_ny
+            saved[b + 12, i], saved[b + 13, i], saved[b + 14, i] = dl_nz, dl_co, dl_as
+            saved[b + 15, i], saved[b + 16, i], saved[b + 17, i] = dl_ass, dl_rs, dl_rss
+            saved[b + 18, i], saved[b + 19, i], saved[b + 20, i] = de_nx, de_ny, de_nz
+            saved[b + 21, i] = de_eta
 
 
 def _channel(work, i, j, exit_terms, constants):
@@ -274,33 +295,32 @@ def _losses(work, count, constants, tiny):
         work[_GBO, i] = g_xi * dxi_db + g_zeta * dzeta_db
 
 
-def _reverse_lights(work, count, light_count, tiny):
-    """Accumulate the parameter gradients through every light (rows _LACC..+8); vectorised over samples."""
+def _reverse_lights(work, saved, count, light_count):
+    """Accumulate the parameter gradients through every light (rows _LACC..+8) from the values the forward
+    pass kept in ``saved``; vectorised over samples."""
     _zero_rows(work, _LACC, _LACC + 9, count)
     for k in range(light_count):
-        _load_light(work, count, k)
+        b = _SAVED * k
         for i in range(count):
-            (
-                wl, sp0, sp1, sp2, dsp0, dsp1, dsp2, lobe, dl_nx, dl_ny, dl_nz, dl_co, dl_as, dl_ass,
-                dl_rs, dl_rss, _, de_nx, de_ny, de_nz, de_eta,
-            ) = _current_light(work, i, tiny)  # fmt: skip
-            i0 = work[_LIGHT + 3, i] * wl
-            i1 = work[_LIGHT + 4, i] * wl
-            i2 = work[_LIGHT + 5, i] * wl
+            i0, i1, i2 = saved[b, i], saved[b + 1, i], saved[b + 2, i]
+            sp0, sp1, sp2 = saved[b + 3, i], saved[b + 4, i], saved[b + 5, i]
             big0 = i0 * work[_GSPEC, i] + i1 * work[_GSPEC + 3, i] + i2 * work[_GSPEC + 6, i]
             big1 = i0 * work[_GSPEC + 1, i] + i1 * work[_GSPEC + 4, i] + i2 * work[_GSPEC + 7, i]
             big2 = i0 * work[_GSPEC + 2, i] + i1 * work[_GSPEC + 5, i] + i2 * work[_GSPEC + 8, i]
             g_lobe = big0 * sp0 + big1 * sp1 + big2 * sp2
             g_entry = i0 * work[_GFLUX, i] + i1 * work[_GFLUX + 1, i] + i2 * work[_GFLUX + 2, i]
-            work[_LACC, i] += lobe * (big0 * dsp0 + big1 * dsp1 + big2 * dsp2) + g_entry * de_eta
-            work[_LACC + 1, i] += g_lobe * dl_nx + g_entry * de_nx
-            work[_LACC + 2, i] += g_lobe * dl_ny + g_entry * de_ny
-            work[_LACC + 3, i] += g_lobe * dl_nz + g_entry * de_nz
-            work[_LACC + 4, i] += g_lobe * dl_co
-            work[_LACC + 5, i] += g_lobe * dl_as
-            work[_LACC + 6, i] += g_lobe * dl_ass
-            work[_LACC + 7, i] += g_lobe * dl_rs
-            work[_LACC + 8, i] += g_lobe * dl_rss
+            work[_LACC, i] += (
+                saved[b + 9, i] * (big0 * saved[b + 6, i] + big1 * saved[b + 7, i] + big2 * saved[b + 8, i])
+                + g_entry * saved[b + 21, i]
+            )
+            work[_LACC + 1, i] += g_lobe * saved[b + 10, i] + g_entry * saved[b + 18, i]
+            work[_LACC + 2, i] += g_lobe * saved[b + 11, i] + g_entry * saved[b + 19, i]
+            work[_LACC + 3, i] += g_lobe * saved[b + 12, i] + g_entry * saved[b + 20, i]
+            work[_LACC + 4, i] += g_lobe * saved[b + 13, i]
+            work[_LACC + 5, i] += g_lobe * saved[b + 14, i]
+            work[_LACC + 6, i] += g_lobe * saved[b + 15, i]
+            work[_LACC + 7, i] += g_lobe * saved[b + 16, i]
+            work[_LACC + 8, i] += g_lobe * saved[b + 17, i]
 
 
 def _kernel(
@@ -324,6 +344,7 @@ def _kernel(
             for s in range(offsets[t], offsets[t + 1]):
                 sample_texel[s - s_begin] = t
         work = np.zeros((_LIGHTS + 7 * light_count, _B), dtype=F)
+        saved = np.zeros((_SAVED * light_count, _B), dtype=F)
         for s0 in range(s_begin, s_end, _B):
             count = min(_B, s_end - s0)
             # gather (scalar): texel parameters and position, view tables, observations, lights
@@ -354,9 +375,9 @@ def _kernel(
                         work[base + 3 + c, i] = light_intensity[v, c, k]
                     work[base + 6, i] = F(1.0) if (lit_bits >> k) & 1 else F(0.0)
             _view_terms(work, count, light_tiny)
-            _forward_lights(work, count, light_count, light_tiny)
+            _forward_lights(work, saved, count, light_count, light_tiny)
             _losses(work, count, constants, light_tiny)
-            _reverse_lights(work, count, light_count, light_tiny)
+            _reverse_lights(work, saved, count, light_count)
             # scatter (scalar): per-sample gradients into the texels' float64 sums
             for i in range(count):
                 s = s0 + i
