@@ -348,13 +348,15 @@ def count_kernel_work(side: int = 16, frames: int = 4) -> dict:
     scale = problem.scale
     constants = tuple(leaf(x) for x in (*objective.data_weights, 1.0 / scale, 0.05 * scale))
     # one CSE scope per vectorised loop body (kernel._kernel's phases): the view terms, each light of
-    # the forward loop, the losses, each light of the reverse loop, the scatter
+    # the forward loop, the losses and the reverse loop (which reads what the forward loop kept), the
+    # scatter
     graph.new_scope()
     ns["_view_terms"](work, 1, tiny)
-    ns["_forward_lights"](work, 1, k_count, tiny)
+    saved = _Work()  # the values each light's forward pass keeps for the reverse pass
+    ns["_forward_lights"](work, saved, 1, k_count, tiny)
     graph.new_scope()
     ns["_losses"](work, 1, constants, tiny)
-    ns["_reverse_lights"](work, 1, k_count, tiny)
+    ns["_reverse_lights"](work, saved, 1, k_count)
     graph.new_scope()
     outputs = _scatter(work)
     counts = graph.live_counts(outputs)
