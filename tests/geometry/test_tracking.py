@@ -124,6 +124,22 @@ def test_plane_with_known_smooth_deformation_is_tracked():
     assert tracked.confidence.dtype == np.float32
 
 
+def test_flows_on_image_crops_track_as_flows_on_whole_images():
+    """The default crop margin is the whole of these small images; an 8 px margin (motion up to 3.6 px)
+    computes the flows on 18 % of each image and tracks as well as the whole images."""
+    amplitudes = [0.0, 1.2, 2.4, 3.0]
+    reference, cameras, load, truth = _plane_sequence(amplitudes)
+    whole = track_mesh(reference, cameras, load, range(4), TrackingConfig(flow_crop_margin_px=None))
+    cropped = track_mesh(reference, cameras, load, range(4), TrackingConfig(flow_crop_margin_px=8.0))
+    for tracked in (whole, cropped):
+        errors = _errors(tracked, truth)
+        assert np.median(errors[1:], axis=1).max() < 0.1 * MM_PER_PX
+        assert (tracked.tracked_fraction() > 0.95).all()
+    difference = np.linalg.norm(cropped.vertices - whole.vertices, axis=-1)
+    assert np.median(difference) < 0.025 * MM_PER_PX  # measured 0.011 px
+    assert cropped.anchors == whole.anchors
+
+
 def test_snapping_puts_the_tracked_vertices_on_the_surface():
     """``snap_to_surface``: the tracked vertices are moved to the closest point of the frame's surface (the
     plane, whose depth ``truth`` keeps) before the smoothing, and still follow the deformation."""
