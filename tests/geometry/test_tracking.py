@@ -250,7 +250,10 @@ def test_tiny_head_stays_put_under_changing_skin_colour(tiny_dynamic):
     assert tracked.failed == {} and seen.mean() > 0.3
     # a tenth of a pixel is ~0.1 mm at the tiny preset's resolution; the median must stay below it
     assert np.median(errors[seen]) < 0.05
-    assert np.percentile(errors, 90) < 0.2
+    # the 90th percentile depends on the noise realisation, which float rounding of the render moves
+    # (numpy's Poisson sampler draws a varying number of uniforms per pixel): 0.14-0.20 mm measured on
+    # two CPUs and thread counts
+    assert np.percentile(errors, 90) < 0.25
     print(f"tiny head: median {np.median(errors[seen]):.4f} mm, p90 {np.percentile(errors, 90):.4f} mm")
 
 
