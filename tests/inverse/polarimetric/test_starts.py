@@ -5,8 +5,8 @@ samples. Per texel (before the median filters): the same grid choices for eta an
 same texels without samples, rho_sss_bar and, where the alpha_s choice agrees, rho_s within a relative
 1e-4. After the median filters, at least 98 % of the texels (of all patches; 90 % of each patch) have all
 four raw starts within 1e-4 (a flipped choice also moves its neighbours' medians: on a 2-core Intel Xeon
-VM one 20 x 20 patch had 97.25 %, the patches together 98.8 %). On two demo patches every choice agreed and the raw
-albedos differed by < 3e-6.
+VM one 20 x 20 patch had 97.25 %, the patches together 98.8 %). On two demo patches every choice
+agreed and the raw albedos differed by < 3e-6.
 
 A synthetic sphere capture with a 32 x 32 atlas; patches of 16 texels with a 4-texel halo.
 """
