@@ -2,8 +2,18 @@
 
 from __future__ import annotations
 
+import os
+import tempfile
 import uuid
 from pathlib import Path
+
+# numba's on-disk cache is not safe to fill from concurrent processes (numba issues 4807 and 10128: a
+# 'polarface dynamic' subprocess segfaulted in a fresh clone while the other xdist worker compiled the
+# same kernels): each xdist worker, with the processes its tests start, keeps its own cache
+if os.environ.get("PYTEST_XDIST_WORKER") and "NUMBA_CACHE_DIR" not in os.environ:
+    os.environ["NUMBA_CACHE_DIR"] = str(
+        Path(tempfile.gettempdir()) / f"polarface-numba-{os.getuid()}" / os.environ["PYTEST_XDIST_WORKER"]
+    )
 
 import numpy as np
 import pytest
