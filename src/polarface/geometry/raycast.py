@@ -195,12 +195,19 @@ class RayCaster:
             raise ValueError("argument 'directions' must hold unit vectors")
         return origins, directions
 
-    def _run(self, origins: np.ndarray, directions: np.ndarray, **query) -> np.ndarray | dict:
-        """Embree query of float64 rays ``(R, 3)``, moved into the scene's shifted, scaled float32 frame
-        as trimesh's wrapper does (without its extra float64 copy of the origins)."""
+    def _scene_rays(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """float64 rays ``(R, 3)`` moved into the Embree scene's shifted, scaled float32 frame, as
+        trimesh's wrapper does (without its extra float64 copy of the origins)."""
         wrap = self._scene
         shifted = (origins - wrap.origin) * wrap.scale
-        return wrap.scene.run(shifted.astype(np.float32), directions.astype(np.float32), **query)
+        return shifted.astype(np.float32), directions.astype(np.float32)
+
+    def _blocked(self, origins32: np.ndarray, directions32: np.ndarray, limits: np.ndarray) -> np.ndarray:
+        """``(R,)`` bool: Embree's occlusion query of scene-frame rays (:meth:`_scene_rays`) within the
+        float64 lengths ``limits`` ``(R,)`` (a zero length is never blocked)."""
+        dists = np.minimum(limits, _MISS_DISTANCE).astype(np.float32)
+        result = self._scene.scene.run(origins32, directions32, dists=dists, query="OCCLUDED")
+        return (np.asarray(result) != -1) & (limits > 0)
 
     def first_hits(self, origins: np.ndarray, directions: np.ndarray) -> RayHits:
         """Closest intersection of each ray ``origin + t direction``, ``t > 0``.
@@ -213,7 +220,7 @@ class RayCaster:
         if count == 0:
             empty3 = np.zeros((0, 3))
             return RayHits(np.zeros(0, bool), np.zeros(0, np.int64), np.zeros(0), empty3, empty3, empty3)
-        result = self._run(origins, directions, output=1)
+        result = self._scene.scene.run(*self._scene_rays(origins, directions), output=1)
         face_id = np.asarray(result["primID"], dtype=np.int64)
         hit = face_id >= 0
         bary, point, distance = np.empty((count, 3)), np.empty((count, 3)), np.empty(count)
@@ -236,9 +243,7 @@ class RayCaster:
             raise ValueError("argument 'max_distance' must be >= 0 mm")
         if origins.shape[0] == 0:
             return np.zeros(0, dtype=bool)
-        dists = np.minimum(limit, _MISS_DISTANCE).astype(np.float32)
-        result = self._run(origins, directions, dists=dists, query="OCCLUDED")
-        return (np.asarray(result) != -1) & (limit > 0)
+        return self._blocked(*self._scene_rays(origins, directions), limit)
 
     def shadow_rays(
         self,
@@ -337,9 +342,7 @@ class RayCaster:
         _segment_rays(points, normals, lights, unused if pairwise else rows, unused if pairwise else modules,
                       pairwise, self.offset, np.asarray(self._scene.origin, np.float64),
                       float(self._scene.scale), origins32, directions32, limits)
-        dists = np.minimum(limits, _MISS_DISTANCE).astype(np.float32)
-        result = self._scene.scene.run(origins32, directions32, dists=dists, query="OCCLUDED")
-        return ~((np.asarray(result) != -1) & (limits > 0))
+        return ~self._blocked(origins32, directions32, limits)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
