@@ -1,5 +1,5 @@
-"""Screened Poisson meshing (polarface.geometry.fusion): radius of a noisy sphere, trimming of an open
-surface, removal of a far cluster, bad input."""
+"""Screened Poisson meshing (polarface.geometry.fusion): radius of a noisy sphere, the same mesh on every
+run, trimming of an open surface, removal of a far cluster, bad input."""
 
 from __future__ import annotations
 
@@ -41,6 +41,14 @@ def test_poisson_faces_are_counter_clockwise_from_outside(sphere_mesh):
     centres = sphere_mesh.vertices[sphere_mesh.faces].mean(axis=1) - CENTRE
     outward = np.einsum("fc,fc->f", sphere_mesh.face_normals(), centres) > 0
     assert outward.mean() > 0.999
+
+
+def test_default_poisson_gives_the_same_mesh_on_every_run(sphere_mesh):
+    """One solver thread by default (Open3D's multi-threaded solver crashes at random and varies in the
+    last bits): meshing the same cloud again gives the identical mesh."""
+    again = poisson_mesh(sphere_cloud(60000))
+    np.testing.assert_array_equal(again.vertices, sphere_mesh.vertices)
+    np.testing.assert_array_equal(again.faces, sphere_mesh.faces)
 
 
 def test_poisson_orientation_follows_the_cloud_normals():
@@ -110,3 +118,5 @@ def test_bad_input_names_the_argument():
         poisson_mesh(broken)
     with pytest.raises(ValueError, match="resolution_mm"):
         PoissonConfig(resolution_mm=0.0)
+    with pytest.raises(ValueError, match="threads"):
+        PoissonConfig(threads=0)

@@ -2,9 +2,8 @@
 executor, on the tiny preset: identical maps, a killed worker's frame rerun, resume from finished frames,
 an unreachable cluster refused before anything is written.
 
-Every run shares the local run's ``tracking/`` (stereo meshes, alignment, tracking): Open3D's
-multi-threaded Poisson meshing differs from run to run in the last bits (tests/pipeline/
-test_dynamic_stage.py), and only the per-frame work runs on the executor.
+Every run shares the local run's ``tracking/`` (stereo meshes, alignment, tracking): only the per-frame
+work runs on the executor, and the geometry is not recomputed for each run.
 """
 
 from __future__ import annotations

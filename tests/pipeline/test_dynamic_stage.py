@@ -122,8 +122,7 @@ def test_resume_after_an_interruption_mid_sequence_gives_identical_maps(tiny, se
                                                                         monkeypatch):
     """The per-frame stages resume to the maps of an uninterrupted run. Both runs share the sequence's
     stereo meshes, alignment and tracking (``tracking/``, computed once per RESULT and reloaded by a
-    resumed run): Open3D's multi-threaded Poisson meshing does not give bit-identical meshes from run
-    to run, so two independent runs agree only to rounding of the geometry."""
+    resumed run), so only the per-frame stages are compared."""
     sim, static = tiny
     result = tmp_path / "result"
     shutil.copytree(static, result)

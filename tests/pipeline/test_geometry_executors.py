@@ -2,9 +2,9 @@
 a local Ray instance) against the local executor, on the tiny preset: identical per-frame meshes and
 clouds, the placements recorded, a frame failing in its unit reported while the others complete.
 
-Open3D's Poisson meshing runs with one thread here: with several, its meshes differ from run to run in
-the last bits (whatever the executor). The registration, which stays in the submitting process, differs
-from run to run by ~1e-13 mm; the poses are compared to that.
+Open3D's Poisson meshing runs with one thread (``PoissonConfig``'s default): with several, its meshes
+differ from run to run in the last bits (whatever the executor). The registration, which stays in the
+submitting process, differs from run to run by ~1e-13 mm; the poses are compared to that.
 """
 
 from __future__ import annotations
@@ -19,14 +19,13 @@ import pytest
 
 from polarface.capture.store import CaptureStore
 from polarface.executors import LocalExecutor, RayExecutor
-from polarface.geometry import PoissonConfig, load_poses
+from polarface.geometry import load_poses
 from polarface.pipeline.dynamic_geometry import TrackingFolder, stereo_pass
 from polarface.pipeline.geometry import GeometryConfig, reconstruct_geometry
 from polarface.simulate import SimulationConfig, simulate
 from ray_fixtures import RAY_CPUS, ray_instance  # noqa: F401 (fixture)
 
-CONFIG = GeometryConfig(texture_resolution=256, frame_poisson=PoissonConfig(threads=1),
-                        reference_poisson=PoissonConfig(resolution_mm=3.0, threads=1))
+CONFIG = GeometryConfig(texture_resolution=256)
 
 
 @pytest.fixture(scope="module")

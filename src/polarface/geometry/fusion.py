@@ -67,7 +67,11 @@ class PoissonConfig:
             spacing)``) from the nearest input point are removed (Poisson's extrapolation); 0 disables.
         min_component_fraction: connected components with fewer triangles than this fraction of the
             largest component are removed (0 keeps all).
-        threads: Open3D worker threads (-1: all cores).
+        threads: Open3D worker threads (-1: all cores). 1 by default: Open3D's multi-threaded Poisson
+            solver crashes the process at random (a segmentation fault inside
+            ``CreateFromPointCloudPoisson``, Open3D issue 6828, PoissonRecon issue 298; seen once in this
+            project's CI), and on 2 cores it was no faster (demo frame, 175k points: 2.1 s either way).
+            One thread also gives the same mesh on every run.
     """
 
     resolution_mm: float = 1.5
@@ -81,7 +85,7 @@ class PoissonConfig:
     density_quantile: float = 0.01
     max_distance_cells: float = 1.5
     min_component_fraction: float = 0.05
-    threads: int = -1
+    threads: int = 1
 
     def __post_init__(self) -> None:
         checks = {
@@ -95,6 +99,7 @@ class PoissonConfig:
             "density_quantile": 0.0 <= self.density_quantile < 1.0,
             "max_distance_cells": self.max_distance_cells >= 0,
             "min_component_fraction": 0.0 <= self.min_component_fraction <= 1.0,
+            "threads": self.threads == -1 or self.threads >= 1,
         }
         for name, ok in checks.items():
             if not ok:
