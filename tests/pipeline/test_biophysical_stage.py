@@ -243,3 +243,21 @@ def test_cli_biophysical_bad_input_exit_code(tmp_path, capsys):
     result = make_result(tmp_path, rho_scale=4.0)
     assert main(["biophysical", str(result), "--no-progress"]) == 2
     assert "rho_sss_bar" in capsys.readouterr().err
+
+
+def test_reconstruct_stage_gives_the_fit_the_idle_worker_processes_threads(tmp_path):
+    """In ``reconstruct`` with worker processes (``--executor processes``) the biophysical fit, which runs
+    in the main process while the workers idle, takes all their threads; otherwise ``--threads``."""
+    from polarface.executors import ProcessExecutor
+    from polarface.pipeline.reconstruct import ReconstructContext, stage_biophysical
+
+    result = make_result(tmp_path)
+    context = ReconstructContext(capture=tmp_path, out=result, mesh_path=result / "mesh.obj",
+                                 poses_path=tmp_path / "poses.json", texture_resolution=RESOLUTION,
+                                 device="cpu", resume=False, progress=False, holdout_every=0,
+                                 executor=ProcessExecutor(workers=2, threads_per_worker=1))
+    before = torch.get_num_threads()
+    assert stage_biophysical(context)["torch_threads"] == 2
+    assert torch.get_num_threads() == before
+    context.executor = None
+    assert stage_biophysical(context)["torch_threads"] == 1

@@ -249,10 +249,19 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
 
 
 def stage_biophysical(ctx: ReconstructContext) -> dict[str, Any]:
-    """Chromophore maps and diffusion profiles from ``maps/rho_sss_bar.exr`` (paper Sec. 5.3)."""
+    """Chromophore maps and diffusion profiles from ``maps/rho_sss_bar.exr`` (paper Sec. 5.3).
+
+    The fit runs in this process. With ``ctx.executor`` a :class:`~polarface.executors.ProcessExecutor`
+    this machine's cores were given to polarface's worker processes, which are idle during this stage, so
+    the fit takes all of their threads (``workers * threads_per_worker``; 2-core VM, demo: 21-23 s with 1
+    thread, 12.4 s with 2, docs/performance.md); otherwise ``ctx.threads``."""
+    from polarface.executors import ProcessExecutor
     from polarface.pipeline.biophysical import run_biophysical_stage
 
-    return run_biophysical_stage(ctx.folder, device=ctx.device, progress=ctx.progress)
+    threads = ctx.threads
+    if isinstance(ctx.executor, ProcessExecutor):
+        threads = ctx.executor.workers * ctx.executor.threads_per_worker
+    return run_biophysical_stage(ctx.folder, device=ctx.device, progress=ctx.progress, threads=threads)
 
 
 def stage_dynamic(ctx: ReconstructContext) -> dict[str, Any]:

@@ -53,7 +53,8 @@ _LN10_DONNER = 2.303  # decadic -> natural, as written by Donner & Jensen 2006 (
 def _haemoglobin_table() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(wavelength nm, eps oxy, eps deoxy) of the bundled Prahl table, eps in cm^-1 / (mol/L)."""
     text = resources.files("polarface") / "data" / "chromophores" / "prahl_hemoglobin_molar_extinction.tsv"
-    data = np.loadtxt(text.open("r", encoding="utf-8"), skiprows=2)
+    with text.open("r", encoding="utf-8") as handle:
+        data = np.loadtxt(handle, skiprows=2)
     return data[:, 0].copy(), data[:, 1].copy(), data[:, 2].copy()
 
 
