@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import math
 import os
-import subprocess
-import sys
 
 import pytest
 
@@ -51,34 +49,6 @@ def test_create_executor_processes_and_its_arguments():
         create_executor("processes", address="head:6379")
     with pytest.raises(ValueError, match="'--workers' needs '--executor processes' or '--executor ray'"):
         create_executor("local", workers=2)
-
-
-_CLAIM = (
-    "import sys, numba; from polarface.executors.process_executor import claim_numba_cache; "
-    "folder = claim_numba_cache(sys.argv[1]); "
-    "print(folder, claim_numba_cache(sys.argv[1]) == folder, numba.config.CACHE_DIR == folder, flush=True); "
-    "sys.stdin.read()"
-)
-
-
-def _claim(base, stdin: str = "") -> list[str]:
-    done = subprocess.run([sys.executable, "-c", _CLAIM, str(base)], input=stdin, capture_output=True,
-                          text=True, timeout=120, check=True)
-    return done.stdout.split()
-
-
-def test_each_live_process_claims_its_own_numba_cache_and_a_freed_one_is_reused(tmp_path):
-    holder = subprocess.Popen([sys.executable, "-c", _CLAIM, str(tmp_path)], stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, text=True)
-    try:
-        first = holder.stdout.readline().split()
-        second = _claim(tmp_path)  # while the first process holds worker-0
-    finally:
-        holder.communicate("", timeout=120)
-    third = _claim(tmp_path)  # the first process has ended: its slot is free again
-    assert first == [str(tmp_path / "worker-0"), "True", "True"]
-    assert second == [str(tmp_path / "worker-1"), "True", "True"]
-    assert third == first
 
 
 def test_the_workers_compile_into_caches_of_their_own():

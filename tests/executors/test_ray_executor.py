@@ -16,8 +16,15 @@ from ray_fixtures import RAY_CPUS, pickle_by_value, ray_instance  # noqa: F401 (
 
 
 @pytest.fixture(scope="module")
-def executor(ray_instance):  # noqa: F811
+def ray_here(ray_instance):  # noqa: F811
+    """The shared Ray instance, with this module's unit functions shipped by value (every test that runs
+    one needs it, whichever test of the module runs first in this process)."""
     pickle_by_value(__name__)
+    return ray_instance
+
+
+@pytest.fixture(scope="module")
+def executor(ray_here):
     with RayExecutor(workers=RAY_CPUS) as executor:
         executor.start()
         yield executor
@@ -52,7 +59,7 @@ def test_an_unexpected_exception_propagates(executor):
         executor.map_units(len, [1, 2])  # len(int) -> TypeError, not a unit failure
 
 
-def test_workers_adopt_the_submitting_process_thread_counts(ray_instance):  # noqa: F811
+def test_workers_adopt_the_submitting_process_thread_counts(ray_here):
     import torch
 
     previous = torch.get_num_threads()
@@ -108,7 +115,7 @@ def test_a_unit_whose_worker_is_killed_is_rerun(executor, tmp_path):
     assert outcomes[1].pid != victim
 
 
-def test_without_retries_a_killed_unit_is_reported_and_the_rest_complete(ray_instance, tmp_path):  # noqa: F811
+def test_without_retries_a_killed_unit_is_reported_and_the_rest_complete(ray_here, tmp_path):
     outcomes, _ = _run_and_kill_unit_1(RayExecutor(workers=RAY_CPUS, max_retries=0), tmp_path)
     assert [o.value for o in outcomes] == [(0, 1), None, (2, 1)]
     assert outcomes[1].error.startswith("its worker died (1 attempt: ")

@@ -12,10 +12,8 @@ A worker that dies (killed, out of memory) breaks the pool: the units it and the
 are reported failed with that reason (the stage's resume runs them again); the pool is then replaced for
 later calls. For more than one machine use ``--executor ray``.
 
-Each worker compiles numba's kernels into its own on-disk cache (:func:`claim_numba_cache`): numba's
-cache is not safe to fill from concurrent processes (numba issues 4807 and 10128; a process of this
-project's tests segfaulted so), and on a fresh install the workers would otherwise compile the same
-kernels into the same files at the same time.
+Each worker compiles numba's kernels into an on-disk cache of its own
+(:func:`polarface.executors.numba_cache.claim_numba_cache`).
 """
 
 from __future__ import annotations
@@ -23,75 +21,14 @@ from __future__ import annotations
 import concurrent.futures
 import multiprocessing
 import os
-import sys
-import tempfile
 from collections.abc import Callable, Sequence
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 from polarface.executors.base import UNIT_FAILURES, ThreadSettings, UnitOutcome, run_unit
+from polarface.executors.numba_cache import claim_numba_cache
 
-__all__ = ["ProcessExecutor", "claim_numba_cache"]
-
-#: The cache folder a worker holds (its lock file stays open, and so locked, for the process's life).
-_CLAIMED: dict[str, object] = {}
-
-
-def claim_numba_cache(base: str | os.PathLike | None = None, slots: int = 256) -> str | None:
-    """Give this process a numba cache folder that no other running process uses; returns it.
-
-    The folder is the first free slot ``BASE/worker-N`` (N < ``slots``), held by an exclusive lock on
-    ``BASE/worker-N.lock`` until the process ends, so slots are reused by later runs (their kernels
-    stay compiled) and never shared by two live processes. ``BASE``: ``base``, else
-    ``$NUMBA_CACHE_DIR/polarface-workers`` when that is set, else ``polarface-numba-workers`` in the
-    user's cache folder (``$XDG_CACHE_HOME`` or ``~/.cache``; the temporary folder when that is not
-    writable). Must run before the process defines a cached kernel (a worker's initializer). None, and
-    nothing changed, where file locks are unavailable (Windows) or every slot is taken.
-    """
-    if "folder" in _CLAIMED:
-        return str(_CLAIMED["folder"])
-    try:
-        import fcntl
-    except ImportError:
-        return None
-    for root in _cache_roots(base):
-        try:
-            os.makedirs(root, exist_ok=True)
-        except OSError:
-            continue
-        for slot in range(int(slots)):
-            folder = os.path.join(root, f"worker-{slot}")
-            try:
-                handle = open(folder + ".lock", "a")  # held open, and so locked, for the process's life
-            except OSError:
-                break  # not writable: the next root
-            try:
-                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                handle.close()
-                continue
-            _CLAIMED.update(folder=folder, handle=handle)
-            os.environ["NUMBA_CACHE_DIR"] = folder
-            if "numba" in sys.modules:  # imported already: its configuration is read at each decoration
-                sys.modules["numba"].config.CACHE_DIR = folder
-            return folder
-    return None
-
-
-def _cache_roots(base: str | os.PathLike | None) -> list[str]:
-    if base is not None:
-        return [os.fspath(base)]
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return [os.path.join(os.environ["NUMBA_CACHE_DIR"], "polarface-workers")]
-    user = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return [os.path.join(user, "polarface-numba-workers"),
-            os.path.join(tempfile.gettempdir(), f"polarface-numba-workers-{os.getuid()}")]
-
-
-def _start_worker() -> None:
-    """Worker initializer: its own numba cache (module docstring)."""
-    claim_numba_cache()
-
+__all__ = ["ProcessExecutor"]
 
 class ProcessExecutor:
     """Runs the units in ``workers`` local worker processes (module docstring).
@@ -123,7 +60,7 @@ class ProcessExecutor:
         if self._pool is None:
             self._pool = concurrent.futures.ProcessPoolExecutor(
                 max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_start_worker,
+                initializer=claim_numba_cache,
             )
 
     def map_units(self, fn: Callable[[Any], Any], units: Sequence[Any], *,
