@@ -30,6 +30,7 @@ from polarface.executors.numba_cache import claim_numba_cache
 
 __all__ = ["ProcessExecutor"]
 
+
 class ProcessExecutor:
     """Runs the units in ``workers`` local worker processes (module docstring).
 
