@@ -6,14 +6,7 @@ cylindrical texture atlas.
 Units mm, angles radians; cameras in the OpenCV convention; UVs v up (``docs/geometry.md``).
 """
 
-from polarface.geometry.atlas import (
-    CylindricalAtlas,
-    CylindricalAtlasConfig,
-    cylindrical_atlas,
-    default_axis_point,
-    head_axis_from_poses,
-    head_axis_point_from_poses,
-)
+from polarface.geometry.atlas import CylindricalAtlas, CylindricalAtlasConfig, cylindrical_atlas
 from polarface.geometry.camera import PinholeCamera, distort_normalized, look_at, undistort_normalized
 from polarface.geometry.deform import (
     EXPRESSIONS,
@@ -31,6 +24,7 @@ from polarface.geometry.head_asset import (
     pick_landmark,
     srgb_to_linear,
 )
+from polarface.geometry.head_axis import default_axis_point, head_axis_from_poses, head_axis_point_from_poses
 from polarface.geometry.heights import (
     HeightNormals,
     height_gradients,

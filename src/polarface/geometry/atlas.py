@@ -28,6 +28,9 @@ vertex on the axis), (3) hidden: after (1)-(2) the atlas is rasterised at the co
 and, at each texel covered by more than one triangle, the triangle farthest from the axis (the outer
 surface, e.g. the ear rather than the skull behind it) wins; every triangle that loses a texel is
 dropped. Hence no texel centre at that resolution lies strictly inside two kept triangles.
+
+The head axis (from the chair's poses or the surface) is computed in :mod:`polarface.geometry.head_axis`,
+the texel-level steps (rule (3), texel sizes) in :mod:`polarface.geometry.atlas_texels`.
 """
 
 from __future__ import annotations
@@ -37,8 +40,15 @@ import math
 
 import numpy as np
 
+from polarface.geometry.atlas_texels import hidden_faces, texel_size_stats
+from polarface.geometry.head_axis import (  # head_axis_*: re-exported (__all__)
+    DEFAULT_UP_AXIS,
+    default_axis_point,
+    head_axis_from_poses,
+    head_axis_point_from_poses,
+    unit_vector,
+)
 from polarface.geometry.mesh import TriangleMesh
-from polarface.geometry.poses import check_rigid
 
 __all__ = [
     "CylindricalAtlas",
@@ -48,136 +58,6 @@ __all__ = [
     "head_axis_from_poses",
     "head_axis_point_from_poses",
 ]
-
-DEFAULT_UP_AXIS = (0.0, -1.0, 0.0)
-"""The head's up axis in the rig/model frame (rig y points down)."""
-
-
-def _unit_vector(value, name: str) -> np.ndarray:
-    vector = np.asarray(value, dtype=np.float64)
-    if vector.shape != (3,) or not np.isfinite(vector).all():
-        raise ValueError(f"argument '{name}' must be a finite 3-vector; got {value!r}")
-    norm = float(np.linalg.norm(vector))
-    if norm < 1e-12:
-        raise ValueError(f"argument '{name}' must be non-zero; got {value!r}")
-    return vector / norm
-
-
-def _check_poses(poses) -> np.ndarray:
-    poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or poses.shape[0] == 0:
-        raise ValueError(f"argument 'poses' must be a non-empty (F, 4, 4) array; got {poses.shape}")
-    if not np.isfinite(poses).all():
-        raise ValueError("argument 'poses' contains NaN/inf values")
-    for index, pose in enumerate(poses):
-        check_rigid(pose, f"poses[{index}]")
-    return poses
-
-
-def _reference_index(poses: np.ndarray, reference: int | None) -> int:
-    if reference is None:  # the frame closest to the identity: the model frame is its rig world
-        traces = np.trace(poses[:, :3, :3], axis1=1, axis2=2)
-        return int(np.argmax(traces))
-    if not -len(poses) <= int(reference) < len(poses):
-        raise ValueError(f"argument 'reference' must index the {len(poses)} poses; got {reference}")
-    return int(reference) % len(poses)
-
-
-def _relative_motions(poses: np.ndarray, reference: int) -> np.ndarray:
-    """``(F, 4, 4)`` motions ``T_ref^-1 T_i`` in the model frame (identity for the reference)."""
-    ref = poses[reference]
-    inverse = np.eye(4)
-    inverse[:3, :3] = ref[:3, :3].T
-    inverse[:3, 3] = -ref[:3, :3].T @ ref[:3, 3]
-    return inverse[None] @ poses
-
-
-def _rotation_vectors(rotations: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(rotations).as_rotvec()
-
-
-def head_axis_from_poses(
-    poses: np.ndarray,
-    *,
-    default_axis: np.ndarray | tuple[float, float, float] = DEFAULT_UP_AXIS,
-    min_rotation_deg: float = 5.0,
-    reference: int | None = None,
-) -> np.ndarray:
-    """The head's vertical axis ``(3,)`` (unit, model frame) from a revolving-chair pose sequence.
-
-    Each frame's motion relative to the reference frame, ``R_ref^T R_i`` (a rotation in the model
-    frame), has a rotation axis ``a_i`` and angle ``w_i``. The chair turns the head about one vertical
-    axis, plus small nods and sways; the estimate is the principal eigenvector of
-    ``sum_i w_i a_i a_i^T`` (the angle-weighted mean axis, independent of the turning direction, so
-    left and right turns add up instead of cancelling; frames with a large turn dominate the nods).
-    Its sign is chosen to point "up": ``a . default_axis >= 0`` (``default_axis`` = rig -y).
-
-    Args:
-        poses: ``(F, 4, 4)`` float64 model -> world rigid transforms (mm).
-        default_axis: returned (normalised) when no frame turns by ``min_rotation_deg`` relative to
-            the reference, and the "up" half-space for the sign.
-        min_rotation_deg: the largest relative rotation must reach this to estimate an axis.
-        reference: index of the reference frame; None = the frame whose rotation is closest to the
-            identity (the model frame is the rig world at the reference frame).
-
-    Raises:
-        ValueError: naming the argument, on bad shapes, non-finite or non-rigid poses, a zero or
-            non-finite ``default_axis`` or a non-positive / non-finite ``min_rotation_deg``.
-    """
-    up = _unit_vector(default_axis, "default_axis")
-    if not (math.isfinite(float(min_rotation_deg)) and float(min_rotation_deg) > 0):
-        raise ValueError(f"argument 'min_rotation_deg' must be finite and > 0; got {min_rotation_deg}")
-    poses = _check_poses(poses)
-    motions = _relative_motions(poses, _reference_index(poses, reference))
-    rotvecs = _rotation_vectors(motions[:, :3, :3])
-    angles = np.linalg.norm(rotvecs, axis=1)
-    if angles.max() < math.radians(float(min_rotation_deg)):
-        return up
-    moving = angles > 1e-9
-    axes = rotvecs[moving] / angles[moving, None]
-    scatter = np.einsum("f,fi,fj->ij", angles[moving], axes, axes)
-    _, vectors = np.linalg.eigh(scatter)
-    axis = vectors[:, -1]
-    return axis if float(axis @ up) >= 0 else -axis
-
-
-def head_axis_point_from_poses(
-    poses: np.ndarray,
-    axis_direction: np.ndarray | tuple[float, float, float],
-    *,
-    min_rotation_deg: float = 5.0,
-    reference: int | None = None,
-) -> np.ndarray:
-    """A point ``(3,)`` (mm, model frame) on the chair's rotation axis, the closest one to the origin.
-
-    For a rotation about an axis through ``c`` the relative motion ``(R_i, t_i)`` fixes ``c`` up to a
-    slide along the axis: ``(I - R_i) c = t_i - (t_i . a) a``. The equations of all frames are solved
-    in the least-squares sense (frames weighted by their rotation angle); the minimum-norm solution is
-    the point of the axis closest to the model origin.
-
-    Raises:
-        ValueError: naming the argument, on bad poses or axis, or when no frame turns by at least
-            ``min_rotation_deg`` relative to the reference (the axis position is then undefined).
-    """
-    axis = _unit_vector(axis_direction, "axis_direction")
-    poses = _check_poses(poses)
-    motions = _relative_motions(poses, _reference_index(poses, reference))
-    angles = np.linalg.norm(_rotation_vectors(motions[:, :3, :3]), axis=1)
-    if angles.max() < math.radians(float(min_rotation_deg)):
-        raise ValueError(
-            f"argument 'poses' turns by at most {math.degrees(angles.max()):.2f} deg "
-            f"(< {min_rotation_deg} deg): the rotation axis position is undefined"
-        )
-    translations = motions[:, :3, 3]
-    rhs = translations - (translations @ axis)[:, None] * axis
-    lhs = np.eye(3)[None] - motions[:, :3, :3]
-    weights = np.sqrt(angles)[:, None]
-    point, *_ = np.linalg.lstsq(
-        (lhs * weights[:, :, None]).reshape(-1, 3), (rhs * weights).reshape(-1), rcond=None
-    )
-    return point - (point @ axis) * axis
 
 
 @dataclasses.dataclass(frozen=True)
@@ -302,26 +182,6 @@ class CylindricalAtlas:
         }
 
 
-def default_axis_point(vertices: np.ndarray, axis_direction: np.ndarray) -> np.ndarray:
-    """A point ``(3,)`` mm on the head axis from the surface alone: the centre of the circle fitted to
-    the vertices projected onto the plane orthogonal to the axis (algebraic least-squares fit), at
-    the vertices' mean height. The fit uses the arc of an open (front-only) surface, unlike the
-    centroid, which lies in front of the axis for such a surface. Prefer
-    :func:`head_axis_point_from_poses` when a rotation sequence is available.
-    """
-    axis = _unit_vector(axis_direction, "axis_direction")
-    vertices = np.asarray(vertices, dtype=np.float64)
-    mean = vertices.mean(axis=0)
-    e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 0.0, 1.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(axis, e1)
-    x, y = (vertices - mean) @ e1, (vertices - mean) @ e2
-    # x^2 + y^2 = 2 a x + 2 b y + c
-    design = np.stack([2 * x, 2 * y, np.ones_like(x)], axis=1)
-    (a, b, _), *_ = np.linalg.lstsq(design, x * x + y * y, rcond=None)
-    return mean + a * e1 + b * e2
-
-
 @dataclasses.dataclass(frozen=True)
 class _Cylinder:
     theta: np.ndarray  # (N,) rad
@@ -379,94 +239,6 @@ def _uv_from_cylinder(cyl, used, ref_radius, config) -> tuple[np.ndarray, tuple,
     return uv, (theta_lo, theta_hi), (h_lo, h_hi)
 
 
-def _hidden_faces(
-    uv: np.ndarray, faces: np.ndarray, radius: np.ndarray, size: int, batch: int = 1_000_000
-) -> np.ndarray:
-    """``(F,)`` bool: triangles that lose a texel (strictly inside two or more) to an outer triangle.
-
-    Texel centres as in :func:`polarface.geometry.uv_raster.texel_uv`; the texel's radius is
-    interpolated with the barycentrics; ties go to the higher face index.
-    """
-    x = uv[faces][..., 0] * size - 0.5
-    y = (1.0 - uv[faces][..., 1]) * size - 0.5
-    area2 = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
-    lo_x = np.clip(np.ceil(x.min(axis=1)), 0, size - 1).astype(np.int64)
-    hi_x = np.clip(np.floor(x.max(axis=1)), 0, size - 1).astype(np.int64)
-    lo_y = np.clip(np.ceil(y.min(axis=1)), 0, size - 1).astype(np.int64)
-    hi_y = np.clip(np.floor(y.max(axis=1)), 0, size - 1).astype(np.int64)
-    box_w = np.maximum(hi_x - lo_x + 1, 0)
-    counts = np.where(np.abs(area2) > 1e-12, box_w * np.maximum(hi_y - lo_y + 1, 0), 0)
-    texels, owners, radii = [], [], []
-    face_order = np.nonzero(counts)[0]
-    cumulative = np.cumsum(counts[face_order])
-    start = 0
-    while start < len(face_order):
-        base = cumulative[start - 1] if start else 0
-        stop = max(int(np.searchsorted(cumulative, base + batch, side="right")), start + 1)
-        chunk = face_order[start:stop]
-        owner = np.repeat(chunk, counts[chunk])
-        local = np.arange(owner.size) - np.repeat(np.cumsum(counts[chunk]) - counts[chunk], counts[chunk])
-        col = lo_x[owner] + local % box_w[owner]
-        row = lo_y[owner] + local // box_w[owner]
-        fx, fy = x[owner], y[owner]
-        w_b = ((col - fx[:, 0]) * (fy[:, 2] - fy[:, 0]) - (fx[:, 2] - fx[:, 0]) * (row - fy[:, 0])) / area2[
-            owner
-        ]
-        w_c = ((fx[:, 1] - fx[:, 0]) * (row - fy[:, 0]) - (col - fx[:, 0]) * (fy[:, 1] - fy[:, 0])) / area2[
-            owner
-        ]
-        w_a = 1.0 - w_b - w_c
-        inside = (w_a > 1e-9) & (w_b > 1e-9) & (w_c > 1e-9)
-        rad = radius[faces[owner]]
-        texels.append((row * size + col)[inside])
-        owners.append(owner[inside])
-        radii.append((w_a * rad[:, 0] + w_b * rad[:, 1] + w_c * rad[:, 2])[inside])
-        start = stop
-    hidden = np.zeros(len(faces), dtype=bool)
-    if not texels:
-        return hidden
-    texel, owner, rad = (np.concatenate(a) for a in (texels, owners, radii))
-    order = np.lexsort((owner, rad, texel))  # per texel: ascending radius, the winner last
-    texel, owner = texel[order], owner[order]
-    last = np.ones(texel.size, dtype=bool)
-    last[:-1] = texel[1:] != texel[:-1]
-    hidden[owner[~last]] = True
-    return hidden
-
-
-def _texel_size_stats(mesh: TriangleMesh, in_face: np.ndarray, size: int) -> dict[str, float]:
-    """UV-area-weighted statistics of per-triangle texel sizes over ``in_face`` triangles."""
-    p = mesh.vertices[mesh.faces[in_face]]
-    t = mesh.uv[mesh.faces[in_face]]
-    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-    du1, dv1 = t[:, 1, 0] - t[:, 0, 0], t[:, 1, 1] - t[:, 0, 1]
-    du2, dv2 = t[:, 2, 0] - t[:, 0, 0], t[:, 2, 1] - t[:, 0, 1]
-    det = du1 * dv2 - du2 * dv1
-    ok = det > 0
-    if not ok.any():
-        nan = float("nan")
-        return {k: nan for k in ("median", "p5", "p95", "median_u", "median_v", "median_anisotropy")}
-    inv = 1.0 / det[ok, None]
-    s_u = np.linalg.norm((e1[ok] * dv2[ok, None] - e2[ok] * dv1[ok, None]) * inv, axis=1) / size
-    s_v = np.linalg.norm((e2[ok] * du1[ok, None] - e1[ok] * du2[ok, None]) * inv, axis=1) / size
-    weight = 0.5 * det[ok]
-
-    def quantile(values, q):
-        order = np.argsort(values)
-        cdf = np.cumsum(weight[order]) - 0.5 * weight[order]
-        return float(np.interp(q * weight.sum(), cdf, values[order]))
-
-    linear = np.sqrt(s_u * s_v)
-    return {
-        "median": quantile(linear, 0.5),
-        "p5": quantile(linear, 0.05),
-        "p95": quantile(linear, 0.95),
-        "median_u": quantile(s_u, 0.5),
-        "median_v": quantile(s_v, 0.5),
-        "median_anisotropy": quantile(s_u / s_v, 0.5),
-    }
-
-
 def cylindrical_atlas(
     mesh: TriangleMesh,
     axis_direction: np.ndarray | tuple[float, float, float] = DEFAULT_UP_AXIS,
@@ -479,9 +251,10 @@ def cylindrical_atlas(
     Args:
         mesh: the reference mesh (mm, model frame; its UVs are ignored). May be open.
         axis_direction: ``(3,)`` the head's up axis (normalised here), e.g. from
-            :func:`head_axis_from_poses`; default rig -y.
-        axis_point: ``(3,)`` mm, a point on the axis (e.g. :func:`head_axis_point_from_poses`); None =
-            :func:`default_axis_point` of the mesh's vertices.
+            :func:`polarface.geometry.head_axis.head_axis_from_poses`; default rig -y.
+        axis_point: ``(3,)`` mm, a point on the axis (e.g.
+            :func:`polarface.geometry.head_axis.head_axis_point_from_poses`); None =
+            :func:`polarface.geometry.head_axis.default_axis_point` of the mesh's vertices.
         front_direction: ``(3,)`` direction from the axis towards the cameras (the face), made
             orthogonal to the axis; the seam lies opposite. Default rig -z.
         config: layout; None = :class:`CylindricalAtlasConfig` defaults.
@@ -499,8 +272,8 @@ def cylindrical_atlas(
     config = CylindricalAtlasConfig() if config is None else config
     if not isinstance(config, CylindricalAtlasConfig):
         raise ValueError(f"argument 'config' must be a CylindricalAtlasConfig; got {type(config).__name__}")
-    axis = _unit_vector(axis_direction, "axis_direction")
-    front = _unit_vector(front_direction, "front_direction")
+    axis = unit_vector(axis_direction, "axis_direction")
+    front = unit_vector(front_direction, "front_direction")
     front = front - (front @ axis) * axis
     if np.linalg.norm(front) < 1e-6:
         raise ValueError("argument 'front_direction' must not be parallel to 'axis_direction'")
@@ -524,7 +297,7 @@ def cylindrical_atlas(
     used = np.unique(mesh.faces[keep])
     uv, theta_range, height_range = _uv_from_cylinder(cyl, used, ref_radius, config)
     hidden = np.zeros(mesh.face_count, dtype=bool)
-    hidden[keep] = _hidden_faces(uv, mesh.faces[keep], cyl.radius, config.resolution)
+    hidden[keep] = hidden_faces(uv, mesh.faces[keep], cyl.radius, config.resolution)
     keep &= ~hidden
 
     source_face = np.nonzero(keep)[0]
@@ -537,7 +310,7 @@ def cylindrical_atlas(
         mesh.normals[source_vertex],
         source="cylindrical_atlas",
     )
-    stats = _texel_size_stats(out, _face_sector(cyl, mesh.faces, config)[keep], config.resolution)
+    stats = texel_size_stats(out, _face_sector(cyl, mesh.faces, config)[keep], config.resolution)
     return CylindricalAtlas(
         mesh=out,
         source_vertex=source_vertex.astype(np.int64),

@@ -21,6 +21,10 @@ Algorithm (Open3D, multi-scale point-to-plane ICP + pose graph):
    frames, and reports each frame's fitness and RMSE against the model built from the frames nearer the
    reference; frames that no longer fit are rejected.
 
+Steps 1-4 are in :mod:`polarface.geometry.registration_steps`, the Open3D ICP, global retry and residuals
+they use in :mod:`polarface.geometry.registration_icp`; this module holds the settings, the results and
+the entry points (:func:`register_sequence`, :func:`register_pair`).
+
 Memory: ``load_cloud`` is called once per frame per pass; only a bounded window of downsampled clouds
 (the last ``max(loop_offsets)`` accepted frames of the current side and the reference) and a voxel
 model bounded by the head's surface area are held, whatever the number of frames.
@@ -34,7 +38,6 @@ median 0.011 deg, max 0.022 deg, 0.011 mm; peak memory flat in the frame count (
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 from collections.abc import Callable, Sequence
 
@@ -42,16 +45,12 @@ import numpy as np
 
 from polarface.geometry.point_cloud import PointCloud
 from polarface.geometry.poses import check_rigid, invert_rigid
-from polarface.geometry.registration_icp import (
-    global_retry,
-    icp,
-    model_cloud,
-    orthonormalised,
-    point_to_plane,
-    registration_levels,
-    rejection_reason,
-    rotation_deg,
-    scaled_motion,
+from polarface.geometry.registration_icp import icp, registration_levels
+from polarface.geometry.registration_steps import (
+    all_poses,
+    chain_and_close,
+    optimise,
+    residuals_against_model,
 )
 
 __all__ = [
@@ -203,23 +202,6 @@ class SequenceRegistration:
         }
 
 
-@dataclasses.dataclass
-class _Frame:
-    """One accepted frame in the sliding window: its clouds per ICP level and its chained pose."""
-
-    index: int
-    levels: list  # open3d PointClouds, coarse -> fine
-    pose: np.ndarray  # model -> world
-
-
-@dataclasses.dataclass
-class _Graph:
-    """Pose-graph bookkeeping: node per accepted frame, edges (source, target, T, information, uncertain)."""
-
-    nodes: dict[int, np.ndarray] = dataclasses.field(default_factory=dict)
-    edges: list[tuple[int, int, np.ndarray, np.ndarray, bool]] = dataclasses.field(default_factory=list)
-
-
 def register_sequence(
     frame_indices: Sequence[int],
     load_cloud: Callable[[int], PointCloud],
@@ -248,12 +230,12 @@ def register_sequence(
     from tqdm import tqdm
 
     bar = tqdm(total=2 * len(frames), desc="register", unit="frame", disable=not progress)
-    graph, relative, reasons, centre = _chain_and_close(frames, load_cloud, reference, config, bar)
-    optimised = _optimise(graph, reference, config)
+    graph, relative, reasons, centre = chain_and_close(frames, load_cloud, reference, config, bar)
+    optimised = optimise(graph, reference, config)
     local_to_world = np.eye(4)
     local_to_world[:3, 3] = centre
-    poses = local_to_world @ _all_poses(frames, optimised, relative) @ invert_rigid(local_to_world)
-    fitness, rmse = _residuals_against_model(frames, load_cloud, reference, poses, reasons, config, bar)
+    poses = local_to_world @ all_poses(frames, optimised, relative) @ invert_rigid(local_to_world)
+    fitness, rmse = residuals_against_model(frames, load_cloud, reference, poses, reasons, config, bar)
     bar.close()
     for k, frame in enumerate(frames):
         if frame not in reasons and fitness[k] < config.min_fitness:
@@ -325,160 +307,3 @@ def _check_frames(frame_indices: Sequence[int], reference: int) -> list[int]:
     if int(reference) not in frames:
         raise ValueError(f"argument 'reference': frame {reference} is not in 'frame_indices'")
     return frames
-
-
-def _walks(frames: list[int], reference: int) -> list[list[int]]:
-    """The two walks outwards from the reference (each starting with the frame next to it)."""
-    at = frames.index(int(reference))
-    return [frames[at + 1 :], frames[:at][::-1]]
-
-
-def _chain_and_close(frames, load_cloud, reference, config, bar):
-    """Step 1-2: chained odometry, loop closures, rejections, in a local frame: the world shifted by
-    ``-centre`` (the reference cloud's centroid), so that poses have small translations and the pose graph
-    is well conditioned (about the rig origin, 1 m away, Levenberg-Marquardt stalls on its first step).
-
-    Returns ``(graph, relative, reasons, centre)``: ``relative[frame] = (anchor, T)`` with the rejected
-    frame's local pose ``= P_anchor_optimised @ T``.
-    """
-    graph, relative, reasons = _Graph(), {}, {}
-    ref_levels, centre = registration_levels(load_cloud(int(reference)), None, config)
-    if ref_levels is None:
-        raise ValueError(f"argument 'load_cloud': the reference frame {reference} has fewer than 16 points")
-    ref = _Frame(int(reference), ref_levels, np.eye(4))
-    graph.nodes[ref.index] = np.eye(4)
-    bar.update(1)
-    position = {f: i for i, f in enumerate(frames)}
-    for walk in _walks(frames, reference):
-        window: collections.deque[_Frame] = collections.deque([ref], maxlen=config.window + 1)
-        for frame in walk:
-            levels, _ = registration_levels(load_cloud(frame), centre, config)
-            _register_one(frame, levels, window, ref, position, graph, relative, reasons, config)
-            bar.update(1)
-    return graph, relative, reasons, centre
-
-
-def _predict(window, frame: int, position: dict[int, int]) -> np.ndarray:
-    """Constant-velocity prediction of ``frame``'s pose from the last two accepted frames of the walk."""
-    anchor = window[-1]
-    if len(window) < 2:
-        return anchor.pose
-    before = window[-2]
-    motion = anchor.pose @ invert_rigid(before.pose)
-    steps = abs(position[frame] - position[anchor.index]) / max(
-        abs(position[anchor.index] - position[before.index]), 1
-    )
-    return scaled_motion(motion, steps) @ anchor.pose
-
-
-def _register_one(frame, levels, window, ref, position, graph, relative, reasons, config) -> None:
-    """Register ``frame`` (its ICP levels) to the window's last frame, check it, add its node and edges."""
-    anchor = window[-1]
-    predicted = _predict(window, frame, position)
-    if levels is None:
-        reasons[frame] = "fewer than 16 confident points"
-        relative[frame] = (anchor.index, invert_rigid(anchor.pose) @ predicted)
-        return
-    init = anchor.pose @ invert_rigid(predicted)  # world-k -> world-anchor
-    transform, fitness, rmse, information = icp(levels, anchor.levels, init, config)
-    pose = invert_rigid(check_rigid(orthonormalised(transform))) @ anchor.pose
-    jump = rotation_deg(pose @ invert_rigid(predicted))
-    reason = rejection_reason(fitness, rmse, jump, config)
-    if reason and config.global_voxel_mm > 0:
-        retry = global_retry(levels, anchor.levels, config)
-        if retry is not None:
-            transform, fitness, rmse, information = retry
-            pose = invert_rigid(check_rigid(orthonormalised(transform))) @ anchor.pose
-            jump, reason = rotation_deg(pose @ invert_rigid(predicted)), ""
-    if reason:
-        reasons[frame] = reason
-        best = pose if jump <= config.max_rotation_jump_deg else predicted
-        relative[frame] = (anchor.index, invert_rigid(anchor.pose) @ best)
-        return
-    graph.nodes[frame] = pose
-    graph.edges.append((frame, anchor.index, transform, information, False))
-    current = _Frame(frame, levels, pose)
-    targets = [window[-o] for o in config.loop_offsets if o <= len(window)]
-    if config.reference_edges and ref not in targets and ref is not anchor:
-        targets.append(ref)
-    for target in targets:
-        init = target.pose @ invert_rigid(pose)
-        loop, loop_fitness, loop_rmse, loop_info = icp(
-            levels, target.levels, init, config, config.loop_first_level
-        )
-        if loop_fitness >= config.min_fitness and loop_rmse <= config.max_rmse_mm:
-            graph.edges.append((frame, target.index, loop, loop_info, True))
-    window.append(current)
-
-
-def _optimise(graph: _Graph, reference: int, config: RegistrationConfig) -> dict[int, np.ndarray]:
-    """Step 3: Levenberg-Marquardt pose-graph optimisation; returns frame -> optimised pose P."""
-    import open3d as o3d
-    from open3d.pipelines import registration as reg
-
-    order = list(graph.nodes)
-    if len(order) < 2:
-        return dict(graph.nodes)
-    node_of = {frame: i for i, frame in enumerate(order)}
-    pose_graph = reg.PoseGraph()
-    for frame in order:
-        pose_graph.nodes.append(reg.PoseGraphNode(invert_rigid(graph.nodes[frame])))  # X = P^-1
-    for source, target, transform, information, uncertain in graph.edges:
-        pose_graph.edges.append(
-            reg.PoseGraphEdge(node_of[source], node_of[target], transform, information, uncertain=uncertain)
-        )
-    option = reg.GlobalOptimizationOption(
-        max_correspondence_distance=config.scales[-1][1],
-        edge_prune_threshold=config.edge_prune_threshold,
-        preference_loop_closure=config.preference_loop_closure,
-        reference_node=node_of[int(reference)],
-    )
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        reg.global_optimization(
-            pose_graph,
-            reg.GlobalOptimizationLevenbergMarquardt(),
-            reg.GlobalOptimizationConvergenceCriteria(),
-            option,
-        )
-    to_model_ref = np.asarray(pose_graph.nodes[node_of[int(reference)]].pose)
-    return {
-        frame: orthonormalised(to_model_ref)
-        @ invert_rigid(orthonormalised(np.asarray(pose_graph.nodes[node_of[frame]].pose)))
-        for frame in order
-    }
-
-
-def _all_poses(frames: list[int], optimised: dict[int, np.ndarray], relative: dict) -> np.ndarray:
-    """``(F, 4, 4)`` poses: optimised for accepted frames, anchor-relative estimates for rejected ones."""
-    poses = np.empty((len(frames), 4, 4))
-    for k, frame in enumerate(frames):
-        if frame in optimised:
-            poses[k] = optimised[frame]
-        else:
-            anchor, transform = relative[frame]
-            poses[k] = orthonormalised(optimised[anchor] @ transform)
-    return poses
-
-
-def _residuals_against_model(frames, load_cloud, reference, poses, reasons, config, bar):
-    """Step 4: fitness and point-to-plane RMSE of each frame against the voxel model of the accepted frames
-    nearer the reference (the reference is the model: fitness 1, RMSE 0)."""
-    pose_of = dict(zip(frames, poses, strict=True))
-    fitness = np.zeros(len(frames))
-    rmse = np.full(len(frames), np.nan)
-    row = {f: i for i, f in enumerate(frames)}
-    reference_model = model_cloud(load_cloud(int(reference)), np.eye(4), config)
-    fitness[row[int(reference)]], rmse[row[int(reference)]] = 1.0, 0.0
-    for walk in _walks(frames, reference):
-        model = reference_model
-        for frame in walk:
-            cloud = model_cloud(load_cloud(frame), pose_of[frame], config)
-            bar.update(1)
-            if len(cloud) < 16:
-                continue
-            fitness[row[frame]], rmse[row[frame]] = point_to_plane(cloud, model, config.final_distance_mm)
-            if frame not in reasons:
-                model = PointCloud.concatenate([model, cloud]).voxel_downsample(config.voxel_mm)
-    return fitness, rmse
-
-
