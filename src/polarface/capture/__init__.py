@@ -1,13 +1,16 @@
 """Capture: rig description, raw sensor model, demosaicing, observations, capture store, calibration.
 
 Modules:
-    rig              ``rig.json`` schema (pydantic): cameras, light modules, spectral calibration.
+    rig              ``rig.json`` schema (pydantic): the rig, its stereo pairs, the paper's rig.
+    rig_components   the rig's cameras (with their measured analyzers) and polarized light modules.
+    rig_spectral     the rig's six-channel spectral calibration.
     sensor           forward model of the IMX250MZR / IMX250MYR mosaics and raw noise.
     demosaic         raw -> I0, I45, I90, I135 (bilinear and residual interpolation), masks.
     analyzers        a camera's calibrated (non-ideal) analyzers applied to its demosaiced images.
     observations     I_sss, I_zeta, I_s, DoP, AoLP; registration of the two Dolby cameras.
     stokes_images    one raw frame -> analyzer, DoP and AoLP images on disk (``polarface stokes``).
-    store            the capture store directory (raw PNGs, manifest, zarr derived arrays).
+    store            the capture store directory (raw PNGs, manifest, zarr derived arrays); reading.
+    store_writer     writing a capture store: frames, derived arrays, markers, resume.
     manifest         the store's manifest and frame markers, and their checks against the files.
     ingest           RAW_DIR -> capture store.
     calibration      OpenCV chessboard / ChArUco detection and calibration written into a rig.

@@ -1,8 +1,9 @@
 """Non-ideal micro-polarizers of a rig camera applied to its demosaiced analyzer images.
 
 A camera whose ``rig.json`` entry carries an ``analyzer`` calibration (extinction ratio and analyzer
-orientations, camera-wide or per colour: :class:`polarface.capture.rig.AnalyzerCalibration`) measures
-``I = A s`` with a non-ideal analysis matrix ``A`` (:class:`polarface.optics.analyzer.AnalyzerModel`).
+orientations, camera-wide or per colour:
+:class:`polarface.capture.rig_components.AnalyzerCalibration`) measures ``I = A s`` with a non-ideal
+analysis matrix ``A`` (:class:`polarface.optics.analyzer.AnalyzerModel`).
 :func:`ideal_analyzer_intensities` maps its demosaiced ``(I0, I45, I90, I135)`` to ``A_ideal pinv(A) I``,
 what ideal analyzers would have measured of the least-squares Stokes vector, so every stage after
 demosaicing (observations, DoP, AoLP, the inverse) keeps its ideal-analyzer formulas and is unbiased.

@@ -365,7 +365,7 @@ def demosaic_camera(
 
     Args:
         raw: ``(H, W)`` raw counts of ``camera`` (its width and height are checked).
-        camera: a :class:`polarface.capture.rig.Camera` with a polarization sensor.
+        camera: a :class:`polarface.capture.rig_components.Camera` with a polarization sensor.
         method: demosaicing method.
         exposure: overrides ``camera.exposure``.
         **kwargs: passed to :func:`demosaic` (``defect_threshold``, ``defect_mask``).

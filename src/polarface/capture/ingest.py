@@ -19,7 +19,7 @@ Each frame is one executor unit (:class:`IngestUnit`, :func:`run_ingest_unit`;
 :mod:`polarface.executors`): it reads its raw files and writes its raw PNGs, its derived chunks and its
 marker into the store itself; the submitting process sizes the derived arrays first, rebuilds
 ``manifest.json`` as frames finish and finalizes the store after them
-(:mod:`polarface.capture.store`, "Frames written in parallel"). ``CAPTURE/ingest.json`` records the
+(:mod:`polarface.capture.store_writer`, "Frames written in parallel"). ``CAPTURE/ingest.json`` records the
 executor, the seconds and the host of every frame, the timings and the non-ideal analyzer models
 demosaicing applied (``analyzers``, None when every camera is ideal; ``docs/sensors.md``).
 """
