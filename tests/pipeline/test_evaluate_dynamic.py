@@ -1,6 +1,7 @@
 """The dynamic metrics (``polarface.pipeline.evaluate_dynamic``) on the tiny simulation's ground truth used
 as its own reconstruction (errors ~0) and on perturbed copies (errors of the size of the perturbation),
-the recovery fit on synthetic curves, and bad inputs."""
+the pressed-patch weight of the simulated sequence, and bad inputs (the recovery fit and the material
+points on synthetic data: ``tests/pipeline/test_evaluate_dynamic_measures.py``)."""
 
 from __future__ import annotations
 
@@ -19,8 +20,6 @@ from polarface.pipeline.evaluate_dynamic import (
     DYNAMIC_METRIC_KEYS,
     dynamic_group,
     dynamic_metrics,
-    fit_recovery_time_constant,
-    material_point_errors,
     pressed_patch_weight,
 )
 from polarface.results import CHROMOPHORE_MAPS, POLARIMETRIC_MAPS, RHO_SSS_BAR, ResultFolder
@@ -146,27 +145,6 @@ def test_pressed_patch_weight_recovers_the_simulated_patch(sim):
     later = read_exr(gt / "dynamic" / "maps" / "000001_c_h_out.exr")["Y"]
     from_later = pressed_patch_weight(static, later, 0.8 * (1.0 - float(blood_flow_factor(1.0))))
     assert np.abs(from_later - truth)[static > 0].max() < 1e-4
-
-
-def test_recovery_fit_finds_the_simulated_time_constant():
-    times = np.arange(10) * 0.2  # the demo preset's sampling
-    curve = 0.04 - 0.032 * (1.0 - blood_flow_factor(times))  # c = cs (1 - 0.8 (1 - f(t)))
-    assert fit_recovery_time_constant(times, curve) == pytest.approx(2.0 / 3.0, rel=1e-4)
-    noisy = curve + np.random.default_rng(0).normal(0.0, 2e-4, times.size)
-    assert fit_recovery_time_constant(times, noisy) == pytest.approx(2.0 / 3.0, rel=0.1)
-    assert fit_recovery_time_constant(times[:2], curve[:2]) is None
-
-
-def test_material_points_ignore_untracked_and_distant_vertices():
-    vertices = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0]])
-    faces = np.array([[0, 1, 2]])
-    points = np.array([[2.0, 2, 0], [3, 3, 0], [2, 2, 8.0]])  # the last is 8 mm off the surface
-    truth = np.stack([vertices, vertices + np.array([0.0, 0.0, 1.0])])  # the triangle rises 1 mm
-    tracked = np.stack([points, points + np.array([0.0, 0.0, 0.5])])  # tracking follows halfway
-    confidence = np.array([[1, 1, 1], [1, 0, 1]], np.float32)
-    errors = material_point_errors(tracked, confidence, truth, faces)
-    assert errors[0] == pytest.approx([0.0, 0.0], abs=1e-5)
-    assert errors[1] == pytest.approx([0.5], abs=1e-5)  # vertex 1 untracked, vertex 2 too far
 
 
 def test_evaluate_runs_the_dynamic_group(sim, tmp_path):

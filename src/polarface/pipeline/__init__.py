@@ -28,12 +28,9 @@ from polarface.pipeline.evaluate import (
     write_figures,
 )
 from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
+from polarface.pipeline.evaluate_correspondence import GeometryEvaluationConfig, texel_correspondence
 from polarface.pipeline.evaluate_dynamic import dynamic_metrics
-from polarface.pipeline.evaluate_geometry import (
-    GeometryEvaluationConfig,
-    geometry_metrics,
-    texel_correspondence,
-)
+from polarface.pipeline.evaluate_geometry import geometry_metrics
 from polarface.pipeline.export import EXPORT_JSON, export_result
 from polarface.pipeline.geometry import (
     GEOMETRY_JSON,

@@ -26,7 +26,7 @@ rest mesh ``mesh_rest.obj`` and poses ``static/poses.json``. Map metrics (``pola
 model frame are the ground truth's (known geometry), else each RESULT texel's closest point on the
 ground-truth surface after aligning the model frames through the reference frame's poses (texels more
 than 2 mm away excluded and counted); the ``correspondence`` key says which
-(:mod:`polarface.pipeline.evaluate_geometry`).
+(:mod:`polarface.pipeline.evaluate_correspondence`).
 """
 
 from __future__ import annotations
@@ -41,14 +41,16 @@ import numpy as np
 
 from polarface.io import storage_path
 from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
-from polarface.pipeline.evaluate_dynamic import dynamic_group
-from polarface.pipeline.evaluate_geometry import (
-    GEOMETRY_ERROR_PNG,
+from polarface.pipeline.evaluate_correspondence import (
     TexelCorrespondence,
-    geometry_metrics,
     result_texel_geometry,
     texel_correspondence,
     truth_shading_normals,
+)
+from polarface.pipeline.evaluate_dynamic import dynamic_group
+from polarface.pipeline.evaluate_geometry import (
+    GEOMETRY_ERROR_PNG,
+    geometry_metrics,
     write_geometry_error_map,
 )
 from polarface.results import POLARIMETRIC_MAPS, RHO_SSS_BAR, ResultFolder

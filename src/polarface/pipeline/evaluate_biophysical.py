@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from polarface.inverse.biophysical import PARAMETER_ORDER, TotalsTable, local_channel_albedo, relative_rmse
-from polarface.pipeline.evaluate_geometry import texel_correspondence
+from polarface.pipeline.evaluate_correspondence import texel_correspondence
 from polarface.results import RHO_SSS_BAR, ResultFolder
 from polarface.results import layout as names_
 
@@ -61,9 +61,10 @@ def evaluate_biophysical(result_dir: str | Path, gt_dir: str | Path) -> dict[str
 
     All relative RMSEs are ``||a - b|| / ||b||`` over texels and channels, over **all** texels valid in
     both masks (``texels``) unless the key says otherwise. The ground truth is read through the
-    texel correspondence of ``evaluate`` (:func:`polarface.pipeline.evaluate_geometry.texel_correspondence`,
-    named by ``"correspondence"``): texel by texel in known geometry, else at each RESULT texel's
-    closest point on the ground-truth surface.
+    texel correspondence of ``evaluate``
+    (:func:`polarface.pipeline.evaluate_correspondence.texel_correspondence`, named by
+    ``"correspondence"``): texel by texel in known geometry, else at each RESULT texel's closest point
+    on the ground-truth surface.
 
     Returns:
         ``{"texels": N, "c_m": {"median_abs_error", "mean_abs_error", "p95_abs_error"}, ... (the four maps),``

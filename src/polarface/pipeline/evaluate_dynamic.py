@@ -10,19 +10,20 @@ tracking ``tracking/tracked.npz`` (``frames (T,)``, ``vertices (T, N, 3)`` dynam
 and ``dynamic/meshes/NNNNNN.ply`` (rest-mesh topology, rig world, mm) and
 ``dynamic/maps/NNNNNN_c_h_out.exr`` / ``NNNNNN_rho_sss_bar.exr`` (every other map is the static one:
 the simulated dynamic sequence changes only the geometry and the outer haemoglobin,
-``src/polarface/simulate/sequences.py``).
+``src/polarface/simulate/sequences.py``). Their readers: :mod:`polarface.pipeline.evaluate_dynamic_inputs`.
 
 Evaluated frames: the frames of ``stages.dynamic.completed`` whose folder holds ``maps/mask.png``,
 ascending; every per-frame list below follows that order (``frames`` is their count).
 
-Texel correspondence: :func:`polarface.pipeline.evaluate_geometry.texel_correspondence` of the static
-RESULT with the ground truth, the same for every frame because the tracked meshes keep the RESULT's
-faces and UVs (a texel is one material point in every frame) and the ground truth's dynamic meshes
-keep the rest mesh's. Ground-truth maps are looked up with ``TexelCorrespondence.truth_map`` over the
+Texel correspondence: :func:`polarface.pipeline.evaluate_correspondence.texel_correspondence` of the
+static RESULT with the ground truth, the same for every frame because the tracked meshes keep the
+RESULT's faces and UVs (a texel is one material point in every frame) and the ground truth's dynamic
+meshes keep the rest mesh's. Ground-truth maps are looked up with ``TexelCorrespondence.truth_map`` over the
 ground-truth mask; a texel of frame ``t`` counts when it is in the frame's mask and in
 ``truth_mask`` (its ground-truth counterpart is valid).
 
-Definitions (:class:`DynamicEvaluationConfig` holds the constants):
+Definitions (:class:`DynamicEvaluationConfig` holds the constants; the computations on arrays are in
+:mod:`polarface.pipeline.evaluate_dynamic_measures`):
 
 * ``tracking_mm``: material points. Each tracked vertex's position in the first tracked frame ``t0``
   is projected to the closest point of the ground-truth frame-``t0`` mesh (triangle and barycentric
@@ -73,11 +74,21 @@ from typing import Any
 import numpy as np
 
 from polarface.geometry import load_mesh, rasterize_uv
-from polarface.geometry.raycast import closest_surface_points
-from polarface.io import read_json_object
-from polarface.pipeline.evaluate_geometry import (
+from polarface.pipeline.evaluate_correspondence import (
     TexelCorrespondence,
     texel_correspondence,
+)
+from polarface.pipeline.evaluate_dynamic_inputs import (
+    DynamicInputs,
+    load_dynamic_inputs,
+    truth_dynamic_root,
+    truth_frame_map,
+    truth_frame_mesh,
+)
+from polarface.pipeline.evaluate_dynamic_measures import (
+    fit_recovery_time_constant,
+    material_point_errors,
+    pressed_patch_weight,
 )
 from polarface.results import RHO_SSS_BAR, ResultFolder, layout
 
@@ -119,175 +130,8 @@ class DynamicEvaluationConfig:
     min_fit_frames: int = 3
 
 
-# ---- pure functions ------------------------------------------------------------------------------
-def pressed_patch_weight(static_c_h_out: np.ndarray, first_c_h_out: np.ndarray, pressed_fraction: float = 0.8
-                         ) -> np.ndarray:
-    """``(H, W)`` float64 pressed-patch weight ``w = (1 - c0 / cs) / pressed_fraction`` in [0, 1] from
-    the static outer haemoglobin ``cs`` and the first dynamic frame's ``c0`` (both ``(H, W)``, volume
-    fractions); 0 where ``cs <= 0``."""
-    static = np.asarray(static_c_h_out, np.float64)
-    first = np.asarray(first_c_h_out, np.float64)
-    if static.shape != first.shape:
-        raise ValueError(f"argument 'first_c_h_out' is {first.shape}; expected the static map's "
-                         f"{static.shape}")
-    ratio = np.divide(first, static, out=np.ones_like(static), where=static > 0)
-    return np.clip((1.0 - ratio) / pressed_fraction, 0.0, 1.0)
-
-
-def fit_recovery_time_constant(times_s: np.ndarray, values: np.ndarray, min_frames: int = 3) -> float | None:
-    """The time constant ``tau`` (s) of ``c(t) = a - b exp(-t / tau)`` fitted to ``values`` ``(F,)`` at
-    ``times_s`` ``(F,)`` (scipy ``curve_fit``, ``tau`` bounded to [1e-3, 1e3] s); None with fewer than
-    ``min_frames`` finite points or when the fit does not converge."""
-    from scipy.optimize import curve_fit
-
-    times, values = np.asarray(times_s, np.float64), np.asarray(values, np.float64)
-    if times.shape != values.shape:
-        raise ValueError(f"argument 'values' is {values.shape}; expected the shape of 'times_s' "
-                         f"{times.shape}")
-    finite = np.isfinite(times) & np.isfinite(values)
-    times, values = times[finite], values[finite]
-    if times.size < max(min_frames, 3):
-        return None
-    start = times - times.min()
-    span = max(float(start.max()), 1e-3)
-
-    def model(t: np.ndarray, a: float, b: float, tau: float) -> np.ndarray:
-        return a - b * np.exp(-t / tau)
-
-    guess = (float(values[np.argmax(start)]), float(values[np.argmax(start)] - values[np.argmin(start)]),
-             span / 3.0)
-    try:
-        fitted, _ = curve_fit(model, start, values, p0=guess,
-                              bounds=([-np.inf, -np.inf, 1e-3], [np.inf, np.inf, 1e3]), maxfev=20000)
-    except (RuntimeError, ValueError):
-        return None
-    return float(fitted[2])
-
-
-def material_point_errors(tracked_mm: np.ndarray, confidence: np.ndarray, truth_vertices_mm: np.ndarray,
-                          truth_faces: np.ndarray, max_distance_mm: float = 5.0) -> list[np.ndarray]:
-    """Per tracked frame, the distances (mm) of the scored material points (module docstring).
-
-    Args:
-        tracked_mm: ``(T, N, 3)`` tracked vertex positions, rig world, mm (frame 0 defines the points).
-        confidence: ``(T, N)`` tracking confidence (a vertex counts at ``t`` when it is > 0).
-        truth_vertices_mm: ``(T, M, 3)`` ground-truth vertices of the same frames, rig world, mm.
-        truth_faces: ``(F, 3)`` their triangles.
-        max_distance_mm: vertices farther than this from the frame-0 ground truth are not scored.
-
-    Returns:
-        T arrays of errors (mm), one per frame, of the counted vertices.
-    """
-    tracked = np.asarray(tracked_mm, np.float64)
-    truth = np.asarray(truth_vertices_mm, np.float64)
-    if tracked.ndim != 3 or truth.ndim != 3 or len(tracked) != len(truth):
-        raise ValueError(f"arguments 'tracked_mm' {tracked.shape} and 'truth_vertices_mm' {truth.shape} "
-                         "must be (T, N, 3) and (T, M, 3) with the same T")
-    if np.shape(confidence) != tracked.shape[:2]:
-        raise ValueError(f"argument 'confidence' is {np.shape(confidence)}; expected {tracked.shape[:2]}")
-    faces = np.asarray(truth_faces, np.int64)
-    closest = closest_surface_points(truth[0], faces, tracked[0])
-    on_surface = closest.distance <= max_distance_mm
-    errors = []
-    for t in range(len(tracked)):
-        where = np.einsum("nk,nkc->nc", closest.barycentric, truth[t][faces[closest.face]])
-        counted = on_surface & (np.asarray(confidence[t]) > 0)
-        errors.append(np.linalg.norm(tracked[t][counted] - where[counted], axis=1))
-    return errors
-
-
-# ---- inputs --------------------------------------------------------------------------------------
-@dataclasses.dataclass(frozen=True, eq=False)
-class _DynamicInputs:
-    """What the metrics read besides the maps.
-
-    Attributes:
-        result: the RESULT; truth_root: the ground truth's root (``maps/``, ``dynamic/``).
-        frames: evaluated frame indices, ascending; timestamps_s: ``(F,)`` float64 their times, s.
-        alignment: ``(4, 4)`` float64 static model frame -> dynamic rig world, mm.
-        record: ``stages.dynamic`` of ``result.json``.
-    """
-
-    result: ResultFolder
-    truth_root: Path
-    frames: list[int]
-    timestamps_s: np.ndarray
-    alignment: np.ndarray
-    record: dict[str, Any]
-
-
-def _truth_dynamic_root(gt_dir: str | Path) -> Path:
-    gt = Path(gt_dir)
-    for root in (gt / "ground_truth", gt):
-        if (root / "dynamic").is_dir():
-            return root
-    raise FileNotFoundError(f"'{gt}' holds no dynamic ground truth (expected ground_truth/dynamic or "
-                            "dynamic/)")
-
-
-def _timestamps(result: ResultFolder, record: dict[str, Any], frames: list[int]) -> np.ndarray:
-    stamps = {int(k): float(v) for k, v in dict(record.get("timestamps_s") or {}).items()}
-    if any(t not in stamps for t in frames) and record.get("capture"):
-        manifest = Path(str(record["capture"]))
-        manifest = (manifest if manifest.is_absolute() else result.root / manifest) / "manifest.json"
-        if manifest.is_file():
-            for entry in read_json_object(manifest).get("frames", []):
-                stamps.setdefault(int(entry["index"]), float(entry["timestamp"]))
-    missing = [t for t in frames if t not in stamps]
-    if missing:
-        raise ValueError(f"'{result.result_json_path}': stages.dynamic.timestamps_s lacks frames {missing} "
-                         "(and the dynamic capture's manifest.json does not list them)")
-    return np.array([stamps[t] for t in frames], np.float64)
-
-
-def _load_inputs(result_dir: str | Path, gt_dir: str | Path) -> _DynamicInputs:
-    result = ResultFolder(result_dir)
-    if not result.result_json_path.is_file():
-        raise FileNotFoundError(f"'{result.root}' is not a RESULT folder (no result.json)")
-    if not result.frame_indices():
-        raise FileNotFoundError(f"'{result.root / 'frames'}' holds no per-frame folder (the dynamic stage "
-                                "has not run)")
-    record = result.stage_record("dynamic")
-    if not record:
-        raise ValueError(f"'{result.result_json_path}' has no stages.dynamic record")
-    try:
-        completed = sorted({int(t) for t in record.get("completed", [])})
-        alignment = np.asarray(record.get("alignment", np.eye(4)), np.float64).reshape(4, 4)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"'{result.result_json_path}': stages.dynamic.completed/alignment: {exc}") from exc
-    frames = [t for t in completed if result.frame(t).has_map("mask", ".png")]
-    if not frames:
-        raise ValueError(f"'{result.result_json_path}': no frame of stages.dynamic.completed {completed} has "
-                         f"maps under '{result.root / 'frames'}'")
-    return _DynamicInputs(result, _truth_dynamic_root(gt_dir), frames, _timestamps(result, record, frames),
-                          alignment, record)
-
-
-def _truth_frame_map(truth_root: Path, frame: int, name: str, channel_names: list[str]) -> np.ndarray:
-    """``dynamic/maps/NNNNNN_<name>.exr`` as ``(H, W)`` (scalar) or ``(H, W, C)`` float64."""
-    folder = ResultFolder(truth_root / "dynamic")
-    key = f"{frame:06d}_{name}"
-    if not folder.has_map(key):
-        raise FileNotFoundError(f"ground-truth map '{folder.map_path(key)}' does not exist")
-    if name == RHO_SSS_BAR:
-        return folder.read_channel_map(key, channel_names, strict=False).astype(np.float64)
-    return folder.read_scalar_map(key).astype(np.float64)
-
-
-def _truth_frame_mesh(truth_root: Path, rest, frame: int):
-    """The ground-truth frame mesh: the rest mesh's faces and UVs with the frame PLY's vertices."""
-    path = truth_root / "dynamic" / "meshes" / f"{frame:06d}.ply"
-    if not path.is_file():
-        raise FileNotFoundError(f"ground-truth mesh '{path}' does not exist")
-    vertices = load_mesh(path).vertices
-    if vertices.shape != rest.vertices.shape:
-        raise ValueError(f"ground-truth mesh '{path}' has {len(vertices)} vertices; the rest mesh "
-                         f"'{truth_root / 'mesh_rest.obj'}' has {len(rest.vertices)}")
-    return rest.with_vertices(vertices)
-
-
 # ---- tracking ------------------------------------------------------------------------------------
-def _tracking(inputs: _DynamicInputs, rest, config: DynamicEvaluationConfig) -> dict[str, Any]:
+def _tracking(inputs: DynamicInputs, rest, config: DynamicEvaluationConfig) -> dict[str, Any]:
     path = inputs.result.tracking_dir / layout.TRACKED_NPZ
     if not path.is_file():
         raise FileNotFoundError(f"tracking file '{path}' does not exist")
@@ -297,7 +141,7 @@ def _tracking(inputs: _DynamicInputs, rest, config: DynamicEvaluationConfig) -> 
             vertices, confidence = np.asarray(data["vertices"]), np.asarray(data["confidence"])
         except KeyError as exc:
             raise ValueError(f"tracking file '{path}' lacks the array {exc}") from exc
-    truth = np.stack([_truth_frame_mesh(inputs.truth_root, rest, t).vertices for t in tracked_frames])
+    truth = np.stack([truth_frame_mesh(inputs.truth_root, rest, t).vertices for t in tracked_frames])
     errors = dict(zip(tracked_frames, material_point_errors(
         vertices, confidence, truth, rest.faces, config.max_material_distance_mm), strict=True))
     scored = [errors.get(t, np.zeros(0)) for t in inputs.frames]
@@ -342,12 +186,12 @@ class _TruthOnResult:
     displacement_mm: np.ndarray
 
 
-def _truth_on_result(inputs: _DynamicInputs, shape: tuple[int, int], config: DynamicEvaluationConfig
+def _truth_on_result(inputs: DynamicInputs, shape: tuple[int, int], config: DynamicEvaluationConfig
                      ) -> _TruthOnResult:
     truth = ResultFolder(inputs.truth_root)
     gt_mask = truth.read_mask()
     correspondence = texel_correspondence(inputs.result.root, inputs.truth_root, shape)
-    first = _truth_frame_map(inputs.truth_root, 0, "c_h_out", [])
+    first = truth_frame_map(inputs.truth_root, 0, "c_h_out", [])
     weight = pressed_patch_weight(truth.read_scalar_map("c_h_out"), first, config.pressed_fraction)
     valid = correspondence.truth_mask(gt_mask)
     patch = valid & (correspondence.truth_map(weight, gt_mask) > config.patch_weight_threshold)
@@ -355,7 +199,7 @@ def _truth_on_result(inputs: _DynamicInputs, shape: tuple[int, int], config: Dyn
     return _TruthOnResult(correspondence, gt_mask, valid, patch, displacement)
 
 
-def _frame_values(inputs: _DynamicInputs, frame_index: int, truth: _TruthOnResult, rest, names: list[str]
+def _frame_values(inputs: DynamicInputs, frame_index: int, truth: _TruthOnResult, rest, names: list[str]
                   ) -> dict[str, Any]:
     """One frame's map errors, patch medians, rho_s and mask."""
     frame = inputs.result.frame(frame_index)
@@ -363,14 +207,14 @@ def _frame_values(inputs: _DynamicInputs, frame_index: int, truth: _TruthOnResul
     patch = mask & truth.patch
     on_result = lambda values: truth.correspondence.truth_map(values, truth.gt_mask)  # noqa: E731
     c_h_out = frame.read_scalar_map("c_h_out").astype(np.float64)
-    c_h_out_gt = on_result(_truth_frame_map(inputs.truth_root, frame_index, "c_h_out", names))
+    c_h_out_gt = on_result(truth_frame_map(inputs.truth_root, frame_index, "c_h_out", names))
     rho = frame.read_channel_map(RHO_SSS_BAR, names, strict=False).astype(np.float64)
-    rho_gt = on_result(_truth_frame_map(inputs.truth_root, frame_index, RHO_SSS_BAR, names))
+    rho_gt = on_result(truth_frame_map(inputs.truth_root, frame_index, RHO_SSS_BAR, names))
     relative = np.abs(rho - rho_gt)[mask] / np.maximum(rho_gt[mask], 1e-6)
     displacement = frame.read_scalar_map("displacement_mm").astype(np.float64)
     normals = _frame_normals(frame, displacement, inputs.alignment)
     normals_gt = truth.correspondence.truth_normals(
-        _truth_normals(_truth_frame_mesh(inputs.truth_root, rest, frame_index), truth.displacement_mm),
+        _truth_normals(truth_frame_mesh(inputs.truth_root, rest, frame_index), truth.displacement_mm),
         truth.gt_mask)
     unit = (np.linalg.norm(normals, axis=-1) > 0.5) & (np.linalg.norm(normals_gt, axis=-1) > 0.5)
     normal_valid = mask & unit
@@ -422,7 +266,7 @@ def dynamic_metrics(result_dir: str | Path, gt_dir: str | Path,
             no timestamp, or a file is malformed (naming it).
     """
     config = config or DynamicEvaluationConfig()
-    inputs = _load_inputs(result_dir, gt_dir)
+    inputs = load_dynamic_inputs(result_dir, gt_dir)
     rest_path = inputs.truth_root / "mesh_rest.obj"
     if not rest_path.is_file():
         raise FileNotFoundError(f"ground-truth rest mesh '{rest_path}' does not exist")
@@ -456,7 +300,7 @@ def dynamic_group(result_dir: str | Path, gt_dir: str | Path) -> dict[str, Any]:
     if not ResultFolder(result_dir).frame_indices():
         return {"skipped": "the RESULT has no per-frame folders (the dynamic stage has not run)"}
     try:
-        _truth_dynamic_root(gt_dir)
+        truth_dynamic_root(gt_dir)
     except FileNotFoundError:
         return {"skipped": "the ground truth has no dynamic sequence (ground_truth/dynamic)"}
     return dynamic_metrics(result_dir, gt_dir)
