@@ -36,6 +36,7 @@ import torch
 from tqdm import tqdm
 
 from polarface.device import resolve_device
+from polarface.executors import ThreadSettings
 from polarface.inverse.biophysical import (
     PARAMETER_ORDER,
     BiophysicalConfig,
@@ -203,14 +204,15 @@ def _write_maps(
 def _fit(inputs: dict[str, Any], config: BiophysicalConfig, table: TotalsTable, target: torch.device,
          threads: int | None, progress: bool, start: BiophysicalStart | None = None
          ) -> tuple[BiophysicalFit, int]:
-    """Run :func:`fit_biophysical` on ``target`` (CPU threads set and restored); results on the CPU.
+    """Run :func:`fit_biophysical` on ``target`` (CPU threads, torch's and numba's, set and restored);
+    results on the CPU.
 
     Returns the fit and the torch thread count before the call.
     """
     steps = 3 + (config.shape_rounds if config.albedo_model == "blurred" else 0)
-    previous_threads = torch.get_num_threads()
+    previous = ThreadSettings.of_this_process()
     if threads is not None and target.type == "cpu":
-        torch.set_num_threads(int(threads))
+        ThreadSettings(int(threads), int(threads)).apply()
     try:
         with tqdm(total=steps, desc="biophysical", disable=not progress, unit="step") as bar:
             fit = fit_biophysical(
@@ -225,7 +227,7 @@ def _fit(inputs: dict[str, Any], config: BiophysicalConfig, table: TotalsTable, 
                 start=start,
             )
     finally:
-        torch.set_num_threads(previous_threads)
+        previous.apply()
     fit = dataclasses.replace(
         fit,
         parameters=fit.parameters.cpu(),
@@ -234,7 +236,7 @@ def _fit(inputs: dict[str, Any], config: BiophysicalConfig, table: TotalsTable, 
         in_gamut=fit.in_gamut.cpu(),
         gamut_distance=fit.gamut_distance.cpu(),
     )
-    return fit, previous_threads
+    return fit, int(previous.torch_threads)
 
 
 def _summary(fit: BiophysicalFit, inputs: dict[str, Any], config: BiophysicalConfig) -> dict[str, Any]:

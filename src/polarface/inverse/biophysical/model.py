@@ -39,6 +39,7 @@ import torch
 import torch.nn.functional as nnf
 
 from polarface._validation import as_float_tensor, check_range
+from polarface.inverse.biophysical.local_kernel import fused_local_albedo
 from polarface.skin.heterogeneous import ProfileShapes, render_layered_subsurface
 from polarface.skin.layers import (
     CHROMOPHORE_NAMES,
@@ -240,7 +241,13 @@ def local_channel_albedo(
         parameters: ``(..., 4)`` volume fractions in :data:`PARAMETER_ORDER`.
         table: :class:`TotalsTable` on the calibration's wavelength grid.
         channel_weights: ``(6, L)`` white-normalised channel weights (``SpectralCalibration.weights``).
+
+    On the CPU without an autograd graph to build, the fused kernel of
+    :mod:`polarface.inverse.biophysical.local_kernel` evaluates it (float64 inside); otherwise torch.
     """
+    needs_graph = torch.is_grad_enabled() and (parameters.requires_grad or channel_weights.requires_grad)
+    if parameters.device.type == "cpu" and not needs_graph:
+        return fused_local_albedo(parameters, table, channel_weights, with_jacobian=False)[0]
     r_bar = table.total_reflectance(parameters)
     return r_bar @ channel_weights.to(dtype=r_bar.dtype, device=r_bar.device).T
 
@@ -252,8 +259,18 @@ def local_channel_albedo_with_jacobian(
 
     Chain rule through Eq. epi_ab (absorptions linear in the parameters), the Hermite tables and the
     composition ``R_bar = R_out^f + T_out^f R_in T_out^b / (1 - R_out^b R_in)``. Same arguments as
-    :func:`local_channel_albedo`; not meant for autograd (use that function instead).
+    :func:`local_channel_albedo`; not meant for autograd (use that function instead). On the CPU the
+    fused kernel of :mod:`polarface.inverse.biophysical.local_kernel` evaluates both (float64 inside).
     """
+    if parameters.device.type == "cpu":
+        return fused_local_albedo(parameters, table, channel_weights, with_jacobian=True)
+    return _local_albedo_with_jacobian_torch(parameters, table, channel_weights)
+
+
+def _local_albedo_with_jacobian_torch(
+    parameters: torch.Tensor, table: TotalsTable, channel_weights: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`local_channel_albedo_with_jacobian` in torch (any device, the input's dtype)."""
     dtype, device = parameters.dtype, parameters.device
     spectra = table.spectra(dtype, device)
     c_m, beta_m, c_h_in, c_h_out = (parameters[..., i, None] for i in range(4))
