@@ -23,7 +23,12 @@ from polarface.inverse.polarimetric import (
     fit_dynamic_frame,
     raw_from_maps,
 )
+from polarface.inverse.polarimetric.config import NO_LOBE_RAW
 from polarface.inverse.polarimetric.dynamic import frame_patches
+from polarface.inverse.polarimetric.dynamic_loss import FIXED_VARIABLES
+from polarface.inverse.polarimetric.dynamic_step import FusedDynamicObjective, optimise_dynamic_patch_fused
+from polarface.inverse.polarimetric.optimise import learning_rate_schedule, optimise_patch
+from polarface.inverse.polarimetric.step import pack_raw, unpack_raw
 from polarface.render.texture_view import render_view_texture
 from polarface.texture import TexelGeometry, UnwrapStore, build_views
 
@@ -211,6 +216,54 @@ def test_patch_loss_gradcheck_and_engines_agree(frame):
     assert values[1][0] == pytest.approx(values[0][0], rel=1e-9)
     for got, want in zip(values[1][1], values[0][1]):
         np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-12)
+
+
+def _moved_start(raw: dict, seed: int) -> dict:
+    """The optimised raw variables moved away from the static ones (every regulariser non-zero)."""
+    rng = np.random.default_rng(seed)
+    return {k: raw[k] + torch.as_tensor(rng.normal(0, 0.1, raw[k].shape)) for k in DYNAMIC_VARIABLES}
+
+
+def test_numba_objective_equals_the_torch_loss_and_gradient(frame):
+    """The fused per-frame objective (dynamic_step) against autograd through ``DynamicPatchProblem.loss``
+    (float64, every regulariser weighted, the W^t term included, normaliser of a cropped patch)."""
+    store, static, _ = frame
+    fused, raw = _patch_problem(store, static, torch.float64, fused=True)
+    patch = DynamicPatchProblem(fused.problem, raw, raw, DynamicWeights(rho_sss_bar_temporal=3.0),
+                                texel_count=2 * fused.problem.texel_count)
+    start = _moved_start(raw, 6)
+    leaves = {k: start[k].clone().requires_grad_(True) for k in DYNAMIC_VARIABLES}
+    total = patch.loss(leaves)[0]
+    want = torch.autograd.grad(total, list(leaves.values()))
+    objective = FusedDynamicObjective(patch, PolarimetricConfig(), np.dtype(np.float64))
+    packed = pack_raw({**patch.fixed_raw, **start})
+    grad = np.full(packed.shape, np.nan)
+    assert objective(packed, grad) == pytest.approx(float(total.detach()), rel=1e-12)
+    got = unpack_raw(grad, {**patch.fixed_raw, **start})
+    for name, expected in zip(DYNAMIC_VARIABLES, want, strict=True):
+        np.testing.assert_allclose(got[name].numpy(), expected.numpy(), rtol=1e-9, atol=1e-14)
+    for name in FIXED_VARIABLES:  # the fixed maps do not move
+        assert not got[name].numpy().any()
+
+
+@pytest.mark.parametrize("lobes", ["two", "one"])
+def test_numba_steps_follow_the_torch_trajectory(frame, lobes):
+    store, static, _ = frame
+    fused, raw = _patch_problem(store, static, torch.float64, fused=True)
+    patch = DynamicPatchProblem(fused.problem, raw, raw, DynamicWeights())
+    config = DynamicConfig(iterations=8).optimiser_config(PolarimetricConfig(lobes=lobes))
+    assert config.optimizer == "rmsprop"
+    start = _moved_start(raw, 7)
+    curve_numba, curve_torch = [], []
+    fast = optimise_dynamic_patch_fused(patch, start, config, learning_rate_schedule(config), curve_numba)
+    slow = optimise_patch(patch, start, config, curve_torch, fused_steps=False, variables=DYNAMIC_VARIABLES)
+    np.testing.assert_allclose(curve_numba, curve_torch, rtol=1e-9)
+    assert curve_numba[-1] < curve_numba[0]
+    for name in DYNAMIC_VARIABLES:
+        torch.testing.assert_close(fast[name], slow[name], rtol=1e-7, atol=1e-9)
+        assert fast[name].dtype == start[name].dtype and fast[name].shape == start[name].shape
+    if lobes == "one":
+        assert bool((fast["rho_ss"] == NO_LOBE_RAW).all())
 
 
 def test_patch_loss_normaliser(frame):

@@ -45,6 +45,7 @@ from polarface.inverse.polarimetric.dynamic_loss import (
     DynamicPatchProblem,
     DynamicWeights,
 )
+from polarface.inverse.polarimetric.dynamic_step import optimise_dynamic_patch_fused
 from polarface.inverse.polarimetric.engines import PolarimetricEngine, resolve_engine
 from polarface.inverse.polarimetric.fit import (
     PolarimetricFit,
@@ -54,7 +55,7 @@ from polarface.inverse.polarimetric.fit import (
     haloed_slices,
     torch_fit_settings,
 )
-from polarface.inverse.polarimetric.optimise import optimise_patch
+from polarface.inverse.polarimetric.optimise import learning_rate_schedule, optimise_patch
 from polarface.inverse.polarimetric.problem import (
     PatchProblem,
     build_patch_fused_samples,
@@ -251,7 +252,12 @@ def _fit_patch(
     )
     tick = time.perf_counter()
     start = {k: tensor(state.start[k]) for k in DYNAMIC_VARIABLES}
-    result = optimise_patch(patch, start, config, state.curve, fused_steps=False, variables=DYNAMIC_VARIABLES)
+    if fused is not None and device.type == "cpu" and config.optimizer == "rmsprop":  # steps in numba
+        schedule = learning_rate_schedule(config)
+        result = optimise_dynamic_patch_fused(patch, start, config, schedule, state.curve)
+    else:
+        result = optimise_patch(patch, start, config, state.curve, fused_steps=False,
+                                variables=DYNAMIC_VARIABLES)
     state.optimise_s += time.perf_counter() - tick
     state.samples += count
     state.work += count * int(config.iterations)
