@@ -1,6 +1,7 @@
 """Tests of polarface.inverse.biophysical.local_kernel: the fused CPU local model against the torch
 formulas of polarface.inverse.biophysical.model (its reference), autograd, the table's clamp, the
-thread count and bad values."""
+thread count and bad values; its per-texel LM against the torch loop of
+polarface.inverse.biophysical.local_fit."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import pytest
 import torch
 
 from polarface.inverse.biophysical import TotalsTable, local_channel_albedo
-from polarface.inverse.biophysical.local_kernel import fused_local_albedo
+from polarface.inverse.biophysical.local_fit import _BoundedProblem, _bounds, _fit_torch, _start_design
+from polarface.inverse.biophysical.local_kernel import fused_local_albedo, fused_local_fit
 from polarface.inverse.biophysical.model import _local_albedo_with_jacobian_torch
 from polarface.skin.spectral import default_spectral_calibration
 
@@ -107,3 +109,58 @@ def test_bad_values_give_nan_rows_not_a_crash(table, calibration):
     assert bool(torch.isnan(rho[1]).all()) and bool(torch.isnan(jac[1]).all())
     assert bool(torch.isfinite(rho[[0, 3]]).all()) and bool(torch.isfinite(jac[[0, 3]]).all())
     assert not bool(torch.isfinite(rho[2]).all())
+
+
+# ------------------------------------------------------------------------------------ the per-texel LM
+def _lm_inputs(table, weights, n: int, seed: int, prior: bool):
+    """Rows of a multi-start fit: noisy model albedos as goals, the design starts, a prior pull."""
+    truth = _parameters(n, seed) * 0.9 + 0.005
+    g = torch.Generator().manual_seed(seed + 100)
+    noise = 0.02 * torch.randn(n, 6, generator=g, dtype=torch.float64)
+    goal = local_channel_albedo(truth, table, weights) * (1 + noise)
+    design = _start_design(4, torch.float64, "cpu")
+    x = design[:, None, :].expand(4, n, 4).reshape(-1, 4).clone()
+    goal = goal.repeat(4, 1)
+    weight = 1.0 / (goal + 0.02)
+    anchor = truth.repeat(4, 1) if prior else x.clone()
+    pull = torch.tensor([0.5, 0.2, 0.3, 0.4] if prior else [0.0] * 4, dtype=torch.float64)
+    return x, goal, weight, anchor, pull, _bounds(torch.float64, "cpu")
+
+
+@pytest.mark.parametrize("prior", [False, True], ids=["free", "prior"])
+def test_lm_rows_follow_the_torch_loop(table, calibration, prior):
+    """Reference: each row's numba LM takes the torch loop's steps (float64: same parameters and costs)."""
+    weights = calibration.weights.double()
+    x, goal, weight, anchor, pull, (low, high) = _lm_inputs(table, weights, 300, 11, prior)
+    got, got_cost = fused_local_fit(x, goal, weight, anchor, pull, (low, high), 40, table, weights)
+    problem = _BoundedProblem(table, weights, pull, low, high)
+    want, want_cost = _fit_torch(problem, x, goal, weight, anchor, 40)
+    assert got.dtype == got_cost.dtype == torch.float64
+    assert torch.allclose(got, want, rtol=0, atol=1e-9)
+    assert torch.allclose(got_cost, want_cost, rtol=1e-9, atol=1e-15)
+    assert bool((got >= low).all()) and bool((got <= high).all())  # bounded
+
+
+def test_lm_lowers_the_cost_and_does_not_depend_on_the_thread_count(table, calibration):
+    weights = calibration.weights.double()
+    x, goal, weight, anchor, pull, bounds = _lm_inputs(table, weights, 500, 12, False)
+    start_cost = (((local_channel_albedo(x, table, weights) - goal) * weight) ** 2).sum(-1)
+    previous = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = fused_local_fit(x, goal, weight, anchor, pull, bounds, 40, table, weights)
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        many = fused_local_fit(x, goal, weight, anchor, pull, bounds, 40, table, weights)
+    finally:
+        numba.set_num_threads(previous)
+    assert torch.equal(one[0], many[0]) and torch.equal(one[1], many[1])
+    assert bool((one[1] <= start_cost).all()) and float(one[1].median()) < 1e-3 * float(start_cost.median())
+
+
+def test_lm_bad_target_poisons_its_row_only(table, calibration):
+    weights = calibration.weights.double()
+    x, goal, weight, anchor, pull, bounds = _lm_inputs(table, weights, 3, 13, False)
+    goal[1, 2] = float("nan")
+    params, cost = fused_local_fit(x, goal, weight, anchor, pull, bounds, 10, table, weights)
+    assert not bool(torch.isfinite(cost[1])) and bool(torch.isfinite(cost[[0, 2]]).all())
+    assert bool(torch.isfinite(params).all())  # a NaN cost never accepts a step: the start is kept

@@ -14,6 +14,7 @@ import dataclasses
 import torch
 
 from polarface._validation import array_api, as_float_tensor, broadcast_named, check_range
+from polarface.inverse.biophysical.local_kernel import fused_local_fit
 from polarface.inverse.biophysical.model import (
     PARAMETER_ORDER,
     TotalsTable,
@@ -106,7 +107,9 @@ def fit_local_parameters(
     prior: torch.Tensor | None = None,
     prior_weight: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Fit the local totals model to six-channel albedos, all samples at once (bounded LM).
+    """Fit the local totals model to six-channel albedos, all samples at once (bounded LM; on the CPU
+    each sample's iterations run in numba, :func:`polarface.inverse.biophysical.local_kernel.fused_local_fit`,
+    elsewhere in torch).
 
     Args:
         rho_sss_bar: ``(N, 6)`` target albedos in [0, 1].
@@ -134,12 +137,29 @@ def fit_local_parameters(
         x = design[:, None, :].expand(n_starts, n_samples, 4).reshape(-1, 4)
     goal = target.repeat(n_starts, 1)
     weight = 1.0 / (goal + channel_floor)
-    n = x.shape[0]
     pull = torch.tensor(prior_weight, dtype=dtype, device=device)
     anchor = x.clone() if prior is None else prior.to(dtype=dtype, device=device).repeat(n_starts, 1)
     if prior is None:
         pull = torch.zeros_like(pull)
-    problem = _BoundedProblem(table, channel_weights, pull, low, high)
+    if device.type == "cpu":
+        x, cost = fused_local_fit(x, goal, weight, anchor, pull, (low, high), iterations, table,
+                                  channel_weights)
+    else:
+        problem = _BoundedProblem(table, channel_weights, pull, low, high)
+        x, cost = _fit_torch(problem, x, goal, weight, anchor, iterations)
+    cost = cost.reshape(n_starts, n_samples)
+    best = cost.argmin(0)
+    x = x.reshape(n_starts, n_samples, 4)[best, torch.arange(n_samples, device=device)]
+    return x, cost[best, torch.arange(n_samples, device=device)]
+
+
+def _fit_torch(problem: _BoundedProblem, x: torch.Tensor, goal: torch.Tensor, weight: torch.Tensor,
+               anchor: torch.Tensor, iterations: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The LM loop of :func:`fit_local_parameters` in torch (any device): all rows at once, the rows
+    still improving in an active set; ``(parameters (n, 4), cost (n,))``."""
+    dtype, device = x.dtype, x.device
+    n = x.shape[0]
+    x = x.clone()
     damping = torch.full((n,), 1e-2, dtype=dtype, device=device)
     with torch.no_grad():
         res = problem.residual(x, goal, weight, anchor)
@@ -161,10 +181,7 @@ def fit_local_parameters(
             done = (better & (ca - trial_cost <= 1e-6 * ca)) | (torch.minimum(trial_cost, ca) < 1e-16)
             done |= damping[active] >= 1e8
             active = active[~done]
-    cost = cost.reshape(n_starts, n_samples)
-    best = cost.argmin(0)
-    x = x.reshape(n_starts, n_samples, 4)[best, torch.arange(n_samples, device=device)]
-    return x, cost[best, torch.arange(n_samples, device=device)]
+    return x, cost
 
 
 @array_api("rho_sss_bar", "model")
