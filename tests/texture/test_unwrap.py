@@ -78,6 +78,24 @@ def test_unwrap_resumes_a_partial_store(capture):
     )
 
 
+def test_frames_in_threads_give_the_store_of_one_thread(capture, monkeypatch):
+    """Frames sampled side by side (unwrap.VIEW_THREADS) write the same arrays and attributes."""
+    import polarface.texture.unwrap as unwrap_module
+
+    _info, store, mesh, poses, root = capture
+    config = UnwrapConfig(texture_resolution=16, patch=8)
+    stores = {}
+    for threads in (1, 3):
+        monkeypatch.setattr(unwrap_module, "VIEW_THREADS", threads)
+        stores[threads] = unwrap_capture(store, mesh, poses, root / f"threads{threads}.zarr", config,
+                                         progress=False)
+    one, many = stores[1], stores[3]
+    for name in ("obs", "valid", "lit"):
+        np.testing.assert_array_equal(np.asarray(one.root[name][:]), np.asarray(many.root[name][:]))
+    assert dict(one.root.attrs) == dict(many.root.attrs)
+    assert list(many.root.attrs["stats"]) == [str(v) for v in range(len(many.views))]  # in view order
+
+
 @pytest.mark.parametrize(
     "field,value",
     [

@@ -4,7 +4,8 @@
 polarimetric camera, :mod:`polarface.texture.views`), decides its visibility (ray-cast occlusion, n.v
 threshold, saturation, the mixed-pixel test of :mod:`polarface.texture.footprint`) and each LED module's
 visibility (shadow rays), samples the observations bilinearly and writes them, one view at a time, into
-an :class:`polarface.texture.unwrap_store.UnwrapStore` (zarr layout in that module's docstring).
+an :class:`polarface.texture.unwrap_store.UnwrapStore` (zarr layout in that module's docstring); frames
+are sampled side by side in threads (:data:`VIEW_THREADS`).
 View geometry is stored in the *model* frame: for rigid poses the texel positions and base frames are
 those of the rest mesh and only the per-view vectors move (exact, and H-dependent normals need no
 per-view recomputation). Texture layout: :mod:`polarface.geometry.uv_raster` (row 0 = v 1).
@@ -14,8 +15,11 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import shutil
+import threading
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -227,6 +231,12 @@ def _resumable_writer(
     return writer
 
 
+#: Frames unwrapped at once, each in its own thread (its views share one ray caster): Embree, numpy and
+#: zarr's codecs release the GIL, so a second frame fills the core the first leaves idle (demo preset,
+#: 48 views on 2 cores: 20.9 -> 15.8 s, the same store bit for bit).
+VIEW_THREADS = min(4, os.cpu_count() or 1)
+
+
 def _write_views(
     store: CaptureStore,
     mesh: TriangleMesh,
@@ -237,41 +247,41 @@ def _write_views(
     config: UnwrapConfig,
     progress: bool,
 ) -> bool:
-    """Sample and write every view not yet in ``writer``; True if some texel is seen by some view."""
+    """Sample and write every view not yet in ``writer`` (frames in :data:`VIEW_THREADS` threads, the
+    writes one at a time); True if some texel is seen by some view."""
     done = writer.done()
     lights_world = np.array([light.position_mm for light in store.rig.lights], dtype=np.float64)
     cameras = {c.id: c.pinhole() for c in store.rig.polarimetric_cameras()}
-    seen_any = False
-    bar = tqdm(total=len(views), desc="unwrap views", unit="view", disable=not progress)
-    caster_frame, caster = None, None
+    pending: dict[int, list[tuple[int, ViewSpec]]] = {}
     for index, view in enumerate(views):
-        if index in done:
-            seen_any = True
-            bar.update(1)
-            continue
-        pose = frame_pose[view.frame]
-        if caster_frame != view.frame:
-            mesh_world = mesh.transformed(pose)
-            caster, caster_frame = RayCaster(mesh_world), view.frame
-        stack = store.stack(view.frame, view.camera_id)
-        saturated = (store.mask(view.frame, view.camera_id) & 1).astype(bool)
-        obs, valid, lit = sample_view(
-            geometry,
-            mesh_world,
-            caster,
-            cameras[view.camera_id],
-            pose,
-            stack,
-            saturated,
-            lights_world,
-            config,
-            f"frame {view.frame} camera '{view.camera_id}'",
-        )
-        seen_any = seen_any or bool(valid.any())
-        writer.write_view(index, obs, valid, lit)
-        bar.update(1)
+        if index not in done:
+            pending.setdefault(view.frame, []).append((index, view))
+    bar = tqdm(total=len(views), initial=len(views) - sum(map(len, pending.values())), desc="unwrap views",
+               unit="view", disable=not progress)
+    lock = threading.Lock()
+
+    def one_frame(frame: int) -> bool:
+        pose = frame_pose[frame]
+        mesh_world = mesh.transformed(pose)
+        caster = RayCaster(mesh_world)
+        seen = False
+        for index, view in pending[frame]:
+            stack = store.stack(view.frame, view.camera_id)
+            saturated = (store.mask(view.frame, view.camera_id) & 1).astype(bool)
+            obs, valid, lit = sample_view(
+                geometry, mesh_world, caster, cameras[view.camera_id], pose, stack, saturated, lights_world,
+                config, f"frame {view.frame} camera '{view.camera_id}'",
+            )  # fmt: skip
+            seen = seen or bool(valid.any())
+            with lock:
+                writer.write_view(index, obs, valid, lit)
+                bar.update(1)
+        return seen
+
+    with ThreadPoolExecutor(max_workers=VIEW_THREADS) as pool:
+        seen_any = any(list(pool.map(one_frame, sorted(pending))))  # list: every frame runs to its end
     bar.close()
-    return seen_any
+    return seen_any or bool(done)
 
 
 def unwrap_capture(

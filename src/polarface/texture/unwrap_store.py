@@ -242,7 +242,7 @@ class UnwrapStore:
         self.root["lit"][index] = lit
         stats = dict(self.root.attrs.get("stats", {}))
         stats[str(int(index))] = [float(obs[..., 0, :][valid].sum()), int(valid.sum()) * 3]
-        self.root.attrs["stats"] = stats
+        self.root.attrs["stats"] = dict(sorted(stats.items(), key=lambda item: int(item[0])))  # any order
         done = sorted(self.done() | {int(index)})
         self.root.attrs["done"] = done
 
