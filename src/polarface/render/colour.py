@@ -27,9 +27,10 @@ def linear_rgb_from_channels(six: np.ndarray, rig) -> np.ndarray:
 
 
 def encode_srgb(linear: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 transfer curve on values clipped to [0, 1]."""
+    """IEC 61966-2-1 transfer curve on values clipped to [0, 1] (the power as ``exp(log(x) / 2.4)``: within
+    an ulp of ``np.power``, whose float64 path took 6x as long on the report's frame stacks)."""
     x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 1e-12), 1 / 2.4) - 0.055)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.exp(np.log(np.maximum(x, 1e-12)) / 2.4) - 0.055)
 
 
 def linear_srgb_to_lab(linear: np.ndarray) -> np.ndarray:
