@@ -25,15 +25,15 @@ ground-truth mask; a texel of frame ``t`` counts when it is in the frame's mask 
 Definitions (:class:`DynamicEvaluationConfig` holds the constants; the computations on arrays are in
 :mod:`polarface.pipeline.evaluate_dynamic_measures`):
 
-* ``tracking_mm``: material points. Each tracked vertex's position in the first tracked frame ``t0``
-  is projected to the closest point of the ground-truth frame-``t0`` mesh (triangle and barycentric
-  coordinates, :func:`closest_surface_points`); vertices farther than ``max_material_distance_mm``
-  (5 mm) are left out (off the ground-truth surface, e.g. outside the simulated head). The same
-  barycentric coordinates on the ground-truth frame-``t`` mesh are where that material point truly is
-  at ``t``; the error is its distance to the tracked position at ``t``, over the vertices with
-  ``confidence > 0`` at ``t``. ``median_per_frame``: the median per evaluated frame; ``max``: the
-  largest per-frame ``tracking_tail_percentile`` (90th) percentile (the worst frame's tail). Targets:
-  median <= 0.3 mm every frame, max <= 0.5 mm.
+* ``tracking_mm``: material points. Each tracked vertex's position in the first tracked frame ``t0`` is
+  projected to the closest point of the ground-truth frame-``t0`` mesh (triangle and barycentric coordinates,
+  :func:`polarface.geometry.raycast.closest_surface_points`); vertices farther than
+  ``max_material_distance_mm`` (5 mm) are left out (off the ground-truth surface, e.g. outside the simulated
+  head). The same barycentric coordinates on the ground-truth frame-``t`` mesh are where that material point
+  truly is at ``t``; the error is its distance to the tracked position at ``t``, over the vertices with
+  ``confidence > 0`` at ``t``. ``median_per_frame``: the median per evaluated frame; ``max``: the largest
+  per-frame ``tracking_tail_percentile`` (90th) percentile (the worst frame's tail). Targets: median <= 0.3 mm
+  every frame, max <= 0.5 mm.
 * pressed-patch weight ``w``: not stored by the simulator. Its frame 0 lowers the outer haemoglobin to
   ``c0 = cs (1 - 0.8 w)`` (``cs`` the static map; the pressure is released at ``t = 0``, where
   ``blood_flow_factor`` is 0), so ``w = (1 - c0 / cs) / 0.8`` where ``cs > 0`` (0 elsewhere)
