@@ -57,3 +57,26 @@ def test_texel_visibility_equals_every_ray(scene):
     assert np.array_equal(visible[raster.mask], expected)
     assert 0 < expected.sum() < expected.size
     assert np.array_equal(pixel[raster.mask], projected.astype(np.float32))
+
+
+def test_units_read_the_submitting_process_scene_instead_of_building_it(scene, tmp_path, monkeypatch):
+    """``scene_for`` reads the scene the submitting process pickled (``write_scene_file``) for its config,
+    and builds its own for another configuration or without a file."""
+    import dataclasses
+
+    from polarface.simulate import frames
+
+    path = frames.write_scene_file(tmp_path / ".scene.pkl", dataclasses.replace(scene, exposure=2.0))
+    built = []
+    fake_build = classmethod(lambda cls, config: built.append(config) or "built")
+    monkeypatch.setattr(SimulationScene, "build", fake_build)
+    monkeypatch.setattr(frames, "_SCENES", {})
+    read = frames.scene_for(scene.config, path)
+    assert built == [] and read.config == scene.config and read.exposure is None  # as built, no exposure
+    assert np.array_equal(read.maps.rho_sss_bar, scene.maps.rho_sss_bar)
+    assert torch.equal(read.subsurface.totals[0], scene.subsurface.totals[0])
+    other = dataclasses.replace(scene.config, seed=1)
+    monkeypatch.setattr(frames, "_SCENES", {})
+    assert frames.scene_for(other, path) == "built" and built == [other]
+    monkeypatch.setattr(frames, "_SCENES", {})
+    assert frames.scene_for(scene.config, tmp_path / "missing.pkl") == "built"

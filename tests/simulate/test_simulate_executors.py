@@ -51,7 +51,7 @@ def test_ray_frames_are_the_local_executor_bytes(local, ray_instance, tmp_path):
 def test_process_frames_are_the_local_executor_bytes(local, tmp_path):
     with ProcessExecutor(workers=2, threads_per_worker=1) as executor:
         summary = simulate(tmp_path / "processes", CONFIG, progress=False, executor=executor)
-    assert _tree(tmp_path / "processes") == local[1]
+    assert _tree(tmp_path / "processes") == local[1]  # the workers' scene file is gone too
     units = summary["executor"]["units"]
     assert summary["executor"]["name"] == "processes"
     assert {units[key]["pid"] for key in ("static/1", "dynamic/0", "dynamic/1")} - {None} != set()

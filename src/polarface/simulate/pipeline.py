@@ -25,6 +25,8 @@ Each frame is an executor unit (:mod:`polarface.simulate.frames`; :mod:`polarfac
 frames of a sequence render and write their own files in any order, in this process or as Ray tasks,
 with the same bytes. Only the exposure is order-dependent: it is fixed by the first frame rendered (the
 first sequence's frame 0), which this process renders and writes before the others are submitted.
+Units in other processes read the scene this process built from ``SIM_DIR/.scene.pkl``
+(:data:`SCENE_FILE`, removed when the run ends) instead of building it again.
 ``simulation.json`` records the executor and, per frame, the seconds it took and where it ran.
 """
 
@@ -60,6 +62,7 @@ from polarface.simulate.frames import (
     shared_scene,
     with_exposure,
     write_frame,
+    write_scene_file,
 )
 from polarface.simulate.ground_truth import AppearanceMaps, build_appearance_maps
 from polarface.simulate.ground_truth_store import ObservationWriter, write_static_ground_truth
@@ -71,7 +74,8 @@ __all__ = ["SimulationConfig", "SimulationScene", "render_frame", "simulate"]
 LOGGER = logging.getLogger(__name__)
 #: Seed of the ground-truth map variations (fixed, so the simulation seed changes the noise only).
 MAP_SEED = 2024
-
+#: The scene pickled for the units of other processes while a simulation runs (in ``SIM_DIR``).
+SCENE_FILE = ".scene.pkl"
 
 @dataclasses.dataclass(frozen=True)
 class SimulationConfig:
@@ -256,11 +260,17 @@ def simulate(
     # one handle on observations.zarr's attributes in this process: a second one would rewrite them stale
     writer = ObservationWriter(gt / "observations.zarr", scene, frame_counts(scene))
     writer.create_arrays(config.sequences)
-    with shared_scene(scene):
-        for sequence in config.sequences:
-            seq_started = time.perf_counter()
-            _simulate_sequence(scene, out, sequence, writer, executor, placements, progress)
-            timings[f"{sequence}_s"] = time.perf_counter() - seq_started
+    # units in other processes read the scene built here instead of building it again
+    scene_file = None if isinstance(executor, LocalExecutor) else write_scene_file(out / SCENE_FILE, scene)
+    try:
+        with shared_scene(scene):
+            for sequence in config.sequences:
+                seq_started = time.perf_counter()
+                _simulate_sequence(scene, out, sequence, writer, executor, placements, progress, scene_file)
+                timings[f"{sequence}_s"] = time.perf_counter() - seq_started
+    finally:
+        if scene_file is not None:
+            scene_file.unlink(missing_ok=True)
     summary = {
         **_summary_head(config_dict, scene, complete=True),
         "exposure": scene.exposure,
@@ -275,7 +285,8 @@ def simulate(
 
 
 def _simulate_sequence(scene: SimulationScene, out: Path, sequence: str, writer: ObservationWriter,
-                       executor: Executor, placements: dict[str, Any], progress: bool) -> None:
+                       executor: Executor, placements: dict[str, Any], progress: bool,
+                       scene_file: Path | None = None) -> None:
     """Every frame of ``sequence`` not done yet (:func:`_frame_done`): the exposure frame in this process
     when the exposure is not known yet, the others as units; then the store is finalized. Records each
     frame's placement in ``placements`` (``"SEQUENCE/INDEX"``).
@@ -323,7 +334,7 @@ def _simulate_sequence(scene: SimulationScene, out: Path, sequence: str, writer:
             failed[unit.index] = outcome.error
         bar.update(1)
 
-    units = [SimulationFrameUnit(out, scene.config, sequence, index) for index in pending]
+    units = [SimulationFrameUnit(out, scene.config, sequence, index, scene_file) for index in pending]
     try:
         executor.map_units(run_simulation_unit, units, on_done=done)
     finally:
