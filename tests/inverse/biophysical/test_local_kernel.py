@@ -13,17 +13,6 @@ from polarface.inverse.biophysical import TotalsTable, local_channel_albedo
 from polarface.inverse.biophysical.local_fit import _BoundedProblem, _bounds, _fit_torch, _start_design
 from polarface.inverse.biophysical.local_kernel import fused_local_albedo, fused_local_fit
 from polarface.inverse.biophysical.model import _local_albedo_with_jacobian_torch
-from polarface.skin.spectral import default_spectral_calibration
-
-
-@pytest.fixture(scope="module")
-def calibration():
-    return default_spectral_calibration()
-
-
-@pytest.fixture(scope="module")
-def table(calibration):
-    return TotalsTable(calibration.wavelengths_nm)
 
 
 def _parameters(n: int, seed: int, dtype=torch.float64) -> torch.Tensor:

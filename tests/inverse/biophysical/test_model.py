@@ -20,16 +20,6 @@ from polarface.skin.layers import subsurface_albedo
 from polarface.skin.spectral import default_spectral_calibration
 
 
-@pytest.fixture(scope="module")
-def calibration():
-    return default_spectral_calibration()
-
-
-@pytest.fixture(scope="module")
-def table(calibration):
-    return TotalsTable(calibration.wavelengths_nm)
-
-
 def _random_parameters(n: int, seed: int = 0, dtype=torch.float64) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     scale = torch.tensor([0.5, 1.0, 0.32, 0.32], dtype=dtype)

@@ -27,15 +27,15 @@ from polarface.inverse.polarimetric.dynamic_loss import (
     FIXED_VARIABLES,
     DynamicPatchProblem,
 )
-from polarface.inverse.polarimetric.fused import fused_loss_and_grad
 from polarface.inverse.polarimetric.step import (
     _JIT,
     FusedObjective,
     _channels_of,
-    _forward,
-    _rmsprop_update,
+    _laplacian_term,
+    _normal_to_heights,
     _sigmoid,
     pack_raw,
+    rmsprop_steps,
     unpack_raw,
 )
 
@@ -79,34 +79,8 @@ def _backward_dynamic(
                     total += w_sss * w_t * delta * delta
                     g_rho[i, j, 2 + c] = 2.0 * w_sss * w_t * delta
             if lap_valid[i, j]:
-                lap = (change[i - 1, j] + change[i + 1, j] + change[i, j - 1] + change[i, j + 1]
-                       - 4.0 * change[i, j])
-                total += w_hl * lap * lap
-                g = 2.0 * w_hl * lap
-                g_h[i - 1, j] += g
-                g_h[i + 1, j] += g
-                g_h[i, j - 1] += g
-                g_h[i, j + 1] += g
-                g_h[i, j] -= 4.0 * g
-            inv = unit[i, j, 3]
-            if inv == 0.0:  # base normal kept: no dependence on H
-                continue
-            # data gradient of the unit normal -> n~ -> (dH/du, dH/dv) -> H (transposed stencils)
-            nx, ny, nz = unit[i, j, 0], unit[i, j, 1], unit[i, j, 2]
-            gx, gy, gz = data_grad[t, 0], data_grad[t, 1], data_grad[t, 2]
-            along = nx * gx + ny * gy + nz * gz
-            gx, gy, gz = (gx - along * nx) * inv, (gy - along * ny) * inv, (gz - along * nz) * inv
-            g_du = gx * per_dh_du[i, j, 0] + gy * per_dh_du[i, j, 1] + gz * per_dh_du[i, j, 2]
-            g_dv = gx * per_dh_dv[i, j, 0] + gy * per_dh_dv[i, j, 1] + gz * per_dh_dv[i, j, 2]
-            g_h[i, j] += stencil_u[1, i, j] * g_du + stencil_v[1, i, j] * g_dv
-            if j < cols - 1:
-                g_h[i, j + 1] += stencil_u[0, i, j] * g_du
-            if j > 0:
-                g_h[i, j - 1] += stencil_u[2, i, j] * g_du
-            if i < rows - 1:
-                g_h[i + 1, j] += stencil_v[0, i, j] * g_dv
-            if i > 0:
-                g_h[i - 1, j] += stencil_v[2, i, j] * g_dv
+                total += _laplacian_term(change, i, j, w_hl, g_h)
+            _normal_to_heights(i, j, unit, data_grad, stencil_u, stencil_v, per_dh_dv, per_dh_du, g_h)
     # chain rule to the raw variables (every term carries the loss's 1 / texel_count)
     for i in range(rows):
         for j in range(cols):
@@ -148,23 +122,17 @@ class FusedDynamicObjective(FusedObjective):
         frozen = [name for name in config.frozen_variables if name in DYNAMIC_VARIABLES]
         self.frozen_channels = _channels_of((*FIXED_VARIABLES, *frozen))
 
-    def __call__(self, packed: np.ndarray, grad_out: np.ndarray) -> float:
-        """Total loss at ``packed`` (``(h, w, 12)`` raw variables); its gradient is written into
-        ``grad_out`` (same shape)."""
+    def _backward(self, packed: np.ndarray, grad_out: np.ndarray, data_grad: np.ndarray, data_loss: float,
+                  height: np.ndarray, unit: np.ndarray) -> float:
+        """The temporal regularisers and the chain rule back to ``packed`` (:func:`_backward_dynamic`); the
+        total loss (the fixed maps' channels get 0, as the frozen ones)."""
         stencil_u, stencil_v = self.stencils
         per_dh_dv, per_dh_du = self.per_dh
-        height, unit = _forward(
-            packed, self.ranges, stencil_u, stencil_v, self.constant, per_dh_dv, per_dh_du,
-            self.base_normal, self.keep_base, self.params,
+        return _backward_dynamic(
+            packed, grad_out, self.params, data_grad, data_loss, height, unit, self.mask, self.lap_valid,
+            self.reference, self.reg_weights, self.ranges, self.inv_texels, stencil_u, stencil_v, per_dh_dv,
+            per_dh_du,
         )  # fmt: skip
-        loss, data_grad, _ = fused_loss_and_grad(self.samples, self.params, self.data_weights, self.scale)
-        total = _backward_dynamic(
-            packed, grad_out, self.params, data_grad, float(loss.sum(dtype=np.float64)), height, unit,
-            self.mask, self.lap_valid, self.reference, self.reg_weights, self.ranges, self.inv_texels,
-            stencil_u, stencil_v, per_dh_dv, per_dh_du,
-        )  # fmt: skip
-        grad_out[..., self.frozen_channels] = 0.0  # fixed and frozen variables do not move
-        return float(total)
 
 
 def optimise_dynamic_patch_fused(
@@ -191,17 +159,8 @@ def optimise_dynamic_patch_fused(
     if config.lobes == "one":  # no second lobe, whatever the start (as optimise_patch)
         raw = {**raw, "rho_ss": torch.full_like(raw["rho_ss"], NO_LOBE_RAW)}
     dtype = np.dtype(np.float32) if raw["rho_s"].dtype == torch.float32 else np.dtype(np.float64)
-    objective = FusedDynamicObjective(patch, config, dtype)
     full = {**{k: v.to(raw["rho_s"].dtype) for k, v in patch.fixed_raw.items()}, **raw}
     packed = pack_raw(full).astype(dtype)
-    square_avg = np.zeros_like(packed)
-    grad = np.zeros(packed.shape)
-    for step, lr in enumerate(learning_rates):
-        total = objective(packed, grad)
-        _rmsprop_update(packed, square_avg, grad, float(lr))
-        if curve is not None:
-            if len(curve) <= step:
-                curve.append(0.0)
-            curve[step] += float(total)
+    rmsprop_steps(FusedDynamicObjective(patch, config, dtype), packed, learning_rates, curve)
     result = unpack_raw(packed, full)
     return {k: result[k] for k in DYNAMIC_VARIABLES}

@@ -29,7 +29,7 @@ from polarface.inverse.polarimetric.config import PARAMETER_NAMES, PolarimetricC
 from polarface.inverse.polarimetric.fused import fused_loss_and_grad
 from polarface.inverse.polarimetric.losses import laplacian_support
 
-__all__ = ["RAW_LAYOUT", "FusedObjective", "optimise_patch_fused", "pack_raw", "unpack_raw"]
+__all__ = ["RAW_LAYOUT", "FusedObjective", "optimise_patch_fused", "pack_raw", "rmsprop_steps", "unpack_raw"]
 
 #: Channels of the packed raw array ``(h, w, 12)``.
 RAW_LAYOUT = PARAMETER_NAMES
@@ -131,6 +131,47 @@ def _smoothness(values, mask, count, weight, grad):
     return weight * total
 
 
+@numba.njit(inline="always", **_JIT)
+def _laplacian_term(values, i, j, weight, grad):
+    """``weight (Laplacian values)^2`` at interior texel ``(i, j)`` (4-neighbour); adds its gradient to
+    ``grad``."""
+    lap = values[i - 1, j] + values[i + 1, j] + values[i, j - 1] + values[i, j + 1] - 4.0 * values[i, j]
+    g = 2.0 * weight * lap
+    grad[i - 1, j] += g
+    grad[i + 1, j] += g
+    grad[i, j - 1] += g
+    grad[i, j + 1] += g
+    grad[i, j] -= 4.0 * g
+    return weight * lap * lap
+
+
+@numba.njit(inline="always", **_JIT)
+def _normal_to_heights(i, j, unit, data_grad, stencil_u, stencil_v, per_dh_dv, per_dh_du, g_h):
+    """Add to ``g_h`` the data gradient of texel ``(i, j)``'s unit normal carried back to the heights:
+    unit normal -> ``n~`` -> ``(dH/du, dH/dv)`` -> H (the transposed stencils); nothing where the base
+    normal is kept (``unit[i, j, 3] == 0``)."""
+    inv = unit[i, j, 3]
+    if inv == 0.0:
+        return
+    rows, cols = g_h.shape
+    t = i * cols + j
+    nx, ny, nz = unit[i, j, 0], unit[i, j, 1], unit[i, j, 2]
+    gx, gy, gz = data_grad[t, 0], data_grad[t, 1], data_grad[t, 2]
+    along = nx * gx + ny * gy + nz * gz
+    gx, gy, gz = (gx - along * nx) * inv, (gy - along * ny) * inv, (gz - along * nz) * inv  # d/dn~
+    g_du = gx * per_dh_du[i, j, 0] + gy * per_dh_du[i, j, 1] + gz * per_dh_du[i, j, 2]
+    g_dv = gx * per_dh_dv[i, j, 0] + gy * per_dh_dv[i, j, 1] + gz * per_dh_dv[i, j, 2]
+    g_h[i, j] += stencil_u[1, i, j] * g_du + stencil_v[1, i, j] * g_dv
+    if j < cols - 1:
+        g_h[i, j + 1] += stencil_u[0, i, j] * g_du
+    if j > 0:
+        g_h[i, j - 1] += stencil_u[2, i, j] * g_du
+    if i < rows - 1:
+        g_h[i + 1, j] += stencil_v[0, i, j] * g_dv
+    if i > 0:
+        g_h[i - 1, j] += stencil_v[2, i, j] * g_dv
+
+
 @numba.njit(**_JIT)
 def _backward(
     raw, grad_out, params, data_grad, data_loss, height, unit, mask, count, lap_valid, reg_weights,
@@ -158,40 +199,8 @@ def _backward(
                 total += w_ht * height[i, j] * height[i, j]
                 g_h[i, j] += 2.0 * w_ht * height[i, j]
             if lap_valid[i, j]:
-                lap = (
-                    height[i - 1, j]
-                    + height[i + 1, j]
-                    + height[i, j - 1]
-                    + height[i, j + 1]
-                    - 4.0 * height[i, j]
-                )
-                total += w_hl * lap * lap
-                g = 2.0 * w_hl * lap
-                g_h[i - 1, j] += g
-                g_h[i + 1, j] += g
-                g_h[i, j - 1] += g
-                g_h[i, j + 1] += g
-                g_h[i, j] -= 4.0 * g
-            inv = unit[i, j, 3]
-            if inv == 0.0:  # base normal kept: no dependence on H
-                continue
-            # data gradient of the unit normal -> n~ -> (dH/du, dH/dv) -> H (transposed stencils)
-            t = i * cols + j
-            nx, ny, nz = unit[i, j, 0], unit[i, j, 1], unit[i, j, 2]
-            gx, gy, gz = data_grad[t, 0], data_grad[t, 1], data_grad[t, 2]
-            along = nx * gx + ny * gy + nz * gz
-            gx, gy, gz = (gx - along * nx) * inv, (gy - along * ny) * inv, (gz - along * nz) * inv  # d/dn~
-            g_du = gx * per_dh_du[i, j, 0] + gy * per_dh_du[i, j, 1] + gz * per_dh_du[i, j, 2]
-            g_dv = gx * per_dh_dv[i, j, 0] + gy * per_dh_dv[i, j, 1] + gz * per_dh_dv[i, j, 2]
-            g_h[i, j] += stencil_u[1, i, j] * g_du + stencil_v[1, i, j] * g_dv
-            if j < cols - 1:
-                g_h[i, j + 1] += stencil_u[0, i, j] * g_du
-            if j > 0:
-                g_h[i, j - 1] += stencil_u[2, i, j] * g_du
-            if i < rows - 1:
-                g_h[i + 1, j] += stencil_v[0, i, j] * g_dv
-            if i > 0:
-                g_h[i - 1, j] += stencil_v[2, i, j] * g_dv
+                total += _laplacian_term(height, i, j, w_hl, g_h)
+            _normal_to_heights(i, j, unit, data_grad, stencil_u, stencil_v, per_dh_dv, per_dh_du, g_h)
     # chain rule to the raw variables (every term carries the loss's 1 / texel_count)
     for i in range(rows):
         for j in range(cols):
@@ -280,13 +289,20 @@ class FusedObjective:
             self.base_normal, self.keep_base, self.params,
         )  # fmt: skip
         loss, data_grad, _ = fused_loss_and_grad(self.samples, self.params, self.data_weights, self.scale)
-        total = _backward(
-            packed, grad_out, self.params, data_grad, float(loss.sum(dtype=np.float64)), height, unit,
-            self.mask, self.count, self.lap_valid, self.reg_weights, self.ranges, self.inv_texels,
-            stencil_u, stencil_v, per_dh_dv, per_dh_du,
-        )  # fmt: skip
+        total = self._backward(packed, grad_out, data_grad, float(loss.sum(dtype=np.float64)), height, unit)
         grad_out[..., self.frozen_channels] = 0.0  # frozen variables do not move
         return float(total)
+
+    def _backward(self, packed: np.ndarray, grad_out: np.ndarray, data_grad: np.ndarray, data_loss: float,
+                  height: np.ndarray, unit: np.ndarray) -> float:
+        """The regularisers and the chain rule back to ``packed`` (:func:`_backward`); the total loss."""
+        stencil_u, stencil_v = self.stencils
+        per_dh_dv, per_dh_du = self.per_dh
+        return _backward(
+            packed, grad_out, self.params, data_grad, data_loss, height, unit, self.mask, self.count,
+            self.lap_valid, self.reg_weights, self.ranges, self.inv_texels, stencil_u, stencil_v, per_dh_dv,
+            per_dh_du,
+        )  # fmt: skip
 
 
 def _channels_of(names: Sequence[str]) -> list[int]:
@@ -331,8 +347,15 @@ def optimise_patch_fused(
         The final raw variables (detached tensors like ``raw``).
     """
     dtype = np.dtype(np.float32) if raw["eta"].dtype == torch.float32 else np.dtype(np.float64)
-    objective = FusedObjective(problem, config, dtype)
     packed = pack_raw(raw).astype(dtype)
+    rmsprop_steps(FusedObjective(problem, config, dtype), packed, learning_rates, curve)
+    return unpack_raw(packed, raw)
+
+
+def rmsprop_steps(objective: FusedObjective, packed: np.ndarray, learning_rates: Sequence[float],
+                  curve: list[float] | None = None) -> None:
+    """torch's RMSprop (``alpha = 0.99, eps = 1e-8``) on ``packed`` in place, one step per learning rate,
+    the gradient from ``objective(packed, grad)``; ``curve[step] +=`` each step's total loss."""
     square_avg = np.zeros_like(packed)
     grad = np.zeros(packed.shape)
     for step, lr in enumerate(learning_rates):
@@ -342,4 +365,3 @@ def optimise_patch_fused(
             if len(curve) <= step:
                 curve.append(0.0)
             curve[step] += float(total)
-    return unpack_raw(packed, raw)
