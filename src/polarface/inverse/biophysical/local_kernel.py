@@ -1,6 +1,8 @@
 """The local model and its Jacobian fused in one numba kernel (the CPU path of
 :func:`polarface.inverse.biophysical.model.local_channel_albedo` and
-:func:`~polarface.inverse.biophysical.model.local_channel_albedo_with_jacobian`).
+:func:`~polarface.inverse.biophysical.model.local_channel_albedo_with_jacobian`), and the bounded
+Levenberg-Marquardt fit of that model per texel (:func:`fused_local_fit`, the CPU path of
+:func:`polarface.inverse.biophysical.local_fit.fit_local_parameters`).
 
 The same mathematics as the torch functions of :mod:`polarface.inverse.biophysical.model` — absorptions
 linear in the parameters (Eq. epi_ab), cubic Hermite lookups of the layer totals in ``ln sigma_a``
@@ -9,7 +11,10 @@ linear in the parameters (Eq. epi_ab), cubic Hermite lookups of the layer totals
 texel at a time: torch evaluates it as some forty whole-array operations over ``(N, L)`` and
 ``(K, N, L)`` temporaries and gathers, which made the table lookups alone a third of a dynamic frame's
 biophysical stage (demo preset, measured). The kernel computes in float64 whatever the input dtype
-(the torch path computes in the input's dtype) and runs its texels in numba's threads.
+(the torch path computes in the input's dtype) and runs its texels in numba's threads. The LM takes the
+torch loop's steps (same normal equations, bound freezing, damping and stopping rules) texel by texel,
+with one model evaluation per iteration where the torch loop needs two (a trial point's Jacobian is kept
+when its step is accepted).
 """
 
 from __future__ import annotations
