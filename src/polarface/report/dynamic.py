@@ -177,29 +177,31 @@ def _render_images(folder: ResultFolder, frames: _Frames) -> np.ndarray | None:
 
 
 def _animations(folder: ResultFolder, frames: _Frames) -> list[tuple[str, str]]:
-    """Write the animations of the maps present; returns their grid items (path, caption)."""
+    """Write the animations of the maps present, one at a time (each ``(F, H, W, 3)`` stack is released
+    before the next is built); returns their grid items (path, caption)."""
     labels = [_label(t, s) for t, s in zip(frames.indices, frames.times_s, strict=True)]
-    images: list[tuple[str, np.ndarray, str]] = []
+    items: list[tuple[str, str]] = []
+
+    def write(name: str, animation: np.ndarray | None, caption: str) -> None:
+        if animation is not None:
+            write_animation(folder.previews_dir / name, animation, labels)
+            items.append((f"previews/{name}", caption))
+
     if RHO_SSS_BAR in frames.maps:
-        images.append(("dynamic_rho_sss_bar.gif", _rho_images(frames),
-                       "rho_sss_bar per frame (upper-half R, G, B; one scale for all frames; sRGB-encoded)"))
+        write("dynamic_rho_sss_bar.gif", _rho_images(frames),
+              "rho_sss_bar per frame (upper-half R, G, B; one scale for all frames; sRGB-encoded)")
     if "c_h_out" in frames.maps:
         cmap = CHROMOPHORE_PREVIEWS["c_h_out"][3]
         mapped, low, high = _colour_mapped(frames.maps["c_h_out"], frames.masks, cmap)
-        images.append(("dynamic_c_h_out.gif", mapped,
-                       f"C_h,out per frame ({cmap} colour scale {low:.4g} .. {high:.4g} for all frames)"))
-    rendered = _render_images(folder, frames)
-    if rendered is not None:
-        images.append(("dynamic_render.gif", rendered,
-                       "The reconstruction rendered per frame at the first polarimetric camera (tracked "
-                       "mesh, the frame's maps, unpolarized: I0 + I90; sRGB, one exposure for all frames)"))
-    subsurface = _subsurface_images(folder, frames)
-    if subsurface is not None:
-        images.append(("dynamic_subsurface_srgb.gif", subsurface,
-                       "Rendered subsurface albedo per frame (sRGB, D65)"))
-    for name, animation, _ in images:
-        write_animation(folder.previews_dir / name, animation, labels)
-    return [(f"previews/{name}", caption) for name, _, caption in images]
+        write("dynamic_c_h_out.gif", mapped,
+              f"C_h,out per frame ({cmap} colour scale {low:.4g} .. {high:.4g} for all frames)")
+        del mapped
+    write("dynamic_render.gif", _render_images(folder, frames),
+          "The reconstruction rendered per frame at the first polarimetric camera (tracked mesh, the frame's "
+          "maps, unpolarized: I0 + I90; sRGB, one exposure for all frames)")
+    write("dynamic_subsurface_srgb.gif", _subsurface_images(folder, frames),
+          "Rendered subsurface albedo per frame (sRGB, D65)")
+    return items
 
 
 # ---- chromophores over time ----------------------------------------------------------------------
