@@ -210,17 +210,20 @@ def _lm_kernel(x, goal, weight, anchor, pull, low, high, iterations, model, grid
         cost_out[n] = cost
 
 
+def _float64(tensor: torch.Tensor) -> np.ndarray:
+    """``tensor`` as a C-contiguous float64 array (a view where it already is one)."""
+    return np.ascontiguousarray(tensor.detach().cpu().numpy(), dtype=np.float64)
+
+
 def _model(table: TotalsTable, channel_weights: torch.Tensor) -> tuple[tuple, tuple]:
     """``(model, grid)`` arguments of the kernels: float64 spectra, tables and channel weights ``(C, L)``;
     the tables' ``(x0, step, nodes, low, high)``."""
     tables = table._tables
     spectra = {k: v.numpy() for k, v in table.spectra(torch.float64, "cpu").items()}
-    weights = np.ascontiguousarray(channel_weights.detach().cpu().numpy(), dtype=np.float64)
     model = (spectra["eumelanin"], spectra["pheomelanin"], spectra["baseline"], spectra["blood"],
              tables.outer.numpy(), tables.outer_slope.numpy(), tables.inner.numpy(),
-             tables.inner_slope.numpy(), weights)  # fmt: skip
-    low, high = math.exp(table.x0), math.exp(table.x0 + table.step * (table.nodes - 1))
-    return model, (float(table.x0), float(table.step), float(table.nodes), low, high)
+             tables.inner_slope.numpy(), _float64(channel_weights))  # fmt: skip
+    return model, (float(table.x0), float(table.step), float(table.nodes), *table.sigma_a_bounds)
 
 
 def fused_local_albedo(
@@ -230,7 +233,7 @@ def fused_local_albedo(
     ``with_jacobian``, its Jacobian ``(..., C, 4)`` (else None); ``channel_weights`` ``(C, L)`` on the
     table's grid. Outputs in the parameters' dtype; not differentiable (callers use it without grad)."""
     batch = parameters.shape[:-1]
-    flat = np.ascontiguousarray(parameters.detach().reshape(-1, 4).numpy(), dtype=np.float64)
+    flat = _float64(parameters.reshape(-1, 4))
     model, grid = _model(table, channel_weights)
     channels = model[-1].shape[0]
     rho = np.empty((flat.shape[0], channels))
@@ -260,10 +263,9 @@ def fused_local_fit(
     Returns:
         ``(parameters (n, 4), cost (n,))`` in the dtype of ``start``.
     """
-    numpy = lambda t: np.ascontiguousarray(t.detach().cpu().numpy(), dtype=np.float64)  # noqa: E731
-    x = numpy(start).copy()
+    x = _float64(start).copy()  # updated in place by the kernel
     cost = np.empty(x.shape[0])
     model, grid = _model(table, channel_weights)
-    _lm_kernel(x, numpy(goal), numpy(weight), numpy(anchor), numpy(pull), numpy(bounds[0]), numpy(bounds[1]),
-               int(iterations), model, grid, cost)
+    _lm_kernel(x, *(_float64(t) for t in (goal, weight, anchor, pull, *bounds)), int(iterations), model, grid,
+               cost)
     return torch.from_numpy(x).to(start.dtype), torch.from_numpy(cost).to(start.dtype)

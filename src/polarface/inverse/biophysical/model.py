@@ -111,6 +111,11 @@ class TotalsTable:
         self.sigma_s_prime_out = optics.sigma_s_prime_out[0]
         self.sigma_s_prime_in = optics.sigma_s_prime_in[0]
 
+    @property
+    def sigma_a_bounds(self) -> tuple[float, float]:
+        """``(low, high)`` absorptions covered by the tables, mm^-1 (lookups clamp to them)."""
+        return math.exp(self.x0), math.exp(self.x0 + self.step * (self.nodes - 1))
+
     def _packed(self, which: str, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
         """``(L * N, 4 K)`` rows ``[y_n, m_n, y_n+1, m_n+1]`` (K quantities) for one-gather lookups."""
         key = (which, dtype, str(device))
@@ -138,7 +143,7 @@ class TotalsTable:
         dtype, device = sigma_a.dtype, sigma_a.device
         packed = self._packed(which, dtype, device)
         count = packed.shape[1] // 4
-        low, high = math.exp(self.x0), math.exp(self.x0 + self.step * (self.nodes - 1))
+        low, high = self.sigma_a_bounds
         clamped = sigma_a.clamp(low, high)
         u = (torch.log(clamped) - self.x0) / self.step
         index = u.detach().floor().clamp(0, self.nodes - 2)
