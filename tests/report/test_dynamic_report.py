@@ -83,3 +83,17 @@ def test_write_animation_checks_its_input(tmp_path):
     big = np.random.default_rng(0).random((2, 1000, 700, 3))
     with Image.open(write_animation(tmp_path / "big.gif", big)) as image:
         assert image.size == (350, 500)  # subsampled by 2 to at most 512 px
+
+
+def test_animations_do_not_depend_on_what_is_held(tmp_path, monkeypatch):
+    """The scales found by reading the frames again (nothing held) give the same animations as
+    the scales of the values held in memory."""
+    from polarface.report import streamed
+
+    held = write_dynamic_result(tmp_path / "held", frames=4)
+    dynamic_section(HtmlPage("test"), held)
+    monkeypatch.setattr(streamed, "HELD_VALUES", 7)
+    again = write_dynamic_result(tmp_path / "again", frames=4)
+    dynamic_section(HtmlPage("test"), again)
+    for name in ("dynamic_rho_sss_bar.gif", "dynamic_c_h_out.gif", "dynamic_subsurface_srgb.gif"):
+        assert (held / "previews" / name).read_bytes() == (again / "previews" / name).read_bytes()

@@ -25,6 +25,7 @@ recorded reason, or pending) and seconds (``timings.frames[t].total_s``).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,7 @@ import numpy as np
 from polarface.io import atomic_path, storage_path
 from polarface.render.colour import encode_srgb
 from polarface.report.html import HtmlPage, Section
+from polarface.report.streamed import streamed_percentiles, streamed_std
 from polarface.results import CHROMOPHORE_MAPS, CHROMOPHORE_PREVIEWS, RHO_SSS_BAR, ResultFolder
 
 __all__ = [
@@ -49,19 +51,34 @@ _MAX_SIDE = 512
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class _Frames:
-    """The shown frames of a dynamic RESULT.
+    """The shown frames of a dynamic RESULT, read one at a time when needed (so that the report's memory
+    does not grow with the number of frames).
 
     Attributes:
-        indices: ``(F,)`` frame indices, ascending; times_s: their timestamps (s; NaN when unknown).
-        masks: ``(F, Ht, Wt)`` bool frame masks.
-        maps: name -> ``(F, Ht, Wt)`` float64 chromophore maps present in every frame;
-            ``rho_sss_bar`` ``(F, Ht, Wt, C)``.
+        folder: the RESULT. indices: ``(F,)`` frame indices, ascending; times_s: their timestamps (s; NaN
+            when unknown). face: ``(Ht, Wt)`` bool, the texels in every shown frame's mask.
+        map_names: the chromophore maps and ``rho_sss_bar`` present in every shown frame.
     """
 
+    folder: ResultFolder
     indices: list[int]
     times_s: np.ndarray
-    masks: np.ndarray
-    maps: dict[str, np.ndarray]
+    face: np.ndarray
+    map_names: tuple[str, ...]
+
+    def mask(self, f: int) -> np.ndarray:
+        """``(Ht, Wt)`` bool mask of the f-th shown frame."""
+        return self.folder.frame(self.indices[f]).read_mask()
+
+    def map(self, f: int, name: str) -> np.ndarray:
+        """The f-th shown frame's map ``name`` as float64: ``(Ht, Wt)``; ``rho_sss_bar`` ``(Ht, Wt, C)``."""
+        frame = self.folder.frame(self.indices[f])
+        if name == RHO_SSS_BAR:
+            return frame.read_channel_map(name, self.folder.channel_names(), strict=False).astype(np.float64)
+        return frame.read_scalar_map(name).astype(np.float64)
+
+    def maps(self, name: str) -> Iterator[np.ndarray]:
+        return (self.map(f, name) for f in range(len(self.indices)))
 
 
 def _timestamps(record: dict[str, Any]) -> dict[int, float]:
@@ -72,31 +89,50 @@ def _timestamps(record: dict[str, Any]) -> dict[int, float]:
 
 
 def _read_frames(folder: ResultFolder, record: dict[str, Any]) -> _Frames:
-    indices = [t for t in folder.frame_indices() if folder.frame(t).has_map("mask", ".png")]
-    stamps = _timestamps(record)
-    names = folder.channel_names()
-    masks = [folder.frame(t).read_mask() for t in indices]
-    shapes = {m.shape for m in masks}
-    if len(shapes) > 1:  # frames of different atlases cannot be animated together: keep the first's
-        indices = [t for t, m in zip(indices, masks, strict=True) if m.shape == masks[0].shape]
-        masks = [m for m in masks if m.shape == masks[0].shape]
-    maps: dict[str, np.ndarray] = {}
-    for name in (*CHROMOPHORE_MAPS, RHO_SSS_BAR):
-        if not indices or not all(folder.frame(t).has_map(name) for t in indices):
+    """The frames with a mask; frames of an atlas other than the first's are left out (they cannot be
+    animated together)."""
+    indices: list[int] = []
+    face: np.ndarray | None = None
+    for t in folder.frame_indices():
+        if not folder.frame(t).has_map("mask", ".png"):
             continue
-        if name == RHO_SSS_BAR:
-            stack = [folder.frame(t).read_channel_map(name, names, strict=False) for t in indices]
-        else:
-            stack = [folder.frame(t).read_scalar_map(name) for t in indices]
-        maps[name] = np.stack(stack).astype(np.float64)
+        mask = folder.frame(t).read_mask()
+        if face is None:
+            face = mask
+        elif mask.shape != face.shape:
+            continue
+        indices.append(t)
+        face = face & mask
+    names = tuple(name for name in (*CHROMOPHORE_MAPS, RHO_SSS_BAR)
+                  if indices and all(folder.frame(t).has_map(name) for t in indices))
+    stamps = _timestamps(record)
     times = np.array([stamps.get(t, np.nan) for t in indices], np.float64)
-    stacked = np.stack(masks) if masks else np.zeros((0, 0, 0), bool)
-    return _Frames(indices, times, stacked, maps)
+    return _Frames(folder, indices, times, face if face is not None else np.zeros((0, 0), bool), names)
 
 
 # ---- animations ----------------------------------------------------------------------------------
 def _label(t: int, time_s: float) -> str:
     return f"frame {t}" + ("" if np.isnan(time_s) else f", {time_s:.2f} s")
+
+
+def _write_gif(path: str | Path, images: Iterable[np.ndarray], labels: list[str] | None,
+               frames_per_second: float) -> Path:
+    """Write ``images`` (each ``(H, W, 3)`` floats in [0, 1]) as a looping labelled GIF, holding only the
+    8-bit palette frames at the GIF's resolution."""
+    from PIL import Image, ImageDraw
+
+    pictures = []
+    for index, image in enumerate(images):
+        stride = max(1, int(np.ceil(max(image.shape[:2]) / _MAX_SIDE)))
+        shown = np.clip(np.nan_to_num(image[::stride, ::stride]), 0, 1)
+        picture = Image.fromarray(np.round(shown * 255).astype(np.uint8))
+        if labels is not None:
+            ImageDraw.Draw(picture).text((4, 4), labels[index], fill=(255, 255, 255))
+        pictures.append(picture.convert("P", palette=Image.Palette.ADAPTIVE, colors=256))
+    with atomic_path(path) as tmp:
+        pictures[0].save(tmp, format="GIF", save_all=True, append_images=pictures[1:], loop=0,
+                         duration=round(1000.0 / frames_per_second))
+    return storage_path(path)
 
 
 def write_animation(path: str | Path, images: np.ndarray, labels: list[str] | None = None,
@@ -107,58 +143,65 @@ def write_animation(path: str | Path, images: np.ndarray, labels: list[str] | No
     Raises:
         ValueError: ``images`` is not ``(F, H, W, 3)`` with F >= 1, or ``labels`` has not F entries.
     """
-    from PIL import Image, ImageDraw
-
     images = np.asarray(images, np.float64)
     if images.ndim != 4 or images.shape[-1] != 3 or len(images) == 0:
         raise ValueError(f"argument 'images' must be (F, H, W, 3) with F >= 1; got {images.shape}")
     if labels is not None and len(labels) != len(images):
         raise ValueError(f"argument 'labels' has {len(labels)} entries for {len(images)} images")
-    stride = max(1, int(np.ceil(max(images.shape[1:3]) / _MAX_SIDE)))
-    pictures = []
-    for index, image in enumerate(images[:, ::stride, ::stride]):
-        picture = Image.fromarray(np.round(np.clip(np.nan_to_num(image), 0, 1) * 255).astype(np.uint8))
-        if labels is not None:
-            ImageDraw.Draw(picture).text((4, 4), labels[index], fill=(255, 255, 255))
-        pictures.append(picture.convert("P", palette=Image.Palette.ADAPTIVE, colors=256))
-    with atomic_path(path) as tmp:
-        pictures[0].save(tmp, format="GIF", save_all=True, append_images=pictures[1:], loop=0,
-                         duration=round(1000.0 / frames_per_second))
-    return storage_path(path)
+    return _write_gif(path, images, labels, frames_per_second)
 
 
-def _rho_images(frames: _Frames) -> np.ndarray:
-    rho = frames.maps[RHO_SSS_BAR]
-    upper = rho[..., :3] if rho.shape[-1] >= 3 else np.repeat(rho[..., :1], 3, -1)
-    inside = upper[frames.masks]
-    scale = max(float(np.percentile(inside, 99.5)) if inside.size else 1.0, 1e-6)
-    return np.where(frames.masks[..., None], encode_srgb(upper / scale), 0.0)
+def _upper_rgb(rho: np.ndarray) -> np.ndarray:
+    return rho[..., :3] if rho.shape[-1] >= 3 else np.repeat(rho[..., :1], 3, -1)
 
 
-def _colour_mapped(values: np.ndarray, masks: np.ndarray, cmap: str) -> tuple[np.ndarray, float, float]:
+def _rho_images(frames: _Frames) -> Iterator[np.ndarray]:
+    count = len(frames.indices)
+    scale = streamed_percentiles(lambda f: _upper_rgb(frames.map(f, RHO_SSS_BAR))[frames.mask(f)], count,
+                                 [99.5])[0]
+    scale = max(scale, 1e-6) if np.isfinite(scale) else 1.0
+    for f in range(count):
+        mask = frames.mask(f)
+        yield np.where(mask[..., None], encode_srgb(_upper_rgb(frames.map(f, RHO_SSS_BAR)) / scale), 0.0)
+
+
+def _colour_mapped(frames: _Frames, name: str, cmap: str) -> tuple[Iterator[np.ndarray], float, float]:
+    """The frames' map ``name`` on one colour scale (the 1st..99th percentile of every frame's masked
+    values): the images (lazily) and the scale's ends."""
     from matplotlib import colormaps
 
-    inside = values[masks]
-    low, high = (float(np.percentile(inside, 1)), float(np.percentile(inside, 99))) if inside.size else (0, 1)
+    count = len(frames.indices)
+    low, high = streamed_percentiles(lambda f: frames.map(f, name)[frames.mask(f)], count, [1, 99])
+    low, high = (low, high) if np.isfinite(low) else (0.0, 1.0)
     high = high if high > low else low + 1e-6
-    rgb = colormaps[cmap](np.clip((values - low) / (high - low), 0.0, 1.0))[..., :3]
-    return np.where(masks[..., None], rgb, 0.0), low, high
+
+    def images() -> Iterator[np.ndarray]:
+        for f in range(count):
+            mask = frames.mask(f)
+            rgb = colormaps[cmap](np.clip((frames.map(f, name) - low) / (high - low), 0.0, 1.0))[..., :3]
+            yield np.where(mask[..., None], rgb, 0.0)
+
+    return images(), low, high
 
 
-def _subsurface_images(folder: ResultFolder, frames: _Frames) -> np.ndarray | None:
-    from polarface.io import read_png
+def _same_shape(shapes: Iterable[tuple[int, ...]]) -> bool:
+    return len(set(shapes)) == 1
+
+
+def _subsurface_images(folder: ResultFolder, frames: _Frames) -> Iterator[np.ndarray] | None:
+    from polarface.io import image_header, read_png
 
     paths = [folder.frame(t).preview_path("subsurface_srgb") for t in frames.indices]
     if not paths or not all(p.is_file() for p in paths):
         return None
-    images = [read_png(p) for p in paths]
-    if len({i.shape for i in images}) != 1 or images[0].ndim != 3:
+    headers = [image_header(p) for p in paths]
+    if not _same_shape(headers) or headers[0][2] < 3:
         return None
-    scale = 65535.0 if images[0].dtype == np.uint16 else 255.0 if images[0].dtype == np.uint8 else 1.0
-    return np.stack([i[..., :3] for i in images]).astype(np.float64) / scale
+    scale = 65535.0 if headers[0][3] == 16 else 255.0
+    return (read_png(p)[..., :3].astype(np.float64) / scale for p in paths)
 
 
-def _render_images(folder: ResultFolder, frames: _Frames) -> np.ndarray | None:
+def _render_images(folder: ResultFolder, frames: _Frames) -> Iterator[np.ndarray] | None:
     """The frames' renders (``frames/NNNN/render/srgb_linear.exr`` of the dynamic stage) with one exposure
     (the 99th percentile of every frame's lit pixels at 0.85), sRGB-encoded; None unless every shown frame
     has one of the same size."""
@@ -167,35 +210,44 @@ def _render_images(folder: ResultFolder, frames: _Frames) -> np.ndarray | None:
     paths = [folder.frame(t).root / "render" / "srgb_linear.exr" for t in frames.indices]
     if not paths or not all(p.is_file() for p in paths):
         return None
-    images = [np.stack([read_exr(p)[c] for c in ("R", "G", "B")], axis=-1) for p in paths]
-    if len({i.shape for i in images}) != 1:
+
+    def render(f: int) -> np.ndarray:
+        channels = read_exr(paths[f])
+        return np.stack([channels[c] for c in ("R", "G", "B")], axis=-1).astype(np.float64)
+
+    shapes: set[tuple[int, ...]] = set()
+
+    def lit(f: int) -> np.ndarray:
+        image = render(f)
+        shapes.add(image.shape)
+        return image[image.sum(-1) > 0]
+
+    high = streamed_percentiles(lit, len(paths), [99])[0]
+    if len(shapes) != 1:
         return None
-    stack = np.stack(images).astype(np.float64)
-    lit = stack[stack.sum(-1) > 0]
-    exposure = 0.85 / max(float(np.percentile(lit, 99)), 1e-12) if lit.size else 1.0
-    return encode_srgb(stack * exposure)
+    exposure = 0.85 / max(high, 1e-12) if np.isfinite(high) else 1.0
+    return (encode_srgb(render(f) * exposure) for f in range(len(paths)))
 
 
 def _animations(folder: ResultFolder, frames: _Frames) -> list[tuple[str, str]]:
-    """Write the animations of the maps present, one at a time (each ``(F, H, W, 3)`` stack is released
-    before the next is built); returns their grid items (path, caption)."""
+    """Write the animations of the maps present, one at a time and a frame at a time (the scales from a
+    first pass over the frames); returns their grid items (path, caption)."""
     labels = [_label(t, s) for t, s in zip(frames.indices, frames.times_s, strict=True)]
     items: list[tuple[str, str]] = []
 
-    def write(name: str, animation: np.ndarray | None, caption: str) -> None:
+    def write(name: str, animation: Iterable[np.ndarray] | None, caption: str) -> None:
         if animation is not None:
-            write_animation(folder.previews_dir / name, animation, labels)
+            _write_gif(folder.previews_dir / name, animation, labels, FRAMES_PER_SECOND)
             items.append((f"previews/{name}", caption))
 
-    if RHO_SSS_BAR in frames.maps:
+    if RHO_SSS_BAR in frames.map_names:
         write("dynamic_rho_sss_bar.gif", _rho_images(frames),
               "rho_sss_bar per frame (upper-half R, G, B; one scale for all frames; sRGB-encoded)")
-    if "c_h_out" in frames.maps:
+    if "c_h_out" in frames.map_names:
         cmap = CHROMOPHORE_PREVIEWS["c_h_out"][3]
-        mapped, low, high = _colour_mapped(frames.maps["c_h_out"], frames.masks, cmap)
+        mapped, low, high = _colour_mapped(frames, "c_h_out", cmap)
         write("dynamic_c_h_out.gif", mapped,
               f"C_h,out per frame ({cmap} colour scale {low:.4g} .. {high:.4g} for all frames)")
-        del mapped
     write("dynamic_render.gif", _render_images(folder, frames),
           "The reconstruction rendered per frame at the first polarimetric camera (tracked mesh, the frame's "
           "maps, unpolarized: I0 + I90; sRGB, one exposure for all frames)")
@@ -205,7 +257,7 @@ def _animations(folder: ResultFolder, frames: _Frames) -> list[tuple[str, str]]:
 
 
 # ---- chromophores over time ----------------------------------------------------------------------
-def changing_region(c_h_out: np.ndarray, mask: np.ndarray, percentile: float = REGION_PERCENTILE,
+def changing_region(c_h_out: Iterable[np.ndarray], mask: np.ndarray, percentile: float = REGION_PERCENTILE,
                     sigma_texels: float = 3.0) -> np.ndarray:
     """``(Ht, Wt)`` bool: the texels of ``mask`` where C_h_out varies most over the sequence: the
     temporal standard deviation of the per-frame maps smoothed over ``sigma_texels`` (a Gaussian over
@@ -216,17 +268,20 @@ def changing_region(c_h_out: np.ndarray, mask: np.ndarray, percentile: float = R
     fits from being picked.
 
     Args:
-        c_h_out: ``(F, Ht, Wt)`` per-frame outer haemoglobin (volume fractions).
+        c_h_out: per-frame outer haemoglobin (volume fractions): an ``(F, Ht, Wt)`` array or the F
+            ``(Ht, Wt)`` maps one at a time (an iterable read once; one frame is held at a time).
         mask: ``(Ht, Wt)`` bool texels considered.
     """
     from scipy import ndimage
 
-    if not mask.any() or len(c_h_out) < 2:
+    if not mask.any():
         return np.zeros_like(mask)
     weight = np.maximum(ndimage.gaussian_filter(mask.astype(np.float64), sigma_texels), 1e-6)
-    smooth = np.stack([ndimage.gaussian_filter(np.where(mask, frame, 0.0), sigma_texels) / weight
-                       for frame in np.asarray(c_h_out, np.float64)])
-    change = smooth.std(axis=0)
+    smooth = (ndimage.gaussian_filter(np.where(mask, np.asarray(map_, np.float64), 0.0), sigma_texels)
+              / weight for map_ in c_h_out)
+    change, count = streamed_std(smooth)
+    if count < 2:
+        return np.zeros_like(mask)
     above = mask & (change > np.percentile(change[mask], percentile))
     labels, count = ndimage.label(above, structure=np.ones((3, 3), bool))
     if count == 0:
@@ -246,12 +301,14 @@ def _write_chromophore_plot(path: Path, frames: _Frames, region: np.ndarray, fac
     for ax, name in zip(axes, CHROMOPHORE_MAPS, strict=True):
         ax.set_title(CHROMOPHORE_PREVIEWS[name][0])
         ax.set_xlabel("time (s)" if times is frames.times_s else "frame")
-        if name not in frames.maps:
+        if name not in frames.map_names:
             ax.text(0.5, 0.5, "not reconstructed", ha="center", transform=ax.transAxes)
             continue
-        for texels, label, style in ((region, "changing region", "o-"), (face, "whole face", "s--")):
-            if texels.any():
-                ax.plot(times, [float(np.median(m[texels])) for m in frames.maps[name]], style, label=label)
+        sets = [(texels, label, style) for texels, label, style in
+                ((region, "changing region", "o-"), (face, "whole face", "s--")) if texels.any()]
+        medians = np.array([[np.median(m[texels]) for texels, _, _ in sets] for m in frames.maps(name)])
+        for column, (_, label, style) in enumerate(sets):
+            ax.plot(times, medians[:, column], style, label=label)
         ax.set_ylabel("median (volume fraction)")
         ax.legend(fontsize=8)
     figure.tight_layout()
@@ -261,10 +318,10 @@ def _write_chromophore_plot(path: Path, frames: _Frames, region: np.ndarray, fac
 
 
 def _chromophore_plot(folder: ResultFolder, frames: _Frames, section: Section) -> None:
-    if "c_h_out" not in frames.maps:
+    if "c_h_out" not in frames.map_names:
         return
-    face = frames.masks.all(axis=0)
-    region = changing_region(frames.maps["c_h_out"], face)
+    face = frames.face
+    region = changing_region(frames.maps("c_h_out"), face)
     path = folder.preview_path("dynamic_chromophores")
     _write_chromophore_plot(path, frames, region, face)
     section.plot(
