@@ -8,6 +8,7 @@ import time
 
 import pytest
 
+from executor_fixtures import check_map_dependent
 from polarface.executors import (
     Executor,
     LocalExecutor,
@@ -16,6 +17,7 @@ from polarface.executors import (
     create_executor,
     map_units_with_progress,
 )
+from polarface.executors.base import UnitSchedule
 
 
 def _square_or_fail(unit: int) -> int:
@@ -41,6 +43,35 @@ def test_local_executor_runs_in_order_and_reports_a_failing_unit():
     assert outcomes[1].error == "bad unit 2 (two lines)"  # one line
     assert outcomes[0].node_id is None and outcomes[0].pid > 0 and outcomes[0].seconds >= 0
     assert set(outcomes[1].placement()) == {"seconds", "host", "pid", "node_id", "error"}
+
+
+def test_a_schedule_readies_units_once_what_they_wait_for_completed():
+    schedule = UnitSchedule(5, [[], [0], [0, 1], [], [2]])
+    assert [schedule.pop(), schedule.pop(), schedule.pop()] == [0, 3, None]
+    schedule.finished(0, True)
+    assert schedule.pop() == 1 and schedule.pop() is None  # 2 still waits for 1
+    schedule.finished(1, True)
+    assert schedule.pop() == 2
+    schedule.finished(2, False)  # failed: 4 never becomes ready
+    assert schedule.pop() is None
+    assert UnitSchedule(2).pop() == 0  # nothing waits
+
+
+def test_a_schedule_refuses_bad_waits():
+    with pytest.raises(ValueError, match="'after' has 1 entries for 2 units"):
+        UnitSchedule(2, [[]])
+    with pytest.raises(ValueError, match="unit 1 waits for unit 1"):
+        UnitSchedule(2, [[], [1]])
+    with pytest.raises(ValueError, match="unit 0 waits for unit -1"):
+        UnitSchedule(1, [[-1]])
+
+
+def test_the_local_executor_runs_dependent_units_in_index_order():
+    check_map_dependent(LocalExecutor())
+    seen = []
+    LocalExecutor().map_dependent(abs, 4, lambda i: i, [[], [], [0], [1]],
+                                  on_done=lambda outcome: seen.append(outcome.unit))
+    assert seen == [0, 1, 2, 3]
 
 
 def test_an_unexpected_exception_stops_the_local_run():

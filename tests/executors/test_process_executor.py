@@ -9,6 +9,7 @@ import os
 
 import pytest
 
+from executor_fixtures import check_map_dependent
 from polarface.executors import Executor, ProcessExecutor, create_executor
 
 
@@ -57,3 +58,15 @@ def test_the_workers_compile_into_caches_of_their_own():
     folders = {o.pid: o.value for o in outcomes}
     assert len(set(folders.values())) == len(folders)
     assert all(os.path.basename(folder).startswith("worker-") for folder in folders.values())
+
+
+def test_dependent_units_run_once_what_they_wait_for_is_done():
+    with ProcessExecutor(workers=2) as executor:
+        check_map_dependent(executor)
+
+
+def test_a_dying_worker_fails_the_units_ready_and_blocks_those_behind_them():
+    with ProcessExecutor(workers=1) as executor:
+        outcomes = executor.map_dependent(os._exit, 3, lambda i: 3, [[], [], [1]])
+    assert [o.ok for o in outcomes] == [False, False]  # unit 2 waits for a failed unit: not run
+    assert all("worker process died" in o.error for o in outcomes)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from executor_fixtures import check_map_dependent
 from polarface.executors import LocalExecutor, RayExecutor, ThreadSettings
 from ray_fixtures import RAY_CPUS, pickle_by_value, ray_instance  # noqa: F401 (fixture)
 
@@ -52,6 +53,11 @@ def test_outcomes_match_the_local_executor_and_a_failing_unit_is_reported(execut
     assert remote[2].error == "bad unit 2" and all(o.ok for i, o in enumerate(remote) if i != 2)
     assert sorted(finished) == units
     assert all(o.node_id and o.pid != os.getpid() for o in remote)  # ran on Ray workers
+
+
+def test_dependent_units_run_once_what_they_wait_for_is_done(executor):
+    pickle_by_value("executor_fixtures")
+    check_map_dependent(executor)
 
 
 def test_an_unexpected_exception_propagates(executor):

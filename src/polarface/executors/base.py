@@ -6,6 +6,12 @@ function reads its inputs from the stores and writes its outputs there itself, s
 records travel between processes. A unit function must be a module-level function (workers import it
 by name) and must be safe to run twice: a unit whose worker dies is run again from the start.
 
+A stage whose units depend on each other (the static fit's patches read what their earlier neighbours
+wrote) uses :meth:`Executor.map_dependent`: unit ``i`` is built (``make_unit(i)``, in the submitting
+process, after the ``on_done`` of the units it waits for) and submitted once the units in ``after[i]``
+have completed (:class:`UnitSchedule`), so the workers are not held at a barrier between groups of
+units. :meth:`Executor.map_units` is the case without dependencies.
+
 Failures of a unit for its own reason (a bad frame) are exceptions of the types in ``failures``: the
 unit's :class:`UnitOutcome` carries the reason and the other units go on. Any other exception stops the
 run and propagates (a bug, Ctrl-C). :class:`LocalExecutor` runs the units one after the other in this
@@ -16,6 +22,7 @@ them as Ray tasks.
 from __future__ import annotations
 
 import dataclasses
+import heapq
 import os
 import socket
 import time
@@ -28,6 +35,7 @@ __all__ = [
     "LocalExecutor",
     "ThreadSettings",
     "UnitOutcome",
+    "UnitSchedule",
     "failure_reason",
     "map_units_with_progress",
     "run_unit",
@@ -135,6 +143,47 @@ def run_unit(fn: Callable[[Any], Any], unit: Any, failures: tuple[type[BaseExcep
                        node_id)
 
 
+class UnitSchedule:
+    """Which of ``count`` units may start: unit ``i`` once every unit of ``after[i]`` has completed, the
+    lowest ready index first; a unit behind a failed one never becomes ready.
+
+    Args:
+        count: number of units.
+        after: ``after[i]``: the indices unit ``i`` waits for, each smaller than ``i`` (so index order is
+            an order the units may run in); None: no unit waits.
+
+    Raises:
+        ValueError: ``after`` has not ``count`` entries, or names an index not smaller than its unit's.
+    """
+
+    def __init__(self, count: int, after: Sequence[Sequence[int]] | None = None) -> None:
+        self._waiting = [0] * int(count)
+        self._dependents: list[list[int]] = [[] for _ in range(count)]
+        if after is not None:
+            if len(after) != count:
+                raise ValueError(f"argument 'after' has {len(after)} entries for {count} units")
+            for index, earlier in enumerate(after):
+                for before in set(earlier):
+                    if not 0 <= before < index:
+                        raise ValueError(f"argument 'after': unit {index} waits for unit {before}; a unit "
+                                         "may wait only for units before it")
+                    self._waiting[index] += 1
+                    self._dependents[before].append(index)
+        self._ready = [index for index, waiting in enumerate(self._waiting) if not waiting]  # a heap
+
+    def pop(self) -> int | None:
+        """The lowest ready index, no longer ready; None when no unit is ready now."""
+        return heapq.heappop(self._ready) if self._ready else None
+
+    def finished(self, index: int, ok: bool) -> None:
+        """Unit ``index`` finished (``ok``: completed): the units waiting only for it become ready."""
+        if ok:
+            for later in self._dependents[index]:
+                self._waiting[later] -= 1
+                if not self._waiting[later]:
+                    heapq.heappush(self._ready, later)
+
+
 @runtime_checkable
 class Executor(Protocol):
     """Runs the independent units of a stage (module docstring)."""
@@ -151,6 +200,14 @@ class Executor(Protocol):
                   on_done: Callable[[UnitOutcome], None] | None = None) -> list[UnitOutcome]:
         """Run ``fn(unit)`` for every unit; outcomes in the order of ``units``. ``on_done`` is called in
         the submitting process as each unit finishes (in completion order)."""
+
+    def map_dependent(self, fn: Callable[[Any], Any], count: int, make_unit: Callable[[int], Any],
+                      after: Sequence[Sequence[int]] | None = None, *,
+                      failures: tuple[type[BaseException], ...] = UNIT_FAILURES,
+                      on_done: Callable[[UnitOutcome], None] | None = None) -> list[UnitOutcome]:
+        """Run ``fn(make_unit(i))`` for ``i`` in ``range(count)``, unit ``i`` once the units of ``after[i]``
+        have completed (:class:`UnitSchedule`; ``make_unit(i)`` is called then, after their ``on_done``);
+        outcomes in index order, none for the units behind a failed one (they do not run)."""
 
     def describe(self) -> dict[str, Any]:
         """The executor's settings as JSON values (recorded in the result)."""
@@ -177,13 +234,22 @@ class LocalExecutor:
                   failures: tuple[type[BaseException], ...] = UNIT_FAILURES,
                   on_done: Callable[[UnitOutcome], None] | None = None) -> list[UnitOutcome]:
         """:meth:`Executor.map_units`, in this process."""
-        outcomes = []
-        for unit in units:
-            outcome = run_unit(fn, unit, failures)
-            outcomes.append(outcome)
+        return self.map_dependent(fn, len(units), units.__getitem__, failures=failures, on_done=on_done)
+
+    def map_dependent(self, fn: Callable[[Any], Any], count: int, make_unit: Callable[[int], Any],
+                      after: Sequence[Sequence[int]] | None = None, *,
+                      failures: tuple[type[BaseException], ...] = UNIT_FAILURES,
+                      on_done: Callable[[UnitOutcome], None] | None = None) -> list[UnitOutcome]:
+        """:meth:`Executor.map_dependent`, in this process: in index order (a unit waits only for units
+        before it)."""
+        schedule = UnitSchedule(count, after)
+        outcomes: dict[int, UnitOutcome] = {}
+        while (index := schedule.pop()) is not None:
+            outcomes[index] = outcome = run_unit(fn, make_unit(index), failures)
             if on_done is not None:
                 on_done(outcome)
-        return outcomes
+            schedule.finished(index, outcome.ok)
+        return [outcomes[index] for index in sorted(outcomes)]
 
     def describe(self) -> dict[str, Any]:
         """``{"name": "local"}``."""

@@ -25,7 +25,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
-from polarface.executors.base import UNIT_FAILURES, ThreadSettings, UnitOutcome, run_unit
+from polarface.executors.base import UNIT_FAILURES, ThreadSettings, UnitOutcome, UnitSchedule, run_unit
 from polarface.executors.numba_cache import claim_numba_cache
 
 __all__ = ["ProcessExecutor"]
@@ -69,34 +69,59 @@ class ProcessExecutor:
                   on_done: Callable[[UnitOutcome], None] | None = None) -> list[UnitOutcome]:
         """:meth:`polarface.executors.base.Executor.map_units` in the worker processes; on any exception
         in this process (Ctrl-C, a unit's unexpected error) the units not started are cancelled."""
+        return self.map_dependent(fn, len(units), list(units).__getitem__, failures=failures, on_done=on_done)
+
+    def map_dependent(self, fn: Callable[[Any], Any], count: int, make_unit: Callable[[int], Any],
+                      after: Sequence[Sequence[int]] | None = None, *,
+                      failures: tuple[type[BaseException], ...] = UNIT_FAILURES,
+                      on_done: Callable[[UnitOutcome], None] | None = None) -> list[UnitOutcome]:
+        """:meth:`polarface.executors.base.Executor.map_dependent` in the worker processes, at most one
+        unit per worker in flight (the lowest ready index next). When a worker dies, the units in flight
+        and those ready are reported failed with that reason."""
         self.start()
         assert self._pool is not None
-        units = list(units)
         settings = ThreadSettings(self.threads_per_worker, self.threads_per_worker)
-        outcomes: list[UnitOutcome | None] = [None] * len(units)
-        futures = {self._pool.submit(run_unit, fn, unit, failures, settings): index
-                   for index, unit in enumerate(units)}
-        broken = False
+        schedule = UnitSchedule(count, after)
+        units: dict[int, Any] = {}
+        outcomes: dict[int, UnitOutcome] = {}
+        futures: dict[concurrent.futures.Future, int] = {}
+        broken: str | None = None
+
+        def finish(index: int, outcome: UnitOutcome) -> None:
+            outcomes[index] = outcome
+            if on_done is not None:
+                on_done(outcome)
+            schedule.finished(index, outcome.ok)
+
         try:
-            for future in concurrent.futures.as_completed(futures):
-                index = futures[future]
-                try:
-                    outcome = future.result()
-                except BrokenProcessPool as exc:
-                    broken = True
-                    reason = f"its worker process died ({' '.join(str(exc).split()) or 'BrokenProcessPool'})"
-                    outcome = UnitOutcome(units[index], None, reason)
-                outcomes[index] = outcome
-                if on_done is not None:
-                    on_done(outcome)
+            while True:
+                while broken is None and len(futures) < self.workers:
+                    if (index := schedule.pop()) is None:
+                        break
+                    units[index] = make_unit(index)
+                    futures[self._pool.submit(run_unit, fn, units[index], failures, settings)] = index
+                if not futures:
+                    break
+                finished, _ = concurrent.futures.wait(futures, return_when=concurrent.futures.FIRST_COMPLETED)
+                for future in finished:
+                    index = futures.pop(future)
+                    try:
+                        outcome = future.result()
+                    except BrokenProcessPool as exc:
+                        reason = " ".join(str(exc).split()) or "BrokenProcessPool"
+                        broken = f"its worker process died ({reason})"
+                        outcome = UnitOutcome(units[index], None, broken)
+                    finish(index, outcome)
+            while broken is not None and (index := schedule.pop()) is not None:
+                finish(index, UnitOutcome(make_unit(index), None, broken))
         except BaseException:
             for future in futures:
                 future.cancel()
             raise
         finally:
-            if broken:
+            if broken is not None:
                 self.close()  # a broken pool cannot run more units: the next call starts a new one
-        return [outcome for outcome in outcomes if outcome is not None]
+        return [outcomes[index] for index in sorted(outcomes)]
 
     def describe(self) -> dict[str, Any]:
         """Name, workers and threads per worker, as JSON values."""

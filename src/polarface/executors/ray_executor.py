@@ -25,7 +25,14 @@ import socket
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from polarface.executors.base import UNIT_FAILURES, ThreadSettings, UnitOutcome, failure_reason, run_unit
+from polarface.executors.base import (
+    UNIT_FAILURES,
+    ThreadSettings,
+    UnitOutcome,
+    UnitSchedule,
+    failure_reason,
+    run_unit,
+)
 
 __all__ = ["RayExecutor", "check_ray_address"]
 
@@ -148,30 +155,40 @@ class RayExecutor:
                   on_done: Callable[[UnitOutcome], None] | None = None) -> list[UnitOutcome]:
         """:meth:`polarface.executors.base.Executor.map_units` as Ray tasks; on any exception in this
         process (Ctrl-C, a unit's unexpected error) the tasks still running are cancelled."""
+        return self.map_dependent(fn, len(units), list(units).__getitem__, failures=failures, on_done=on_done)
+
+    def map_dependent(self, fn: Callable[[Any], Any], count: int, make_unit: Callable[[int], Any],
+                      after: Sequence[Sequence[int]] | None = None, *,
+                      failures: tuple[type[BaseException], ...] = UNIT_FAILURES,
+                      on_done: Callable[[UnitOutcome], None] | None = None) -> list[UnitOutcome]:
+        """:meth:`polarface.executors.base.Executor.map_dependent` as Ray tasks, at most ``workers`` in
+        flight (the lowest ready index next)."""
         import ray
 
         self.start()
-        units = list(units)
-        limit = self.workers or max(len(units), 1)
-        outcomes: list[UnitOutcome | None] = [None] * len(units)
-        pending: dict[Any, int] = {}
-        submitted = 0
+        schedule = UnitSchedule(count, after)
+        limit = self.workers or max(count, 1)
+        outcomes: dict[int, UnitOutcome] = {}
+        pending: dict[Any, tuple[int, Any]] = {}
         try:
-            while submitted < len(units) or pending:
-                while submitted < len(units) and len(pending) < limit:
-                    pending[self._task.remote(fn, units[submitted], failures, self._settings)] = submitted
-                    submitted += 1
+            while True:
+                while len(pending) < limit and (index := schedule.pop()) is not None:
+                    unit = make_unit(index)
+                    pending[self._task.remote(fn, unit, failures, self._settings)] = (index, unit)
+                if not pending:
+                    break
                 ready, _ = ray.wait(list(pending), num_returns=1)
                 for ref in ready:
-                    index = pending.pop(ref)
-                    outcomes[index] = self._collect(ref, units[index])
+                    index, unit = pending.pop(ref)
+                    outcomes[index] = self._collect(ref, unit)
                     if on_done is not None:
                         on_done(outcomes[index])
+                    schedule.finished(index, outcomes[index].ok)
         except BaseException:
             for ref in pending:
                 ray.cancel(ref, force=True)
             raise
-        return [outcome for outcome in outcomes if outcome is not None]
+        return [outcomes[index] for index in sorted(outcomes)]
 
     def _collect(self, ref: Any, unit: Any) -> UnitOutcome:
         """The outcome of a finished task; a unit whose worker died more than ``max_retries`` times is

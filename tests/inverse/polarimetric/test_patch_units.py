@@ -26,6 +26,7 @@ from polarface.inverse.polarimetric.patch_units import (
     PatchUnit,
     haloed_slices,
     patch_fronts,
+    patch_waits,
     run_patch_unit,
 )
 from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
@@ -61,9 +62,20 @@ def test_fronts_order_overlapping_patches_row_major_and_never_run_two_at_once(si
     assert max(len(front) for front in fronts) >= 3  # there is parallelism to use
 
 
+@pytest.mark.parametrize("side,halo", [(8, 4), (10, 3), (9, 4), (8, 0)])
+def test_a_patch_waits_for_the_earlier_patches_whose_regions_overlap_its_own(side, halo):
+    resolution = (53, 70)
+    patches = _grid(*resolution, side, missing={(0, 0), (2, 3), (4, 1)})
+    waits = patch_waits(patches, side, halo)
+    for b in range(len(patches)):
+        overlapping = {a for a in range(b) if _overlap(patches[a], patches[b], halo, resolution)}
+        assert set(waits[b]) == overlapping, patches[b]
+
+
 def test_fronts_fall_back_to_row_major_order_when_halos_two_patches_apart_overlap():
     patches = _grid(40, 40, 7, missing={(1, 1)})
     assert patch_fronts(patches, 7, 4) == [[i] for i in range(len(patches))]
+    assert patch_waits(patches, 7, 4) == [[]] + [[i] for i in range(len(patches) - 1)]
     with pytest.raises(ValueError, match="not on the 8 grid"):
         patch_fronts([(slice(0, 8), slice(3, 11))], 8, 4)
 

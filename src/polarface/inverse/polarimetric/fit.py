@@ -28,10 +28,11 @@ patch-wide alpha_s mode that RMSprop leaves where the start put it (L-BFGS moves
 Deterministic: nothing in a patch's fit is random, and the patches run in a fixed order.
 
 The patches are the units of an executor (:mod:`polarface.executors`; in this process by default, or
-Ray tasks): :mod:`polarface.inverse.polarimetric.patch_units` runs them front by front (a wavefront over
-the patch grid) so that the patches of one front run in parallel and the maps are, bit for bit, those of
-fitting the patches one after the other in row-major order. The checkpoint is rewritten after every
-patch, so an interrupted run resumes from the patches done to identical maps.
+Ray tasks): :mod:`polarface.inverse.polarimetric.patch_units` orders them as a wavefront over the patch
+grid, and each patch runs once its earlier neighbours are done, so that patches run in parallel and the
+maps are, bit for bit, those of fitting the patches one after the other in row-major order. The
+checkpoint is rewritten after every patch, so an interrupted run resumes from the patches done to
+identical maps.
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ from polarface.inverse.polarimetric.patch_units import (
     PatchUnit,
     haloed_slices,
     patch_fronts,
+    patch_waits,
     run_patch_unit,
     shared_unwrap,
     torch_fit_settings,
@@ -143,7 +145,7 @@ def fit_polarimetric(
         engine: data-loss implementation: ``fused`` (numba kernel with analytic gradients, CPU),
             ``torch`` (vectorised autograd reference, any device) or ``auto`` (fused on CPU, torch
             otherwise). Both give the same loss and gradient (tests).
-        executor: runs the patches, front by front
+        executor: runs the patches, each once its earlier neighbours are done
             (:class:`~polarface.inverse.polarimetric.patch_units.PatchUnit`,
             :func:`~polarface.inverse.polarimetric.patch_units.run_patch_unit`); None: in this process
             (:class:`polarface.executors.LocalExecutor`). Started here, before the checkpoint is first
@@ -362,8 +364,8 @@ def _fit(
     on_patch: Callable[[int, int], None] | None,
     executor: Executor,
 ) -> PolarimetricFit:
-    """The wavefront over the patches (module docstring of
-    :mod:`~polarface.inverse.polarimetric.patch_units`), each front's patches as executor units."""
+    """The patches as executor units in wavefront order, each once its earlier neighbours are done
+    (module docstring of :mod:`~polarface.inverse.polarimetric.patch_units`)."""
     config = options.config
     torch.manual_seed(config.seed)
     scale = _checked_scale(unwrap)
@@ -394,24 +396,27 @@ def _fit(
         if on_patch is not None:
             on_patch(len(state.done), len(patches))
 
-    newly = 0
-    for front in fronts:
-        todo = [index for index in front if index not in state.done]
-        if todo and stop_after_patches is not None:
-            if newly >= stop_after_patches:
-                bar.close()
-                return PolarimetricFit(
-                    _to_maps(state.raw, config), tally.seen, state.curve, {}, 0.0, tally.samples,
-                    len(patches), complete=False, units=state.units, fronts=fronts,
-                )  # fmt: skip
-            todo = todo[: stop_after_patches - newly]
-        units = [options.unit(index, *patches[index], scale, state) for index in todo]
-        executor.map_units(run_patch_unit, units, failures=(), on_done=done)
-        newly += len(todo)
-        if failed:
-            bar.close()
-            raise _lost_patch_error(failed, patches, len(state.done), ckpt)
-    bar.close()
+    # the patches not done, front by front (the order the schedule prefers); each waits for its earlier
+    # neighbours not done yet, and its unit is built from the state once they are
+    todo = [index for front in fronts for index in front if index not in state.done]
+    if stop_after_patches is not None:
+        todo = todo[:stop_after_patches]  # a prefix of the front order holds every patch its patches wait for
+    position = {index: k for k, index in enumerate(todo)}
+    waits = patch_waits(patches, side, config.halo)
+    after = [[position[w] for w in waits[index] if w in position] for index in todo]
+    try:
+        executor.map_dependent(run_patch_unit, len(todo),
+                               lambda k: options.unit(todo[k], *patches[todo[k]], scale, state), after,
+                               failures=(), on_done=done)
+    finally:
+        bar.close()
+    if failed:
+        raise _lost_patch_error(failed, patches, len(state.done), ckpt)
+    if len(state.done) < len(patches):  # stopped after stop_after_patches
+        return PolarimetricFit(
+            _to_maps(state.raw, config), tally.seen, state.curve, {}, 0.0, tally.samples,
+            len(patches), complete=False, units=state.units, fronts=fronts,
+        )  # fmt: skip
     mask_seen, view_count = _coverage(unwrap, config)
     curve_mean = [v / max(len(patches), 1) for v in state.curve]
     timings = {

@@ -15,6 +15,9 @@ and columns ``j side ..``), two haloed regions overlap only for 8-neighbours whe
 patches of one front never overlap. Running the fronts in order of ``t``, the patches of a front as
 independent units, every patch therefore sees exactly the region it sees in row-major order, and the
 maps are the row-major maps. With ``side < 2 halo`` every patch is its own front (row-major order).
+The fit does not wait for a whole front, though: a patch runs as soon as its earlier neighbours are done
+(:func:`patch_waits`, :meth:`polarface.executors.Executor.map_dependent`), which gives the same regions
+and maps without holding the workers at the fronts' barriers.
 
 A unit (:class:`PatchUnit`) carries the unwrap store's path (the unit reads its samples there itself),
 the patch's slices, the options and the small haloed state; :func:`run_patch_unit` returns what the
@@ -60,6 +63,7 @@ __all__ = [
     "PatchUnit",
     "haloed_slices",
     "patch_fronts",
+    "patch_waits",
     "run_patch_unit",
     "shared_unwrap",
     "torch_fit_settings",
@@ -126,6 +130,19 @@ def haloed_slices(rows: slice, cols: slice, halo: int, resolution: tuple[int, in
     return slice(r0, r1), slice(c0, c1), interior
 
 
+def _grid_cells(patches: Sequence[tuple[slice, slice]], side: int, halo: int) -> list[tuple[int, int]]:
+    """Each patch's cell ``(i, j)`` on the ``side`` grid, after checking the arguments (as
+    :func:`patch_fronts`)."""
+    if int(side) < 1 or int(halo) < 0:
+        raise ValueError(f"arguments 'side' >= 1 and 'halo' >= 0 required; got {side}, {halo}")
+    cells = []
+    for index, (rows, cols) in enumerate(patches):
+        if rows.start % side or cols.start % side:
+            raise ValueError(f"argument 'patches': patch {index} ({rows}, {cols}) is not on the {side} grid")
+        cells.append((rows.start // side, cols.start // side))
+    return cells
+
+
 def patch_fronts(patches: Sequence[tuple[slice, slice]], side: int, halo: int) -> list[list[int]]:
     """The wavefront schedule (module docstring): indices into ``patches`` grouped into fronts, fronts in
     the order they must run, indices ascending within a front.
@@ -138,16 +155,28 @@ def patch_fronts(patches: Sequence[tuple[slice, slice]], side: int, halo: int) -
     Raises:
         ValueError: ``side < 1``, ``halo < 0``, or a patch that does not start on the ``side`` grid.
     """
-    if int(side) < 1 or int(halo) < 0:
-        raise ValueError(f"arguments 'side' >= 1 and 'halo' >= 0 required; got {side}, {halo}")
+    cells = _grid_cells(patches, side, halo)
     if side < 2 * halo:  # haloed regions of patches two apart overlap: row-major order, one by one
         return [[index] for index in range(len(patches))]
     fronts: dict[int, list[int]] = {}
-    for index, (rows, cols) in enumerate(patches):
-        if rows.start % side or cols.start % side:
-            raise ValueError(f"argument 'patches': patch {index} ({rows}, {cols}) is not on the {side} grid")
-        fronts.setdefault(2 * (rows.start // side) + cols.start // side, []).append(index)
+    for index, (i, j) in enumerate(cells):
+        fronts.setdefault(2 * i + j, []).append(index)
     return [fronts[t] for t in sorted(fronts)]
+
+
+def patch_waits(patches: Sequence[tuple[slice, slice]], side: int, halo: int) -> list[list[int]]:
+    """For each patch (index into ``patches``), the patches whose results its haloed region reads and
+    that come before it: its earlier neighbours in row-major order that are in ``patches``
+    (``(i, j-1)``, ``(i-1, j-1)``, ``(i-1, j)``, ``(i-1, j+1)``; module docstring); with ``side < 2 halo``
+    the patch before it; with ``halo`` 0 none. Arguments and errors as :func:`patch_fronts`."""
+    cells = _grid_cells(patches, side, halo)
+    if not halo:
+        return [[] for _ in patches]
+    if side < 2 * halo:
+        return [[index - 1] if index else [] for index in range(len(patches))]
+    at = {cell: index for index, cell in enumerate(cells)}
+    return [[at[cell] for cell in ((i, j - 1), (i - 1, j - 1), (i - 1, j), (i - 1, j + 1)) if cell in at]
+            for i, j in cells]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
