@@ -184,10 +184,6 @@ def _colour_mapped(frames: _Frames, name: str, cmap: str) -> tuple[Iterator[np.n
     return images(), low, high
 
 
-def _same_shape(shapes: Iterable[tuple[int, ...]]) -> bool:
-    return len(set(shapes)) == 1
-
-
 def _subsurface_images(folder: ResultFolder, frames: _Frames) -> Iterator[np.ndarray] | None:
     from polarface.io import image_header, read_png
 
@@ -195,7 +191,7 @@ def _subsurface_images(folder: ResultFolder, frames: _Frames) -> Iterator[np.nda
     if not paths or not all(p.is_file() for p in paths):
         return None
     headers = [image_header(p) for p in paths]
-    if not _same_shape(headers) or headers[0][2] < 3:
+    if len(set(headers)) != 1 or headers[0][2] < 3:
         return None
     scale = 65535.0 if headers[0][3] == 16 else 255.0
     return (read_png(p)[..., :3].astype(np.float64) / scale for p in paths)
