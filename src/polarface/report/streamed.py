@@ -11,7 +11,7 @@ range (each pass reads the arrays again; only the values of the bins that hold a
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -40,6 +40,13 @@ def _bins(values: np.ndarray, low: float, high: float) -> np.ndarray:
     return np.minimum(((values - low) * (_BINS / (high - low))).astype(np.int64), _BINS - 1)
 
 
+def _bin_values(read: Reader, count: int, low: float, high: float, bin_index: int) -> Iterator[np.ndarray]:
+    """The values of each array that fall in bin ``bin_index`` of ``[low, high]``, one array at a time."""
+    for index in range(count):
+        values = _in_range(read, index, low, high)
+        yield values[_bins(values, low, high) == bin_index]
+
+
 def _order_statistics(read: Reader, count: int, ranks: list[int], low: float, high: float,
                       below: int, held: int) -> dict[int, float]:
     """The values of 0-based ``ranks`` among the finite values, all of which lie in ``[low, high]``
@@ -56,16 +63,14 @@ def _order_statistics(read: Reader, count: int, ranks: list[int], low: float, hi
     found: dict[int, float] = {}
     for bin_index, bin_ranks in sorted(wanted.items()):
         before = below + (int(ends[bin_index - 1]) if bin_index else 0)
-        if counts[bin_index] > held:  # too many to keep: narrow to this bin's values and count again
-            parts = [v[_bins(v, low, high) == bin_index] for v in
-                     (_in_range(read, i, low, high) for i in range(count))]
-            low_bin = min(float(p.min()) for p in parts if p.size)
-            high_bin = max(float(p.max()) for p in parts if p.size)
-            del parts
+        if counts[bin_index] > held:  # too many to keep: narrow to this bin's range and count again
+            low_bin, high_bin = math.inf, -math.inf
+            for part in _bin_values(read, count, low, high, bin_index):
+                if part.size:
+                    low_bin, high_bin = min(low_bin, float(part.min())), max(high_bin, float(part.max()))
             found |= _order_statistics(read, count, bin_ranks, low_bin, high_bin, before, held)
             continue
-        values = np.sort(np.concatenate([v[_bins(v, low, high) == bin_index] for v in
-                                         (_in_range(read, i, low, high) for i in range(count))]))
+        values = np.sort(np.concatenate(list(_bin_values(read, count, low, high, bin_index))))
         found |= {rank: float(values[rank - before]) for rank in bin_ranks}
     return found
 
