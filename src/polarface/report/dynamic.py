@@ -58,6 +58,7 @@ class _Frames:
         folder: the RESULT. indices: ``(F,)`` frame indices, ascending; times_s: their timestamps (s; NaN
             when unknown). face: ``(Ht, Wt)`` bool, the texels in every shown frame's mask.
         map_names: the chromophore maps and ``rho_sss_bar`` present in every shown frame.
+        channel_names: the RESULT's channel names (``rho_sss_bar``'s channel order).
     """
 
     folder: ResultFolder
@@ -65,6 +66,7 @@ class _Frames:
     times_s: np.ndarray
     face: np.ndarray
     map_names: tuple[str, ...]
+    channel_names: tuple[str, ...]
 
     def mask(self, f: int) -> np.ndarray:
         """``(Ht, Wt)`` bool mask of the f-th shown frame."""
@@ -74,7 +76,7 @@ class _Frames:
         """The f-th shown frame's map ``name`` as float64: ``(Ht, Wt)``; ``rho_sss_bar`` ``(Ht, Wt, C)``."""
         frame = self.folder.frame(self.indices[f])
         if name == RHO_SSS_BAR:
-            return frame.read_channel_map(name, self.folder.channel_names(), strict=False).astype(np.float64)
+            return frame.read_channel_map(name, self.channel_names, strict=False).astype(np.float64)
         return frame.read_scalar_map(name).astype(np.float64)
 
     def maps(self, name: str) -> Iterator[np.ndarray]:
@@ -107,7 +109,8 @@ def _read_frames(folder: ResultFolder, record: dict[str, Any]) -> _Frames:
                   if indices and all(folder.frame(t).has_map(name) for t in indices))
     stamps = _timestamps(record)
     times = np.array([stamps.get(t, np.nan) for t in indices], np.float64)
-    return _Frames(folder, indices, times, face if face is not None else np.zeros((0, 0), bool), names)
+    return _Frames(folder, indices, times, face if face is not None else np.zeros((0, 0), bool), names,
+                   tuple(folder.channel_names()))
 
 
 # ---- animations ----------------------------------------------------------------------------------
