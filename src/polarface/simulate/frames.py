@@ -250,9 +250,7 @@ def scene_for(config: SimulationConfig, scene_file: Path | None = None) -> Simul
         from polarface.simulate.pipeline import SimulationScene
 
         _SCENES.clear()
-        scene = _read_scene_file(scene_file, config)
-        _SCENES[config] = scene if scene is not None else SimulationScene.build(config)
-        scene = _SCENES[config]
+        scene = _SCENES[config] = _read_scene_file(scene_file, config) or SimulationScene.build(config)
     return scene
 
 

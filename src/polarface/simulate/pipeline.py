@@ -77,6 +77,7 @@ MAP_SEED = 2024
 #: The scene pickled for the units of other processes while a simulation runs (in ``SIM_DIR``).
 SCENE_FILE = ".scene.pkl"
 
+
 @dataclasses.dataclass(frozen=True)
 class SimulationConfig:
     """What to simulate.
