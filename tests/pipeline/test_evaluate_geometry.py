@@ -96,10 +96,12 @@ def truth(tmp_path_factory) -> dict:
 
 
 def _result(path: Path, truth: dict, *, frame: np.ndarray, mirror: bool, shift_mm: float = 0.0,
-            pose_error: np.ndarray | None = None, delta: bool = True, geometry: bool = True) -> Path:
+            pose_error: np.ndarray | None = None, delta: bool = True, geometry: bool = True,
+            frame_meshes: bool | None = None) -> Path:
     """A RESULT whose model frame is ``frame`` (ground-truth model -> RESULT model) with poses such that
     the posed surfaces are the ground truth's; maps = ground-truth fields (+ the known delta) at each
-    RESULT texel's true surface point."""
+    RESULT texel's true surface point. Its geometry folder has each frame's mesh unless ``frame_meshes`` is
+    False (None: a ``geometry.json`` without ``config``, as written before the option)."""
     mesh, poses = truth["mesh"], truth["poses"]
     uv = mesh.uv.copy()
     if mirror:
@@ -125,9 +127,12 @@ def _result(path: Path, truth: dict, *, frame: np.ndarray, mirror: bool, shift_m
         geom = path / "geometry"
         save_obj(geom / "mesh.obj", moved)
         save_poses(geom / "poses.json", result_poses)
-        for k in range(FRAMES):
+        summary = {"reference_frame": REFERENCE, "rejected_frames": {}}
+        for k in range(FRAMES if frame_meshes is not False else 0):
             save_ply(geom / "frames" / f"{k:06d}.ply", moved.transformed(result_poses[k]))
-        (geom / "geometry.json").write_text(json.dumps({"reference_frame": REFERENCE, "rejected_frames": {}}))
+        if frame_meshes is not None:
+            summary["config"] = {"frame_meshes": frame_meshes}
+        (geom / "geometry.json").write_text(json.dumps(summary))
         record["geometry"] = str(geom)
     folder.record_stage("prepare", record)
     return path
@@ -201,6 +206,24 @@ def test_mesh_shifted_1mm_gives_accuracy_1mm_and_a_heat_map(truth, tmp_path):
     far = _result(tmp_path / "far", truth, frame=_rig_frame(truth), mirror=True, shift_mm=3.0)
     assert evaluate(far, truth["root"], ["geometry"])["geometry"]["completeness"] < 0.01
     assert texel_correspondence(far, truth["root"], (RES, RES)).within.sum() == 0
+
+
+@pytest.mark.parametrize("frame_meshes", [True, False])
+def test_frame_meshes_or_posed_reference_shifted_1mm_give_accuracy_1mm(truth, tmp_path, frame_meshes):
+    """The frames' surfaces are their own meshes when the stage wrote them, else the reference mesh posed
+    by each frame's pose (both here the truth shifted 1 mm along its normals)."""
+    result = _result(tmp_path / "r", truth, frame=_rig_frame(truth), mirror=True, shift_mm=1.0,
+                     frame_meshes=frame_meshes)
+    geometry = evaluate(result, truth["root"], ["geometry"])["geometry"]
+    assert geometry["accuracy_surface"] == ("frame meshes" if frame_meshes else "reference mesh")
+    assert geometry["accuracy_mm"]["median"] == pytest.approx(1.0, abs=0.03)
+    assert geometry["accuracy_mm"]["p95"] == pytest.approx(1.0, abs=0.05)
+    assert geometry["frames_scored"] == FRAMES
+    assert geometry["accuracy_samples"] == FRAMES * 20000
+    if not frame_meshes:
+        (result / "geometry" / "mesh.obj").unlink()
+        with pytest.raises(FileNotFoundError, match=r"geometry/mesh\.obj"):
+            evaluate(result, truth["root"], ["geometry"])
 
 
 def test_injected_pose_errors_are_reported(truth, tmp_path):

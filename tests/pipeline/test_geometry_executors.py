@@ -25,7 +25,7 @@ from polarface.pipeline.geometry import GeometryConfig, reconstruct_geometry
 from polarface.simulate import SimulationConfig, simulate
 from ray_fixtures import RAY_CPUS, ray_instance  # noqa: F401 (fixture)
 
-CONFIG = GeometryConfig(texture_resolution=256)
+CONFIG = GeometryConfig(texture_resolution=256, frame_meshes=True)  # the frames' meshes are units' files too
 
 
 @pytest.fixture(scope="module")

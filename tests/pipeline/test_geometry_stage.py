@@ -1,5 +1,6 @@
-"""The geometry stage on a tiny simulation: stereo -> frame meshes -> registration -> reference mesh
-with a cylindrical atlas, against the simulator's ground truth; resume; bad rigs and frames."""
+"""The geometry stage on a tiny simulation: stereo -> frame clouds -> registration -> reference mesh
+with a cylindrical atlas, against the simulator's ground truth; resume; bad rigs and frames. The frames'
+own meshes (``GeometryConfig.frame_meshes``) are checked in ``test_geometry_executors.py``."""
 
 from __future__ import annotations
 
@@ -41,7 +42,9 @@ def test_geometry_stage_recovers_mesh_and_poses(sim, geom):
     assert reference == 2
     for name in ("mesh.obj", "poses.json", "report.html", "geometry.json"):
         assert (out / name).is_file()
-    assert sorted(p.name for p in (out / "frames").glob("*.ply")) == [f"{i:06d}.ply" for i in range(4)]
+    assert sorted(p.name for p in (out / "clouds").glob("*")) == [f"{i:06d}.npz" for i in range(4)]
+    assert not (out / "frames").exists()  # no frame meshes unless asked for
+    assert all(set(entry) == {"points", "pairs", "seconds"} for entry in summary["frames"].values())
     assert len(list((out / "previews").glob("depth_*.png"))) >= 1  # written in a thread beside the units
     parts = ("stereo_and_frame_meshes_s", "registration_s", "fusion_s", "reference_mesh_and_atlas_s",
              "report_s")
@@ -71,17 +74,21 @@ def test_geometry_stage_resumes_without_redoing_frames(sim, geom):
     out, summary = geom
     copy = out.parent / "resumed"
     shutil.copytree(out, copy)
-    stamps = {p.name: p.stat().st_mtime_ns for p in (copy / "frames").glob("*.ply")}
+    stamps = {p.name: p.stat().st_mtime_ns for p in (copy / "clouds").glob("*.npz")}
+    assert len(stamps) == 4
     again = reconstruct_geometry(sim / "static", copy, GeometryConfig(texture_resolution=256), progress=False)
-    assert {p.name: p.stat().st_mtime_ns for p in (copy / "frames").glob("*.ply")} == stamps
+    assert {p.name: p.stat().st_mtime_ns for p in (copy / "clouds").glob("*.npz")} == stamps
     assert np.allclose(load_poses(copy / "poses.json"), load_poses(out / "poses.json"))
     assert again["reference_frame"] == summary["reference_frame"]
     # another atlas resolution reuses the frames; another stereo configuration is refused
     other = reconstruct_geometry(sim / "static", copy, GeometryConfig(texture_resolution=128), progress=False)
     assert other["config"]["texture_resolution"] == 128
-    assert {p.name: p.stat().st_mtime_ns for p in (copy / "frames").glob("*.ply")} == stamps
+    assert {p.name: p.stat().st_mtime_ns for p in (copy / "clouds").glob("*.npz")} == stamps
     with pytest.raises(ValueError, match=r"another config \(stereo\)"):
         reconstruct_geometry(sim / "static", copy, GeometryConfig(stereo=StereoConfig(block_size=7)),
+                             progress=False)
+    with pytest.raises(ValueError, match=r"another config \(frame_meshes\)"):  # frames without meshes
+        reconstruct_geometry(sim / "static", copy, GeometryConfig(texture_resolution=256, frame_meshes=True),
                              progress=False)
 
 
@@ -104,7 +111,7 @@ def test_frame_without_stereo_points_is_rejected_and_listed(sim, tmp_path):
     summary = reconstruct_geometry(store_copy, tmp_path / "GEOM", GeometryConfig(texture_resolution=256),
                                    progress=False)
     assert list(summary["rejected_frames"]) == ["0", "1"]
-    assert "no mesh" in summary["rejected_frames"]["0"] or "points" in summary["rejected_frames"]["0"]
+    assert summary["rejected_frames"]["0"].startswith("too few points: ")
     assert summary["rejected_frames"]["1"].startswith("unit failed: ") and "cannot read image" in \
         summary["rejected_frames"]["1"]
     assert "cannot read image" in summary["executor"]["units"]["1"]["error"]

@@ -1,9 +1,10 @@
-"""``polarface geometry CAPTURE --out GEOM``: mesh, poses and per-frame stereo meshes from the capture's
-stereo pairs (paper Sec. "Geometry Reconstruction and Tracking"; layout in ``docs/geometry.md``,
-"Geometry from stereo"). ``reconstruct`` runs the same stage by default; ``reconstruct --geometry GEOM``
-reuses this command's output. Rerunning on the same output resumes at the first unfinished frame.
-``--executor ray [--ray-address ADDR] [--workers N]`` runs the frames' stereo as Ray tasks
-(``docs/cluster.md``); an unreachable address is refused before anything is written.
+"""``polarface geometry CAPTURE --out GEOM [--frame-meshes]``: mesh, poses and per-frame stereo clouds
+(and meshes) from the capture's stereo pairs (paper Sec. "Geometry Reconstruction and Tracking";
+layout in ``docs/geometry.md``, "Geometry from stereo"). ``reconstruct`` runs the same stage by default
+(without frame meshes); ``reconstruct --geometry GEOM`` reuses this command's output. Rerunning on the
+same output resumes at the first unfinished frame. ``--executor ray [--ray-address ADDR] [--workers
+N]`` runs the frames' stereo as Ray tasks (``docs/cluster.md``); an unreachable address is refused
+before anything is written.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pathlib import Path
 from polarface.commands import add_executor_arguments, add_force_argument, executor_from_args, local_folder
 
 NAME = "geometry"
-HELP = "reference mesh with a cylindrical atlas, poses and per-frame meshes from the stereo pairs"
+HELP = "reference mesh with a cylindrical atlas, poses and per-frame clouds from the stereo pairs"
 INTERRUPTED = "finished frames kept in {out}; rerun the same command to continue"
 
 
@@ -29,6 +30,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--reference-frame", type=int, default=None,
         help="capture frame whose rig world is the model frame (default: the middle frame)",
     )
+    parser.add_argument(
+        "--frame-meshes", action="store_true",
+        help="also write each frame's own Poisson mesh (GEOM/frames/NNNNNN.ply; about 2 s per frame)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     add_executor_arguments(parser, "frames")
     add_force_argument(parser, "GEOM")
@@ -41,7 +46,8 @@ def run(args: argparse.Namespace) -> int:
 
     inputs = resolve_reconstruct_inputs(args.capture, texture_resolution=args.texture_resolution)
     config = GeometryConfig(
-        texture_resolution=inputs.texture_resolution, reference_frame=args.reference_frame
+        texture_resolution=inputs.texture_resolution, reference_frame=args.reference_frame,
+        frame_meshes=args.frame_meshes,
     )
     owned = json_manifest(GEOMETRY_JSON, format="polarface-geometry")
     with executor_from_args(args) as executor:

@@ -36,7 +36,7 @@ from polarface.geometry.poses import invert_rigid
 if TYPE_CHECKING:
     from polarface.geometry.registration import SequenceRegistration
 
-__all__ = ["PoissonConfig", "fuse_registered", "poisson_mesh"]
+__all__ = ["PoissonConfig", "confident_points", "fuse_registered", "poisson_mesh"]
 
 _MIN_POINTS = 16
 
@@ -127,7 +127,7 @@ def poisson_mesh(cloud: PointCloud, config: PoissonConfig = PoissonConfig()) -> 
         ValueError: naming ``cloud`` when it is not a PointCloud, has fewer than 16 confident points,
             non-finite values or no valid normals, or when the trims leave nothing.
     """
-    cloud = _confident_points(cloud, config)
+    cloud = confident_points(cloud, config)
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
@@ -156,8 +156,14 @@ def poisson_mesh(cloud: PointCloud, config: PoissonConfig = PoissonConfig()) -> 
     return TriangleMesh.from_arrays(vertices, faces, np.zeros((len(vertices), 2)), source="poisson_mesh")
 
 
-def _confident_points(cloud: PointCloud, config: PoissonConfig) -> PointCloud:
-    """The points usable for meshing (confidence above the floor, unit normals); ValueError otherwise."""
+def confident_points(cloud: PointCloud, config: PoissonConfig = PoissonConfig()) -> PointCloud:
+    """The points of ``cloud`` that :func:`poisson_mesh` meshes: confidence at least
+    ``config.min_confidence`` and a normal.
+
+    Raises:
+        ValueError: naming ``cloud`` when it is not a PointCloud, has non-finite values, or fewer than 16
+            such points.
+    """
     if not isinstance(cloud, PointCloud):
         raise ValueError(f"argument 'cloud' must be a PointCloud; got {type(cloud).__name__}")
     if not (np.isfinite(cloud.points).all() and np.isfinite(cloud.normals).all()):
@@ -166,7 +172,7 @@ def _confident_points(cloud: PointCloud, config: PoissonConfig) -> PointCloud:
     if int(usable.sum()) < _MIN_POINTS:
         raise ValueError(
             f"argument 'cloud' has {int(usable.sum())} points with confidence >= {config.min_confidence} "
-            f"and a normal (of {len(cloud)}); Poisson meshing needs at least {_MIN_POINTS}"
+            f"and a normal (of {len(cloud)}); at least {_MIN_POINTS} are needed"
         )
     return cloud.select(usable)
 

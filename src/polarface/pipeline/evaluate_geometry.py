@@ -6,13 +6,19 @@ from here too).
 
 **Geometry metrics** (:func:`geometry_metrics`, the ``geometry`` group; skipped when the RESULT has no
 geometry folder ``GEOM``, i.e. known-geometry mode). ``GEOM`` holds ``mesh.obj``, ``poses.json``,
-``frames/NNNNNN.ply`` (each frame's fused stereo surface, rig world, mm) and ``geometry.json``
-(``reference_frame``, ``rejected_frames`` ``{index: reason}``). Rejected frames are listed, not scored.
+with ``config.frame_meshes`` ``frames/NNNNNN.ply`` (each frame's own stereo surface, rig world, mm),
+and ``geometry.json`` (``reference_frame``, ``rejected_frames`` ``{index: reason}``, ``config``).
+Rejected frames are listed, not scored.
 
 * ``accuracy_mm`` ``{median, p95}``: unsigned distance from area-weighted random samples of each scored
-  frame's surface (``samples_per_frame`` per frame, seeded) to that frame's ground-truth surface, pooled
-  over frames. The frame's ground-truth surface is the rest mesh posed by ``G_k``; the samples are
-  mapped into the ground-truth model frame by ``G_k^-1`` instead (same distances for rigid poses; one
+  frame's reconstructed surface (``samples_per_frame`` per frame, seeded) to that frame's ground-truth
+  surface, pooled over frames. ``accuracy_surface`` says which surface: ``reference mesh`` (the stage's
+  ``mesh.obj`` posed by the frame's pose: the geometry the later stages use) or, when the stage wrote
+  them (``config.frame_meshes``; a ``geometry.json`` without the key is of a stage that always did),
+  ``frame meshes`` (``frames/NNNNNN.ply``). Demo preset, the same run: median / p95 0.317 / 1.92 mm for
+  the reference mesh, 0.340 / 1.77 mm for the frame meshes (and 0.48 / 2.09 mm for the frames' stereo
+  points before meshing). The frame's ground-truth surface is the rest mesh posed by ``G_k``; the samples
+  are mapped into the ground-truth model frame by ``G_k^-1`` instead (same distances for rigid poses; one
   closest-point structure for all frames).
 * ``completeness``: the area fraction (texel area ``s_u s_v``) of the ground-truth surface seen by a
   polarimetric camera — ground-truth texels visible in at least one view of ``observations.zarr``
@@ -97,14 +103,17 @@ def _read_triangles(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
-def _read_geometry_summary(geometry: Path) -> tuple[int, dict[int, str]]:
+def _read_geometry_summary(geometry: Path) -> tuple[int, dict[int, str], bool]:
+    """``(reference frame, rejected frames {index: reason}, whether the frames were meshed)`` of
+    ``geometry.json`` (a summary without ``config.frame_meshes`` is of a stage that meshed every frame)."""
     path = geometry / "geometry.json"
     if not path.is_file():
         raise FileNotFoundError(f"geometry summary '{path}' does not exist")
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
         rejected = {int(k): str(v) for k, v in dict(data.get("rejected_frames") or {}).items()}
-        return int(data.get("reference_frame", 0)), rejected
+        meshes = bool(dict(data.get("config") or {}).get("frame_meshes", True))
+        return int(data.get("reference_frame", 0)), rejected, meshes
     except (ValueError, TypeError, AttributeError) as exc:
         raise ValueError(f"geometry summary '{path}': {exc}") from exc
 
@@ -114,11 +123,17 @@ def _statistics(values: np.ndarray, keys: tuple[str, str]) -> dict[str, float]:
     return {k: float(functions[k](values)) if len(values) else float("nan") for k in keys}
 
 
-def _accuracy(geometry: Path, truth: TriangleMesh, truth_poses: np.ndarray, frames: list[int],
-              config: GeometryEvaluationConfig) -> np.ndarray:
+def _accuracy(geometry: Path, poses: np.ndarray, truth: TriangleMesh, truth_poses: np.ndarray,
+              frames: list[int], meshes: bool, config: GeometryEvaluationConfig) -> np.ndarray:
+    """Pooled distances of each frame's surface samples (module docstring, ``accuracy_mm``): its own mesh
+    (``meshes``) or the reference mesh posed by ``poses[k]`` (model -> rig world)."""
+    reference = None if meshes else _read_triangles(geometry / "mesh.obj")
     distances = []
     for k in frames:
-        vertices, faces = _read_triangles(geometry / "frames" / f"{k:06d}.ply")
+        if reference is None:
+            vertices, faces = _read_triangles(geometry / "frames" / f"{k:06d}.ply")
+        else:
+            vertices, faces = reference[0] @ poses[k][:3, :3].T + poses[k][:3, 3], reference[1]
         samples, _ = sample_surface(vertices, faces, config.samples_per_frame, config.seed + k)
         to_model = invert_rigid(truth_poses[k])
         local = samples @ to_model[:3, :3].T + to_model[:3, 3]
@@ -189,7 +204,8 @@ def geometry_metrics(result_dir: str | Path, gt_dir: str | Path,
 
     Raises:
         FileNotFoundError: a file is missing (naming it): the geometry folder, its ``geometry.json`` or
-            a frame's ``frames/NNNNNN.ply`` that ``geometry.json`` does not list as rejected; the
+            (with frame meshes) a frame's ``frames/NNNNNN.ply`` that ``geometry.json`` does not list as
+            rejected, else its ``mesh.obj``; the
             ground truth's rest mesh or ``static/poses.json``; the RESULT's poses.
         ValueError: pose counts differ, or a malformed file (naming it).
     """
@@ -204,7 +220,7 @@ def geometry_metrics(result_dir: str | Path, gt_dir: str | Path,
                                 "does not exist")
     gt_root = truth_root(gt_dir)
     reference = reference_frame(result)
-    summary_reference, rejected = _read_geometry_summary(geometry)
+    summary_reference, rejected, meshes = _read_geometry_summary(geometry)
     poses_path = result_poses_path(result)
     poses, truth_poses = load_poses(poses_path), load_truth_poses(gt_root)
     if len(poses) != len(truth_poses):
@@ -213,7 +229,7 @@ def geometry_metrics(result_dir: str | Path, gt_dir: str | Path,
     truth = load_truth_mesh(gt_root)
     frames = [k for k in range(len(poses)) if k not in rejected]
     transform = model_alignment(result.root, gt_root)
-    distances = _accuracy(geometry, truth, truth_poses, frames, config)
+    distances = _accuracy(geometry, poses, truth, truth_poses, frames, meshes, config)
     completeness, visibility = _completeness(result, gt_root, truth, transform, config)
     centre = truth_poses[reference][:3, :3] @ truth.vertices.mean(axis=0) + truth_poses[reference][:3, 3]
     rotation, translation = _pose_errors(poses, truth_poses, reference, frames, centre)
@@ -224,6 +240,7 @@ def geometry_metrics(result_dir: str | Path, gt_dir: str | Path,
         "rejected_frames": {str(k): v for k, v in sorted(rejected.items())},
         "accuracy_mm": _statistics(distances, ("median", "p95")),
         "accuracy_samples": int(distances.size),
+        "accuracy_surface": "frame meshes" if meshes else "reference mesh",
         "completeness": completeness,
         "completeness_distance_mm": config.completeness_distance_mm,
         "completeness_visibility": visibility,

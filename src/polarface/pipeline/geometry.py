@@ -1,4 +1,4 @@
-"""The geometry stage: a capture's stereo pairs -> per-frame depth and meshes, registration of the
+"""The geometry stage: a capture's stereo pairs -> per-frame depth and clouds, registration of the
 sequence, the reference mesh fused from all frames with a cylindrical texture atlas (paper Sec.
 "Geometry Reconstruction and Tracking"; supplement: all frames merged into the reference frame).
 
@@ -10,22 +10,24 @@ sequence, the reference mesh fused from all frames with a cylindrical texture at
       mesh.obj               reference mesh with its cylindrical UVs; model frame = the rig world at the
                              reference frame, mm
       poses.json             model -> rig world 4x4 per capture frame (polarface.geometry.poses format)
-      frames/NNNNNN.ply      each frame's fused stereo mesh, rig world, mm
+      frames/NNNNNN.ply      each frame's fused stereo mesh, rig world, mm (only with
+                             GeometryConfig.frame_meshes / ``polarface geometry --frame-meshes``)
       clouds/NNNNNN.npz      each frame's fused stereo point cloud (polarface.geometry.point_cloud)
       previews/*.png         depth and confidence of the reference frame's pairs, mesh renders, residuals
       report.html            the stage's report page
 
-Frames are processed one at a time (memory bounded per frame) and skipped when their cloud and mesh
-exist, so an interrupted run resumes; ``geometry.json`` records the capture and configuration, and a
+Frames are processed one at a time (memory bounded per frame) and skipped when their cloud exists, so
+an interrupted run resumes; ``geometry.json`` records the capture and configuration, and a
 folder written with others is refused.
 
 Each frame but the reference frame is an executor unit (:class:`StereoFrameUnit`,
 :func:`run_stereo_frame_unit`; :mod:`polarface.executors`): it reads the frame's raw stereo images from
-the capture and writes ``frames/NNNNNN.ply`` and ``clouds/NNNNNN.npz`` itself (atomically, the cloud
-last); this process computes the reference frame first (a capture whose reference frame gives no
-geometry writes nothing), writes ``geometry.json`` as frames finish, and registers and fuses the
-sequence after them. A frame whose unit fails is rejected with its reason, like a frame without a
-surface, and retried by the next run. ``geometry.json``'s ``executor`` records where each frame ran.
+the capture and writes ``clouds/NNNNNN.npz`` (and ``frames/NNNNNN.ply`` before it) itself, atomically;
+this process computes the reference frame first (a capture whose reference frame gives no geometry
+writes nothing), writes ``geometry.json`` as frames finish, and registers and fuses the
+sequence after them. A frame whose unit fails is rejected with its reason, like a frame with fewer
+than 16 confident points (or, meshed, without a surface), and retried by the next run.
+``geometry.json``'s ``executor`` records where each frame ran.
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ from polarface.geometry.atlas import (
     head_axis_from_poses,
     head_axis_point_from_poses,
 )
-from polarface.geometry.fusion import PoissonConfig, fuse_registered, poisson_mesh
+from polarface.geometry.fusion import PoissonConfig, confident_points, fuse_registered, poisson_mesh
 from polarface.geometry.mesh import TriangleMesh, save_obj, save_ply
 from polarface.geometry.point_cloud import PointCloud, load_point_cloud, save_point_cloud
 from polarface.geometry.poses import save_poses
@@ -79,7 +81,13 @@ class GeometryConfig:
         frame_voxel_mm: the pairs' clouds of a frame are merged on this voxel grid, mm (0.75: the frame's
             Poisson mesh takes 2.0 s instead of 3.5 s at 0.5 mm, for a median distance to the truth
             0.003-0.007 mm larger; demo preset, measured).
-        frame_poisson: screened Poisson meshing of each frame's cloud.
+        frame_poisson: screened Poisson meshing of each frame's cloud (``frame_meshes``); its
+            ``min_confidence`` also sets which points count towards a frame's minimum of 16.
+        frame_meshes: write each frame's own Poisson mesh (``frames/NNNNNN.ply``). Off by default:
+            nothing downstream reads them (registration and fusion use the frames' clouds, the reference
+            mesh is meshed from the fused cloud), and a frame's mesh took 1.7-2.3 s of its ~4 s (demo
+            preset, measured). The dynamic stage meshes every frame regardless (tracking follows the
+            frames' surfaces).
         registration: registration of the sequence
             (:class:`polarface.geometry.registration.RegistrationConfig`).
         reference_voxel_mm: the registered frames' clouds are merged on this voxel grid, mm.
@@ -94,6 +102,7 @@ class GeometryConfig:
     stereo: StereoConfig = dataclasses.field(default_factory=StereoConfig)
     frame_voxel_mm: float = 0.75
     frame_poisson: PoissonConfig = dataclasses.field(default_factory=PoissonConfig)
+    frame_meshes: bool = False
     registration: RegistrationConfig = dataclasses.field(default_factory=RegistrationConfig)
     reference_voxel_mm: float = 0.5
     reference_poisson: PoissonConfig = dataclasses.field(
@@ -166,13 +175,15 @@ def check_stereo_pairs(store: CaptureStore) -> None:
             ) from exc
 
 
-def _paths(out: Path, frame: int) -> tuple[Path, Path]:
-    return out / "clouds" / f"{frame:06d}.npz", out / "frames" / f"{frame:06d}.ply"
+def _paths(out: Path, frame: int, meshes: bool = False) -> tuple[Path, Path | None]:
+    """A frame's cloud and (``meshes``, else None) mesh files in ``out``."""
+    return out / "clouds" / f"{frame:06d}.npz", out / "frames" / f"{frame:06d}.ply" if meshes else None
 
 
 @dataclasses.dataclass(frozen=True)
 class FrameGeometry:
-    """One frame's stereo result, merged cloud and mesh (None with the reason when meshing failed)."""
+    """One frame's stereo result, merged cloud and mesh (None when not asked for); ``error`` says why the
+    frame is unusable (too few points, or meshing failed), else None."""
 
     pairs: list[tuple[str, StereoDepth]]
     cloud: PointCloud
@@ -181,28 +192,35 @@ class FrameGeometry:
     seconds: float
 
 
-def frame_geometry(store: CaptureStore, frame: int, config: GeometryConfig) -> FrameGeometry:
-    """Stereo, fusion and meshing of one frame (nothing written)."""
+def frame_geometry(store: CaptureStore, frame: int, config: GeometryConfig, *,
+                   mesh: bool = True) -> FrameGeometry:
+    """Stereo, fusion and (``mesh``) meshing of one frame (nothing written)."""
     started = time.perf_counter()
     pairs = frame_stereo(store, frame, config.stereo)
     merged = PointCloud.concatenate([depth.cloud for _, depth in pairs])
     cloud = merged.voxel_downsample(config.frame_voxel_mm)
+    surface, error = None, None
     try:
-        mesh, error = poisson_mesh(cloud, config.frame_poisson), None
+        if mesh:
+            surface = poisson_mesh(cloud, config.frame_poisson)
+        else:
+            confident_points(cloud, config.frame_poisson)
     except ValueError as exc:
-        mesh, error = None, f"no mesh: {exc}"
-    return FrameGeometry(pairs, cloud, mesh, error, time.perf_counter() - started)
+        error = f"no mesh: {exc}" if mesh else f"too few points: {exc}"
+    return FrameGeometry(pairs, cloud, surface, error, time.perf_counter() - started)
 
 
-def write_frame_geometry(result: FrameGeometry, mesh_path: Path, cloud_path: Path | None) -> dict[str, Any]:
-    """Write a frame's mesh to ``mesh_path`` (when meshing succeeded) and then its cloud to ``cloud_path``
+def write_frame_geometry(result: FrameGeometry, mesh_path: Path | None,
+                         cloud_path: Path | None) -> dict[str, Any]:
+    """Write a frame's mesh to ``mesh_path`` (when it has one) and then its cloud to ``cloud_path``
     (None: not kept; written last, it marks the frame complete), atomically; returns the frame's summary
-    entry: ``points``, ``pairs`` (points per stereo pair), ``seconds``, and ``mesh_vertices`` or ``error``."""
+    entry: ``points``, ``pairs`` (points per stereo pair), ``seconds``, ``mesh_vertices`` (with a mesh)
+    and ``error`` (an unusable frame)."""
     entry: dict[str, Any] = {"points": len(result.cloud), "pairs": {n: len(d.cloud) for n, d in result.pairs},
                              "seconds": result.seconds}
-    if result.mesh is None:
+    if result.error is not None:
         entry["error"] = result.error
-    else:
+    if result.mesh is not None and mesh_path is not None:
         save_ply(mesh_path, result.mesh)
         entry["mesh_vertices"] = result.mesh.vertex_count
     if cloud_path is not None:
@@ -219,14 +237,15 @@ class StereoFrameUnit:
         capture: the capture store (absolute path).
         frame: the frame's index in the capture.
         config: the geometry configuration (its ``stereo``, ``frame_voxel_mm`` and ``frame_poisson``).
-        mesh_path: where the frame's mesh goes (PLY, rig world, mm; absolute path).
+        mesh_path: where the frame's mesh goes (PLY, rig world, mm; absolute path); None: the frame is
+            not meshed.
         cloud_path: where its fused cloud goes (``.npz``; None: not kept).
     """
 
     capture: Path
     frame: int
     config: GeometryConfig
-    mesh_path: Path
+    mesh_path: Path | None
     cloud_path: Path | None = None
 
 
@@ -239,8 +258,8 @@ def run_stereo_frame_unit(unit: StereoFrameUnit) -> dict[str, Any]:
             executor as the frame's failure).
     """
     store = CaptureStore.open(unit.capture, validate=False)
-    return write_frame_geometry(frame_geometry(store, unit.frame, unit.config), unit.mesh_path,
-                                unit.cloud_path)
+    result = frame_geometry(store, unit.frame, unit.config, mesh=unit.mesh_path is not None)
+    return write_frame_geometry(result, unit.mesh_path, unit.cloud_path)
 
 
 def run_stereo_units(executor: Executor, units: list[StereoFrameUnit], record, *, desc: str,
@@ -258,7 +277,7 @@ def run_stereo_units(executor: Executor, units: list[StereoFrameUnit], record, *
 
 #: The configuration that makes the per-frame files; the rest (registration, reference mesh, atlas) is
 #: recomputed by every run, so a resumed run may change it.
-_FRAME_KEYS = ("stereo", "frame_voxel_mm", "frame_poisson")
+_FRAME_KEYS = ("stereo", "frame_voxel_mm", "frame_poisson", "frame_meshes")
 
 
 def _check_resume(out: Path, header: dict[str, Any]) -> dict[str, Any]:
@@ -373,11 +392,11 @@ def reconstruct_geometry(
 def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: int, config: GeometryConfig,
                 header: dict[str, Any], entries: dict[str, Any], run: tuple[Executor, dict[str, Any]],
                 progress: bool) -> dict[str, Any]:
-    """Stereo and meshes of every frame not done yet: the reference frame first, in this process (a
-    capture whose reference frame gives no geometry writes nothing), then the others as units of
-    ``run = (executor, placements)`` (each frame's placement recorded in ``placements``; a failed unit
-    becomes an entry with its ``error``, redone by the next run: it wrote no cloud); returns the
-    per-frame summary entries in frame order."""
+    """Stereo (and meshes, with ``config.frame_meshes``) of every frame not done yet: the reference frame
+    first, in this process (a capture whose reference frame gives no geometry writes nothing), then the
+    others as units of ``run = (executor, placements)`` (each frame's placement recorded in
+    ``placements``; a failed unit becomes an entry with its ``error``, redone by the next run: it wrote no
+    cloud); returns the per-frame summary entries in frame order."""
     executor, placements = run
 
     def save() -> None:  # geometry.json after every frame: a stopped run resumes with its entries
@@ -388,21 +407,23 @@ def _frame_pass(store: CaptureStore, out: Path, frames: list[int], reference: in
     first = None
     if reference not in done:
         started = time.perf_counter()
-        first = frame_geometry(store, reference, config)
-        if first.mesh is None:
+        first = frame_geometry(store, reference, config, mesh=config.frame_meshes)
+        if first.error is not None:
             raise ValueError(
                 f"the reference frame {reference} has no usable stereo geometry ({first.error}); check "
                 "the stereo images, choose another reference frame, or give the geometry ('--mesh MESH "
                 "--poses POSES')"
             )
         out.mkdir(parents=True, exist_ok=True)
-        entries[str(reference)] = write_frame_geometry(first, *reversed(_paths(out, reference)))
+        cloud_path, mesh_path = _paths(out, reference, config.frame_meshes)
+        entries[str(reference)] = write_frame_geometry(first, mesh_path, cloud_path)
         placements[str(reference)] = UnitOutcome(
             reference, seconds=time.perf_counter() - started, host=socket.gethostname(), pid=os.getpid()
         ).placement()
     save()
     root = out.absolute()
-    units = [StereoFrameUnit(store.root.absolute(), frame, config, *reversed(_paths(root, frame)))
+    units = [StereoFrameUnit(store.root.absolute(), frame, config,
+                             *reversed(_paths(root, frame, config.frame_meshes)))
              for frame in frames if frame != reference and frame not in done]
 
     def record(frame: int, entry: dict[str, Any] | None, outcome: UnitOutcome) -> None:

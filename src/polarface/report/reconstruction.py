@@ -232,7 +232,7 @@ def write_report(
     )
     if (folder.geometry_dir / "report.html").is_file():
         page.section(
-            "Geometry", "Mesh, poses and per-frame meshes reconstructed from the rig's stereo pairs."
+            "Geometry", "Mesh and poses reconstructed from the rig's stereo pairs."
         ).link("geometry/report.html", "Open the geometry report (geometry/report.html)")
     if (folder.root / EXPORTS_DIR / "viewer" / "index.html").is_file():
         page.section(
