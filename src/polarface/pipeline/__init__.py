@@ -32,13 +32,8 @@ from polarface.pipeline.evaluate_correspondence import GeometryEvaluationConfig,
 from polarface.pipeline.evaluate_dynamic import dynamic_metrics
 from polarface.pipeline.evaluate_geometry import geometry_metrics
 from polarface.pipeline.export import EXPORT_JSON, export_result
-from polarface.pipeline.geometry import (
-    GEOMETRY_JSON,
-    GeometryConfig,
-    check_stereo_pairs,
-    frame_stereo,
-    reconstruct_geometry,
-)
+from polarface.pipeline.geometry import GEOMETRY_JSON, GeometryConfig, reconstruct_geometry
+from polarface.pipeline.geometry_frames import check_stereo_pairs, frame_stereo
 from polarface.pipeline.import_authors import import_authors
 from polarface.pipeline.info import folder_info, format_info
 from polarface.pipeline.ior import (

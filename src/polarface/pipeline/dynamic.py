@@ -20,7 +20,7 @@ mesh ``mesh.obj`` with its atlas, ``maps/``, ``rig.json``) and a capture of the 
                            stereo and tracking), wall_seconds_per_frame (this run's wall time / frames)
 
 Steps 1-3 are the sequence geometry (:mod:`polarface.pipeline.dynamic_geometry`): (1) per frame,
-stereo of the rig's pairs fused and meshed (:func:`polarface.pipeline.geometry.frame_geometry`); (2)
+stereo of the rig's pairs fused and meshed (:func:`polarface.pipeline.geometry_frames.frame_geometry`); (2)
 the reference mesh is aligned rigidly to the first frame's stereo surface
 (:func:`polarface.geometry.registration.register_pair`, from the identity — the static model frame
 of stereo geometry is the rig world of the static reference frame — and from the static poses); (3)
@@ -281,8 +281,9 @@ def reconstruct_dynamic(
         capture: the dynamic capture store (or a simulation folder: ``SIM/dynamic``).
         frames: the frames whose maps are fitted (``"0-4,7"`` or indices; None: all). Stereo and tracking
             always cover the whole sequence (a frame is tracked through the ones before it).
-        executor: runs the frames' stereo (step 1, :class:`polarface.pipeline.geometry.StereoFrameUnit`)
-            and step 4 (:class:`FrameUnit`, :func:`run_frame_unit`); None: in this process, in order
+        executor: runs the frames' stereo (step 1,
+            :class:`polarface.pipeline.geometry_frames.StereoFrameUnit`) and step 4 (:class:`FrameUnit`,
+            :func:`run_frame_unit`); None: in this process, in order
             (:class:`polarface.executors.LocalExecutor`). It is started here, before anything is
             written, and left open. A frame that fails is recorded with its reason.
 

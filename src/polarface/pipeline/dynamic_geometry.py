@@ -4,7 +4,7 @@ through the sequence. ``tracking/tracking.json`` holds the capture identity, the
 step's results (written after each step, so a run resumes); a folder written for another capture or
 configuration is refused. Layout: ``docs/result_folder.md``.
 
-Each frame's stereo mesh is an executor unit (:class:`polarface.pipeline.geometry.StereoFrameUnit`):
+Each frame's stereo mesh is an executor unit (:class:`polarface.pipeline.geometry_frames.StereoFrameUnit`):
 the frames' stereo runs on the stage's executor (in this process, or as Ray tasks), each unit writing
 ``tracking/stereo/NNNNNN.ply`` itself; ``tracking.json`` (its ``frames`` and ``executor``) is written
 here as units finish. A frame whose unit fails is reported and left out (no surface to track against)
@@ -34,7 +34,8 @@ from polarface.geometry.tracking import (
     track_mesh,
 )
 from polarface.io import read_json_object, write_json_atomic
-from polarface.pipeline.geometry import GeometryConfig, StereoFrameUnit, run_stereo_units
+from polarface.pipeline.geometry import GeometryConfig
+from polarface.pipeline.geometry_frames import StereoFrameUnit, run_stereo_units
 from polarface.results import ResultFolder, layout
 
 __all__ = ["TrackingFolder", "align_reference", "stereo_pass", "track_sequence"]

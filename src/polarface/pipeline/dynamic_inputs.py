@@ -9,7 +9,7 @@ from pathlib import Path
 
 from polarface.capture.store import CaptureStore
 from polarface.io import storage_path
-from polarface.pipeline.geometry import check_stereo_pairs
+from polarface.pipeline.geometry_frames import check_stereo_pairs
 from polarface.pipeline.reconstruct_inputs import check_capture_manifest
 from polarface.results import ResultFolder
 

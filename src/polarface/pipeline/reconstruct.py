@@ -106,7 +106,7 @@ def _open_capture(ctx: ReconstructContext):
     check_capture_manifest(store)
     check_derived_store(store)
     if ctx.stereo:
-        from polarface.pipeline.geometry import check_stereo_pairs
+        from polarface.pipeline.geometry_frames import check_stereo_pairs
 
         check_stereo_pairs(store)
     return store
