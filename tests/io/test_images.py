@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from polarface.io import atomic_path, colormap_png, read_exr, read_png, write_exr, write_png
+from polarface.io import atomic_path, colormap_png, read_exr, read_png, write_exr, write_figure_png, write_png
 
 
 def test_exr_round_trip(tmp_path):
@@ -49,3 +49,32 @@ def test_colormap_png(tmp_path):
     assert out.shape == (10, 10, 3) and (out[0, 0] == 0).all()
     colormap_png(tmp_path / "d.png", img, title="t", colorbar=True)
     assert read_png(tmp_path / "d.png").ndim == 3
+
+
+def test_write_figure_png_matches_savefig(tmp_path):
+    """One Agg draw encoded by OpenCV: the pixels matplotlib's own savefig writes, without alpha; the
+    figure is closed; a non-figure is refused before anything is written."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    def figure():
+        fig, ax = plt.subplots(figsize=(3.2, 2.4), dpi=50, layout="constrained")
+        handle = ax.imshow(np.linspace(0, 1, 64).reshape(8, 8), cmap="viridis")
+        ax.set_title("map")
+        fig.colorbar(handle, ax=ax, label="unit")
+        return fig
+
+    reference = figure()
+    reference.savefig(tmp_path / "savefig.png", format="png", dpi=100)
+    plt.close(reference)
+    drawn = figure()
+    write_figure_png(tmp_path / "fast.png", drawn, dpi=100)
+    assert not plt.fignum_exists(drawn.number)
+    fast, saved = read_png(tmp_path / "fast.png"), read_png(tmp_path / "savefig.png")
+    assert fast.shape == (240, 320, 3) and fast.dtype == np.uint8
+    np.testing.assert_array_equal(fast, saved[..., :3])
+    with pytest.raises(TypeError, match="argument 'figure'"):
+        write_figure_png(tmp_path / "bad.png", np.zeros((4, 4)))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fast.png", "savefig.png"]

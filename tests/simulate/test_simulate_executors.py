@@ -42,9 +42,11 @@ def test_ray_frames_are_the_local_executor_bytes(local, ray_instance, tmp_path):
     summary = simulate(tmp_path / "ray", CONFIG, progress=False, executor=RayExecutor(workers=RAY_CPUS))
     assert _tree(tmp_path / "ray") == local[1]
     units = summary["executor"]["units"]
-    assert summary["executor"]["name"] == "ray" and units["static/0"]["node_id"] is None  # the exposure frame
+    assert summary["executor"]["name"] == "ray"
+    # every frame is a unit, the exposure frame too: this process rendered only its exposure view
     assert all(units[key]["node_id"] and units[key]["render_s"] > 0
-               for key in ("static/1", "dynamic/0", "dynamic/1"))
+               for key in ("static/0", "static/1", "dynamic/0", "dynamic/1"))
+    assert summary["timings"]["exposure_s"] > 0 and summary["timings"]["frames_s"] > 0
     assert summary["exposure"] == json.loads((local[0] / "simulation.json").read_text())["exposure"]
 
 
@@ -54,7 +56,7 @@ def test_process_frames_are_the_local_executor_bytes(local, tmp_path):
     assert _tree(tmp_path / "processes") == local[1]  # the workers' scene file is gone too
     units = summary["executor"]["units"]
     assert summary["executor"]["name"] == "processes"
-    assert {units[key]["pid"] for key in ("static/1", "dynamic/0", "dynamic/1")} - {None} != set()
+    assert {units[key]["pid"] for key in ("static/0", "static/1", "dynamic/0", "dynamic/1")} - {None} != set()
 
 
 def test_a_killed_worker_is_retried_and_the_files_are_identical(local, ray_instance, tmp_path):  # noqa: F811

@@ -117,6 +117,27 @@ def test_blur_of_delta_equals_sum_of_gaussians(texel):
     assert torch.allclose(out[far], density[far], rtol=0.02, atol=1e-7)
 
 
+@pytest.mark.parametrize("corner", [(0, 0), (36, 52), (0, 52)])
+def test_blur_of_corner_delta_on_prime_sized_map(corner):
+    """Maps whose padded size has large prime factors are transformed at a longer, fast length: the
+    blur is still the kernel renormalised to its mass inside the map, with nothing wrapped around."""
+    height, width, texel = 37, 53, 0.2
+    image = torch.zeros(height, width, dtype=torch.float64)
+    image[corner] = 1.0
+    weights = torch.tensor([0.0, 0.0, 0.1, 0.1, 0.2, 0.2, 0.2, 0.1, 0.1], dtype=torch.float64)
+    out = sog_blur(image, weights, texel)
+
+    def one_d(offsets: torch.Tensor, variance: float) -> torch.Tensor:
+        s = math.sqrt(2.0 * variance)
+        return 0.5 * (torch.erf((offsets + 0.5) * texel / s) - torch.erf((offsets - 0.5) * texel / s))
+
+    rows = torch.arange(height, dtype=torch.float64) - corner[0]
+    cols = torch.arange(width, dtype=torch.float64) - corner[1]
+    kernel = sum(w * one_d(rows, float(v))[:, None] * one_d(cols, float(v))[None, :]
+                 for w, v in zip(weights, sog_variances(), strict=True))
+    assert torch.allclose(out, kernel / kernel.sum(), rtol=1e-9, atol=1e-15)
+
+
 @settings(max_examples=15, deadline=None)
 @given(
     texel=st.floats(0.02, 0.5),

@@ -175,11 +175,24 @@ class VoxelAccumulator:
         self._weight[at] += weight[found]
         self._sums[at] += sums[found]
         np.maximum.at(self._confidence, at, confidence[found])
-        fresh, where = ~found, position[~found]
-        self._keys = np.insert(self._keys, where, keys[fresh])
-        self._weight = np.insert(self._weight, where, weight[fresh])
-        self._sums = np.insert(self._sums, where, sums[fresh], axis=0)
-        self._confidence = np.insert(self._confidence, where, confidence[fresh])
+        # the new voxels' rows in the merged arrays: their insertion points (sorted, as ``keys`` are)
+        # shifted by the new voxels before them; one mask for the four arrays (np.insert sorts and
+        # masks again for each: 1.7 of the demo fusion's 5 s)
+        fresh = ~found
+        rows = position[fresh] + np.arange(int(fresh.sum()))
+        held = np.ones(len(self._keys) + len(rows), bool)
+        held[rows] = False
+
+        def merged(values: np.ndarray, new: np.ndarray) -> np.ndarray:
+            out = np.empty((len(held), *values.shape[1:]), values.dtype)
+            out[held] = values
+            out[rows] = new
+            return out
+
+        self._keys = merged(self._keys, keys[fresh])
+        self._weight = merged(self._weight, weight[fresh])
+        self._sums = merged(self._sums, sums[fresh])
+        self._confidence = merged(self._confidence, confidence[fresh])
 
     def _reduce(self, cloud: PointCloud) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``cloud``'s per-voxel sums: sorted unique keys ``(K,)`` int64, total weights ``(K,)``, weighted

@@ -13,6 +13,7 @@ from polarface.io.images import (
     read_gray,
     read_png,
     write_exr,
+    write_figure_png,
     write_png,
 )
 from polarface.io.json_files import json_values, read_json_object
@@ -34,6 +35,7 @@ __all__ = [
     "read_png",
     "storage_path",
     "write_exr",
+    "write_figure_png",
     "write_json_atomic",
     "write_png",
 ]

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from polarface.inverse.biophysical import PARAMETER_ORDER, per_texel_relative_residual
-from polarface.io import atomic_path, colormap_png, write_png
+from polarface.io import colormap_png, write_figure_png, write_png
 from polarface.results import CHROMOPHORE_PREVIEWS, ResultFolder
 
 __all__ = ["write_previews", "write_residual_previews"]
@@ -35,9 +35,7 @@ def _write_panel(path: Path, parameters: np.ndarray, mask: np.ndarray) -> None:
         ax.set_axis_off()
         fig.colorbar(handle, ax=ax, fraction=0.046, pad=0.04)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    write_figure_png(path, fig)
 
 
 def write_previews(

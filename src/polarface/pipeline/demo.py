@@ -58,10 +58,6 @@ _CAPTIONS = {
 def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], None]) -> dict[str, Any]:
     """Simulate, reconstruct and evaluate; each step announced as the equivalent command line."""
     from polarface.executors import LocalExecutor, ProcessExecutor
-    from polarface.io import write_json_atomic
-    from polarface.io.output_folder import output_folder
-    from polarface.pipeline.evaluate import evaluate
-    from polarface.pipeline.export import export_result
     from polarface.pipeline.reconstruct import reconstruct
     from polarface.pipeline.reconstruct_inputs import resolve_reconstruct_inputs
     from polarface.simulate.pipeline import SimulationConfig, simulate
@@ -87,20 +83,45 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
             f"{' --resume' if resume else ''}{on_workers}")
         record = reconstruct(resolve_reconstruct_inputs(sim), result, resume=resume, dynamic=sim,
                              executor=executor)
-    say(reconstruct_summary_line(result, record))
-    figures = out / "figures"
-    say(f"polarface demo: polarface evaluate {result} --gt {sim} --out {out / 'metrics.json'} "
-        f"--figures {figures}")
-    metrics = evaluate(result, sim, figures_dir=figures)
-    write_json_atomic(out / "metrics.json", metrics)
+        say(reconstruct_summary_line(result, record))
+        # the evaluation and the export read the finished RESULT and write apart: side by side on the
+        # workers (each is mostly one core's work; in this process, one after the other, on one core)
+        say(f"polarface demo: polarface evaluate {result} --gt {sim} --out {out / 'metrics.json'} "
+            f"--figures {out / 'figures'}")
+        say(f"polarface demo: polarface export {result} --out {result / 'exports'} --force")
+        metrics, exported = (outcome.value for outcome in executor.map_units(
+            _run_demo_tail, [_DemoTail("evaluate", out), _DemoTail("export", out)], failures=()))
     say(json.dumps(metrics, indent=2))
+    say(json.dumps(exported))
+    return metrics
+
+
+@dataclasses.dataclass(frozen=True)
+class _DemoTail:
+    """The evaluation or the export of a finished demo folder ``out``, as an executor unit."""
+
+    step: str
+    out: Path
+
+
+def _run_demo_tail(unit: _DemoTail) -> dict[str, Any]:
+    """``polarface evaluate`` (returns the metrics, written to ``out/metrics.json``) or ``polarface
+    export`` (returns its seconds per format) of the demo folder ``unit.out``."""
+    from polarface.io import write_json_atomic
+    from polarface.io.output_folder import output_folder
+    from polarface.pipeline.evaluate import evaluate
+    from polarface.pipeline.export import export_result
+
+    sim, result = unit.out / "sim", unit.out / "result"
+    if unit.step == "evaluate":
+        metrics = evaluate(result, sim, figures_dir=unit.out / "figures")
+        write_json_atomic(unit.out / "metrics.json", metrics)
+        return metrics
     exports = result / "exports"
-    say(f"polarface demo: polarface export {result} --out {exports} --force")
     with output_folder(exports, "export", force=True) as folder:
         record = export_result(result, Path(folder))
-    say(json.dumps({"out": str(exports), "seconds": record["seconds"],
-                    "formats": {name: entry["seconds"] for name, entry in record["formats"].items()}}))
-    return metrics
+    return {"out": str(exports), "seconds": record["seconds"],
+            "formats": {name: entry["seconds"] for name, entry in record["formats"].items()}}
 
 
 def reconstruct_summary_line(out: str | Path, result: dict[str, Any]) -> str:

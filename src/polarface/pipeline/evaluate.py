@@ -213,13 +213,19 @@ def _rerender_sums(unwrap, maps: dict[str, np.ndarray], held: list[int], normal:
     return sq, sums, count
 
 
+#: Chunk cache of the held-out views' unwrap-store reads (bytes): the texel geometry, a few MB on the demo.
+_RERENDER_CACHE_BYTES = 64 << 20
+
+
 def rerender_metrics(result_dir: Path, gt_dir: Path) -> dict[str, Any]:
     """Held-out-view re-render RMSE of I_sss and I_s (module docstring)."""
     from polarface.render import texel_shading_normals
     from polarface.texture import UnwrapStore
 
     estimate, _, _ = _load(result_dir, gt_dir)
-    unwrap = UnwrapStore.open(ResultFolder(result_dir).unwrap_path)
+    # every held-out view's patches read the same texel geometry: decoded once through the chunk cache
+    # (the demo's 12 views: 10.5-11.4 -> 7.5-8.1 s, the same sums)
+    unwrap = UnwrapStore.open(ResultFolder(result_dir).unwrap_path, cache_bytes=_RERENDER_CACHE_BYTES)
     held = [i for i, v in enumerate(unwrap.views) if v.held_out]
     if not held:
         return {"held_out_views": 0, "note": "no held-out view (reconstruct --holdout-every 0)"}

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from polarface.io import atomic_path, write_json_atomic
+from polarface.io import atomic_path, write_figure_png, write_json_atomic
 from polarface.skin.chromophores import HAEMOGLOBIN_TABLE_RANGE_NM
 from polarface.skin.fitting import FIT_PARAMETER_NAMES, FitSettings, fit_reflectance_spectra
 
@@ -193,9 +193,7 @@ def _plot(
     fig.supxlabel("wavelength (nm)", fontsize=7)
     fig.supylabel("reflectance factor", fontsize=7)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    write_figure_png(path, fig, dpi=110)
 
 
 def _fit_payload(

@@ -28,7 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from polarface.geometry.poses import load_poses
-from polarface.io import colormap_png, write_exr, write_json_atomic, write_png
+from polarface.io import colormap_png, write_exr, write_figure_png, write_json_atomic, write_png
 from polarface.optics.stokes import aolp, linear_dop
 from polarface.render.colour import encode_srgb, linear_rgb_from_channels, linear_srgb_to_lab
 from polarface.render.relight import RenderedResult, mueller_images, parse_edits, render_result_view
@@ -229,7 +229,6 @@ def _mueller_preview(path: Path, mueller: np.ndarray, mask: np.ndarray) -> None:
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from polarface.io.atomic import atomic_path
 
     m00 = mueller[..., 0, 0]
     scale = max(float(np.percentile(m00[mask], 99)), 1e-12) if mask.any() else 1.0
@@ -250,9 +249,7 @@ def _mueller_preview(path: Path, mueller: np.ndarray, mask: np.ndarray) -> None:
             axes[i, j].set_title(f"M{i}{j}" + ("" if i == j == 0 else " / M00"))
             axes[i, j].set_axis_off()
     fig.colorbar(handle, ax=axes, fraction=0.03)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    write_figure_png(path, fig)
 
 
 def _strip_profile(path: Path, rgb: np.ndarray, mask: np.ndarray) -> None:
@@ -262,7 +259,6 @@ def _strip_profile(path: Path, rgb: np.ndarray, mask: np.ndarray) -> None:
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from polarface.io.atomic import atomic_path
 
     rows = np.nonzero(mask.any(axis=1))[0]
     row = int(rows[len(rows) // 2]) if rows.size else rgb.shape[0] // 2
@@ -275,6 +271,4 @@ def _strip_profile(path: Path, rgb: np.ndarray, mask: np.ndarray) -> None:
     ax.set_title(f"strip light, row {row}: light spreads beyond the stripe under the skin")
     ax.legend()
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    write_figure_png(path, fig)

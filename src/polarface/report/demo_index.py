@@ -229,7 +229,7 @@ def _comparison_png(path: Path, name: str, truth: np.ndarray, estimate: np.ndarr
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from polarface.io import atomic_path
+    from polarface.io import write_figure_png
 
     both = np.concatenate([truth[valid], estimate[valid]])
     lo, hi = (float(np.percentile(both, 1)), float(np.percentile(both, 99))) if both.size else (0.0, 1.0)
@@ -252,9 +252,7 @@ def _comparison_png(path: Path, name: str, truth: np.ndarray, estimate: np.ndarr
         bar = figure.colorbar(handle, ax=ax_list, fraction=0.046, pad=0.03)
         bar.ax.tick_params(labelsize=13)
         bar.set_label(label, fontsize=14)
-    with atomic_path(path) as tmp:
-        figure.savefig(tmp, format="png")
-    plt.close(figure)
+    write_figure_png(path, figure)
 
 
 def write_comparisons(out: str | Path, result_dir: str | Path, gt_dir: str | Path) -> list[ImageItem]:

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from polarface.io import atomic_path, storage_path
+from polarface.io import atomic_path, storage_path, write_figure_png
 from polarface.render.colour import encode_srgb
 from polarface.report.html import HtmlPage, Section
 from polarface.report.streamed import streamed_percentiles, streamed_std
@@ -311,9 +311,7 @@ def _write_chromophore_plot(path: Path, frames: _Frames, region: np.ndarray, fac
         ax.set_ylabel("median (volume fraction)")
         ax.legend(fontsize=8)
     figure.tight_layout()
-    with atomic_path(path) as tmp:
-        figure.savefig(tmp, format="png")
-    plt.close(figure)
+    write_figure_png(path, figure)
 
 
 def _chromophore_plot(folder: ResultFolder, frames: _Frames, section: Section) -> None:

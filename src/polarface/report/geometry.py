@@ -14,7 +14,7 @@ from polarface.capture.rig import Rig
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.stereo import StereoDepth
-from polarface.io.images import colormap_png, write_png
+from polarface.io.images import colormap_png, write_figure_png, write_png
 from polarface.report.html import HtmlPage, ImageItem
 
 __all__ = ["write_depth_previews", "write_geometry_report"]
@@ -64,8 +64,7 @@ def _residual_plot(path: Path, summary: dict[str, Any]) -> None:
     ax.legend()
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
+    write_figure_png(path, fig)
 
 
 def write_geometry_report(out: Path, summary: dict[str, Any], mesh: TriangleMesh, poses: np.ndarray,

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from polarface.io import colormap_png
+from polarface.io import colormap_png, write_figure_png
 from polarface.report.html import HtmlPage, ImageItem
 from polarface.results import DIAGNOSTIC_MAPS, POLARIMETRIC_MAPS, ResultFolder
 from polarface.results.layout import EXPORTS_DIR
@@ -94,16 +94,13 @@ def _add_loss_section(page: HtmlPage, folder: ResultFolder) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from polarface.io import atomic_path
 
     figure, axes = plt.subplots(figsize=(5, 3))
     axes.semilogy(np.arange(len(curve)), np.maximum(curve, 1e-12))
     axes.set_xlabel("iteration (per patch)")
     axes.set_ylabel("mean total loss")
     figure.tight_layout()
-    with atomic_path(folder.preview_path("report_loss")) as tmp:
-        figure.savefig(tmp, dpi=100)
-    plt.close(figure)
+    write_figure_png(folder.preview_path("report_loss"), figure, dpi=100)
     page.section("Loss").plot("previews/report_loss.png", "mean total loss over the iterations of a patch")
 
 

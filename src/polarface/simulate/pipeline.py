@@ -22,9 +22,10 @@ atomically and skipped when present, so an interrupted run continues where it st
 deterministic; raw noise is drawn from ``numpy.random.default_rng((seed, sequence, frame, camera))``.
 
 Each frame is an executor unit (:mod:`polarface.simulate.frames`; :mod:`polarface.executors`): the
-frames of a sequence render and write their own files in any order, in this process or as Ray tasks,
-with the same bytes. Only the exposure is order-dependent: it is fixed by the first frame rendered (the
-first sequence's frame 0), which this process renders and writes before the others are submitted.
+frames of every sequence, in one queue, render and write their own files in any order, in this process
+or as Ray tasks, with the same bytes. Only the exposure is order-dependent: it is fixed by the first
+sequence's frame 0, whose first polarimetric view this process renders before the units are submitted
+(:func:`polarface.simulate.frames.frame_exposure`).
 Units in other processes read the scene this process built from ``SIM_DIR/.scene.pkl``
 (:data:`SCENE_FILE`, removed when the run ends) instead of building it again.
 ``simulation.json`` records the executor and, per frame, the seconds it took and where it ran.
@@ -35,9 +36,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 import resource
-import socket
 import time
 from pathlib import Path
 from typing import Any
@@ -55,19 +54,18 @@ from polarface.render.subsurface import SubsurfaceModel
 from polarface.simulate.analyzers import SimulatedAnalyzers
 from polarface.simulate.frames import (
     SimulationFrameUnit,
-    exposure_from,
     frame_counts,
+    frame_exposure,
     render_frame,
     run_simulation_unit,
     shared_scene,
     with_exposure,
-    write_frame,
     write_scene_file,
 )
 from polarface.simulate.ground_truth import AppearanceMaps, build_appearance_maps
 from polarface.simulate.ground_truth_store import ObservationWriter, write_static_ground_truth
 from polarface.simulate.presets import SimulationPreset, get_preset, get_skin_type
-from polarface.simulate.sequences import FRAME_RATE_HZ, chromophore_maps, sequence_frame, static_poses
+from polarface.simulate.sequences import FRAME_RATE_HZ, chromophore_maps, static_poses
 
 __all__ = ["SimulationConfig", "SimulationScene", "render_frame", "simulate"]
 
@@ -265,10 +263,8 @@ def simulate(
     scene_file = None if isinstance(executor, LocalExecutor) else write_scene_file(out / SCENE_FILE, scene)
     try:
         with shared_scene(scene):
-            for sequence in config.sequences:
-                seq_started = time.perf_counter()
-                _simulate_sequence(scene, out, sequence, writer, executor, placements, progress, scene_file)
-                timings[f"{sequence}_s"] = time.perf_counter() - seq_started
+            _simulate_frames(scene, out, config.sequences, writer, executor, placements, progress, scene_file,
+                             timings)
     finally:
         if scene_file is not None:
             scene_file.unlink(missing_ok=True)
@@ -285,66 +281,69 @@ def simulate(
     return summary
 
 
-def _simulate_sequence(scene: SimulationScene, out: Path, sequence: str, writer: ObservationWriter,
-                       executor: Executor, placements: dict[str, Any], progress: bool,
-                       scene_file: Path | None = None) -> None:
-    """Every frame of ``sequence`` not done yet (:func:`_frame_done`): the exposure frame in this process
-    when the exposure is not known yet, the others as units; then the store is finalized. Records each
-    frame's placement in ``placements`` (``"SEQUENCE/INDEX"``).
+def _simulate_frames(scene: SimulationScene, out: Path, sequences: tuple[str, ...], writer: ObservationWriter,
+                     executor: Executor, placements: dict[str, Any], progress: bool,
+                     scene_file: Path | None, timings: dict[str, float]) -> None:
+    """Every frame of ``sequences`` not done yet (:func:`_frame_done`) as one queue of units, so no worker
+    waits at the end of a sequence; then the stores are finalized. The exposure, when no store records it
+    yet, is fixed first in this process (:func:`frame_exposure` of the first sequence's first frame).
+    Records each frame's placement in ``placements`` (``"SEQUENCE/INDEX"``) and adds ``exposure_s``,
+    ``frames_s`` and ``finalize_s`` to ``timings``.
 
     Raises:
-        ValueError: naming the frames whose units failed.
+        ValueError: naming the frames whose units failed (the stores of the other sequences are finalized).
     """
-    count = frame_counts(scene)[sequence]
-    store: CaptureStore | None = None
-    if (out / sequence / "rig.json").exists():
-        store = CaptureStore.create(out / sequence, Rig.load(out / sequence / "rig.json"), sequence=sequence)
-        scene.rig = store.rig
-        scene.exposure = float(store.rig.cameras[0].exposure)
-    pending = [i for i in range(count) if not _frame_done(out, store, writer, sequence, i)]
-    bar = tqdm(total=count, initial=count - len(pending), desc=f"simulate {sequence}", unit="frame",
-               disable=not progress)
+    counts = frame_counts(scene)
+    stores: dict[str, CaptureStore] = {}
+    for sequence in sequences:
+        if (out / sequence / "rig.json").exists():
+            rig = Rig.load(out / sequence / "rig.json")
+            store = stores[sequence] = CaptureStore.create(out / sequence, rig, sequence=sequence)
+            scene.rig = store.rig
+            scene.exposure = float(store.rig.cameras[0].exposure)
+    pending = [(sequence, index) for sequence in sequences for index in range(counts[sequence])
+               if not _frame_done(out, stores.get(sequence), writer, sequence, index)]
+    started = time.perf_counter()
     if pending and scene.exposure is None:  # the first frame fixes the exposure of the whole capture
-        frame_started = time.perf_counter()
-        index, time_s, mesh, maps, subsurface = sequence_frame(scene, sequence, pending.pop(0))
-        stages = {"frame_state_s": time.perf_counter() - frame_started}
-        frame = render_frame(scene, mesh, maps, subsurface, stages)
-        scene.exposure = exposure_from(frame, scene)
+        scene.exposure = frame_exposure(scene, *pending[0])
         scene.rig = with_exposure(scene.rig, scene.exposure)
-        store = CaptureStore.create(out / sequence, scene.rig, sequence=sequence)
-        store.reserve_frames(count)
-        write_frame(scene, out, sequence, index, time_s, mesh, maps, frame, stages)
-        store.write_manifest()
-        writer.mark_done(sequence, index)
-        placements[f"{sequence}/{index}"] = {**UnitOutcome(
-            index, seconds=time.perf_counter() - frame_started, host=socket.gethostname(), pid=os.getpid()
-        ).placement(), **stages}
-        bar.update(1)
-    if store is None:
-        store = CaptureStore.create(out / sequence, scene.rig, sequence=sequence)
-    store.reserve_frames(count)
-    failed: dict[int, str] = {}
+    timings["exposure_s"] = time.perf_counter() - started
+    for sequence in sequences:
+        if sequence not in stores:
+            stores[sequence] = CaptureStore.create(out / sequence, scene.rig, sequence=sequence)
+        stores[sequence].reserve_frames(counts[sequence])
+    total = sum(counts[sequence] for sequence in sequences)
+    bar = tqdm(total=total, initial=total - len(pending), desc="simulate", unit="frame", disable=not progress)
+    failed: dict[tuple[str, int], str] = {}
 
     def done(outcome: UnitOutcome) -> None:
         unit = outcome.unit
-        placements[f"{sequence}/{unit.index}"] = {**outcome.placement(), **(outcome.value or {})}
+        placements[f"{unit.sequence}/{unit.index}"] = {**outcome.placement(), **(outcome.value or {})}
         if outcome.ok:
-            store.write_manifest()
-            writer.mark_done(sequence, unit.index)
+            stores[unit.sequence].write_manifest()
+            writer.mark_done(unit.sequence, unit.index)
         else:
-            failed[unit.index] = outcome.error
+            failed[unit.sequence, unit.index] = outcome.error
         bar.update(1)
 
-    units = [SimulationFrameUnit(out, scene.config, sequence, index, scene_file) for index in pending]
+    started = time.perf_counter()
+    units = [SimulationFrameUnit(out, scene.config, sequence, index, scene_file)
+             for sequence, index in pending]
     try:
         executor.map_units(run_simulation_unit, units, on_done=done)
     finally:
         bar.close()
+    timings["frames_s"] = time.perf_counter() - started
+    started = time.perf_counter()
+    for sequence in sequences:
+        if not any(key[0] == sequence for key in failed):
+            stores[sequence].finalize()
+    timings["finalize_s"] = time.perf_counter() - started
     if failed:
-        reasons = "; ".join(f"frame {index}: {reason}" for index, reason in sorted(failed.items()))
-        raise ValueError(f"simulate '{out}': {len(failed)} {sequence} frame(s) failed: {reasons}; the other "
-                         "frames are kept, rerun to continue")
-    store.finalize()
+        reasons = "; ".join(f"{sequence} frame {index}: {reason}"
+                            for (sequence, index), reason in sorted(failed.items()))
+        raise ValueError(f"simulate '{out}': {len(failed)} frame(s) failed: {reasons}; the other frames are "
+                         "kept, rerun to continue")
 
 
 def _frame_done(out: Path, store: CaptureStore | None, writer: ObservationWriter, sequence: str,
