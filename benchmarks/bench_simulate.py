@@ -105,6 +105,7 @@ def main() -> None:
         preset = get_preset(args.preset)
         static_frames = args.static_frames or preset.static_frames
         timings = summary["timings"]
+        split = frame_split(summary)
         report = {
             "preset": args.preset,
             "static_frames": static_frames,
@@ -114,10 +115,11 @@ def main() -> None:
             "cpu_s": round(cpu, 1),
             "load_average_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
             "setup_s": round(timings["setup_s"], 1),
-            "s_per_static_frame": round(timings.get("static_s", 0.0) / static_frames, 2),
-            "s_per_dynamic_frame": round(timings.get("dynamic_s", 0.0) / max(preset.dynamic_frames, 1), 2),
+            "exposure_s": round(timings.get("exposure_s", 0.0), 1),
+            "s_per_static_frame": split.get("static", {}).get("frame_s"),
+            "s_per_dynamic_frame": split.get("dynamic", {}).get("frame_s"),
             "peak_rss_mb": round(summary["peak_rss_mb"], 0),
-            "per_frame_split_s": frame_split(summary),
+            "per_frame_split_s": split,
         }
         print(json.dumps(report, indent=2))
         if args.figure:

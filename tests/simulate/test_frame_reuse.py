@@ -9,6 +9,7 @@ import torch
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import reposition
 from polarface.render.subsurface import SubsurfaceModel
+from polarface.simulate.frames import exposure_from, frame_exposure, render_frame
 from polarface.simulate.ground_truth_store import texel_visibility
 from polarface.simulate.pipeline import SimulationConfig, SimulationScene
 from polarface.simulate.sequences import chromophore_maps, sequence_frame
@@ -80,3 +81,16 @@ def test_units_read_the_submitting_process_scene_instead_of_building_it(scene, t
     assert frames.scene_for(other, path) == "built" and built == [other]
     monkeypatch.setattr(frames, "_SCENES", {})
     assert frames.scene_for(scene.config, tmp_path / "missing.pkl") == "built"
+
+
+def test_exposure_from_one_view_equals_the_full_frame(scene):
+    """The submitting process fixes the exposure from frame 0's first polarimetric view alone: the same
+    pixels, hence the same exposure, as the frame's full render of every camera."""
+    _, _, mesh, maps, subsurface = sequence_frame(scene, "static", 0)
+    full = render_frame(scene, mesh, maps, subsurface)
+    first = scene.rig.polarimetric_cameras()[0].id
+    one = render_frame(scene, mesh, maps, subsurface, cameras=(first,))
+    assert list(one.views) == [first] and len(full.views) == len(scene.rig.cameras)
+    for name, image in full.views[first].images.items():
+        np.testing.assert_array_equal(one.views[first].images[name], image)
+    assert frame_exposure(scene, "static", 0) == exposure_from(full, scene)

@@ -9,8 +9,9 @@
      -> DIR/result (geometry/, tracking/, frames/, maps as EXR, previews, report.html); the simulator's
      geometry is used only by the evaluation
   3. evaluation: errors against the simulator's ground truth -> DIR/metrics.json, figures (the
-     geometry error heat map) -> DIR/figures/; then every export format (``polarface export``) ->
-     DIR/result/exports (the Mitsuba scene, the glTF and its offline 3D viewer page, USD, kernels)
+     geometry error heat map) -> DIR/figures/; beside it (on the workers, when there are two cores or
+     more), every export format (``polarface export``) -> DIR/result/exports (the Mitsuba scene, the
+     glTF and its offline 3D viewer page, USD, kernels)
   4. DIR/index.html: a landing page linking the report, the metrics and the simulated frames, with the
      metrics as a table of value, target and pass, and per parameter the ground truth, the
      reconstruction and the error side by side (DIR/comparison/*.png; frame previews in DIR/frames/).
