@@ -35,7 +35,7 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -101,7 +101,7 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
 class _DemoTail:
     """The evaluation or the export of a finished demo folder ``out``, as an executor unit."""
 
-    step: str
+    step: Literal["evaluate", "export"]
     out: Path
 
 
