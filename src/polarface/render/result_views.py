@@ -229,7 +229,6 @@ def _mueller_preview(path: Path, mueller: np.ndarray, mask: np.ndarray) -> None:
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-
     m00 = mueller[..., 0, 0]
     scale = max(float(np.percentile(m00[mask], 99)), 1e-12) if mask.any() else 1.0
     fig, axes = plt.subplots(3, 3, figsize=(9, 9), dpi=100)
@@ -258,7 +257,6 @@ def _strip_profile(path: Path, rgb: np.ndarray, mask: np.ndarray) -> None:
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
-
 
     rows = np.nonzero(mask.any(axis=1))[0]
     row = int(rows[len(rows) // 2]) if rows.size else rgb.shape[0] // 2

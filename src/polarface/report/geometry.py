@@ -63,8 +63,7 @@ def _residual_plot(path: Path, summary: dict[str, Any]) -> None:
     ax.set_title("registration residuals against the model (red: rejected frames)")
     ax.legend()
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_figure_png(path, fig)
+    write_figure_png(path, fig)  # atomically, the folder made if missing
 
 
 def write_geometry_report(out: Path, summary: dict[str, Any], mesh: TriangleMesh, poses: np.ndarray,

@@ -94,7 +94,6 @@ def _add_loss_section(page: HtmlPage, folder: ResultFolder) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-
     figure, axes = plt.subplots(figsize=(5, 3))
     axes.semilogy(np.arange(len(curve)), np.maximum(curve, 1e-12))
     axes.set_xlabel("iteration (per patch)")
