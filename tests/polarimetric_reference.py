@@ -14,9 +14,10 @@ import numpy as np
 import torch
 
 from polarface.inverse.polarimetric import PolarimetricConfig, initial_raw
-from polarface.inverse.polarimetric.fit import _patch_side, _to_maps, haloed_slices, torch_fit_settings
+from polarface.inverse.polarimetric.fit import _to_maps, haloed_slices, torch_fit_settings
 from polarface.inverse.polarimetric.init import apply_closed_form_starts
 from polarface.inverse.polarimetric.optimise import optimise_patch
+from polarface.inverse.polarimetric.patch_units import patch_side
 from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
 from polarface.texture import UnwrapStore
 
@@ -56,7 +57,7 @@ def row_major_fit(unwrap: UnwrapStore, config: PolarimetricConfig
     views = unwrap.views
     fitting = [i for i, v in enumerate(views) if not v.held_out]
     scale = unwrap.mean_i_sss(fitting)
-    patches = list(unwrap.patches(_patch_side(unwrap, config, fitting)))
+    patches = list(unwrap.patches(patch_side(unwrap.visible_count(), config)))
     raw = initial_raw(unwrap.resolution, config)
     initialised = np.zeros(unwrap.resolution, bool)
     curve: list[float] = []

@@ -73,3 +73,24 @@ def test_a_region_read_again_decodes_nothing_and_the_cache_stays_within_its_boun
 def test_a_cache_on_a_writable_store_is_refused(unwrap_path):
     with pytest.raises(ValueError, match="cache_bytes"):
         UnwrapStore.open(unwrap_path, mode="a", cache_bytes=1 << 20)
+
+
+@pytest.mark.parametrize("cache_bytes", [0, 1 << 30])
+@pytest.mark.parametrize("views", [None, [0, 2, 5], [5, 1]])
+def test_reads_equal_zarrs_own_reads(unwrap_path, views, cache_bytes):
+    """A local store's regions are decoded from its chunk files directly (io/zarr_chunks.py), with or
+    without the cache: the same arrays as zarr's own reads, and the same view counts."""
+    store = UnwrapStore.open(unwrap_path, cache_bytes=cache_bytes)
+    assert store._assembled("obs") and store._array("lit")[1] is not None  # the direct path is taken
+    chosen = np.arange(len(store.views)) if views is None else np.asarray(views)
+    for rows, cols in REGIONS:
+        for name, got in zip(("obs", "valid", "lit"), store.read(rows, cols, views), strict=True):
+            expected = np.asarray(store.root[name].get_orthogonal_selection((chosen, rows, cols)))
+            assert got.dtype == expected.dtype and np.array_equal(got, expected), (name, rows, cols)
+        geometry = store.geometry(rows, cols)
+        for field in dataclasses.fields(TexelGeometry):
+            expected = np.asarray(store.root[f"texel/{field.name}"][rows, cols])
+            assert np.array_equal(getattr(geometry, field.name), expected), field.name
+    fitting = [i for i, view in enumerate(store.views) if not view.held_out]
+    expected_count = np.asarray(store.root["valid"].get_orthogonal_selection((np.asarray(fitting),))).sum(0)
+    assert np.array_equal(store.visible_count(), expected_count)

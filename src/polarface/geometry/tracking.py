@@ -73,6 +73,7 @@ from __future__ import annotations
 import dataclasses
 import numbers
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -303,9 +304,9 @@ def track_mesh(
         reference: the reference mesh placed at ``frames[0]`` (rig world, mm): its vertices are the
             positions at ``frames[0]``, which is the first anchor.
         cameras: camera id -> calibrated camera (rig world, mm); frames may hold images of a subset.
-        load_frame: frame index -> :class:`TrackingFrame`; called once or twice per frame, in order.
-        frames: capture frame indices, processed in order.
-        config: :class:`TrackingConfig`.
+        load_frame: frame index -> :class:`TrackingFrame`; called once per frame, in order, one frame
+            ahead of the tracking and from another thread (it overlaps the frame before).
+        frames: capture frame indices, processed in order. config: :class:`TrackingConfig`.
         progress: show a tqdm bar.
 
     Returns:
@@ -316,26 +317,38 @@ def track_mesh(
         ValueError: on empty or repeated ``frames``, no cameras, unknown camera ids or wrongly shaped
             images in a frame, or when no reference vertex is visible in ``frames[0]``'s images.
     """
-    from tqdm import tqdm
-
     indices = _check_inputs(reference, cameras, frames)
     propagate = Propagator(reference, cameras, config)
-    graph = MeshGraph(reference)
-    rest = reference.vertices.copy()
-    first = _prepare(load_frame(indices[0]), indices[0], cameras, config)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="track-load") as loader:
+        return _track(propagate, lambda index: _prepare(load_frame(index), index, cameras, config), indices,
+                      loader, progress)
+
+
+def _track(propagate: Propagator, prepared: Callable[[int], PreparedFrame], indices: list[int],
+           loader: ThreadPoolExecutor, progress: bool) -> TrackedSequence:
+    """:func:`track_mesh`'s loop; ``prepared(index)`` loads and prepares a frame, run by ``loader`` one
+    frame ahead (reading images and the surface overlaps the flows of the frame before)."""
+    from tqdm import tqdm
+
+    config = propagate.config
+    graph = MeshGraph(propagate.reference)
+    rest = propagate.reference.vertices.copy()
+    first = prepared(indices[0])
+    upcoming = loader.submit(prepared, indices[1]) if len(indices) > 1 else None
     visibility = propagate.visible_from(first.index, rest, sorted(first.images))
     visible_first = np.any([weight > 0 for _, weight in visibility.values()], axis=0)
     if not visible_first.any():
         raise ValueError(f"argument 'reference': no vertex is visible in the images of frame {indices[0]}")
     samples = {c: pixels[weight > 0] for c, (pixels, weight) in visibility.items()}
-    vertices = np.empty((len(indices), len(rest), 3))
-    confidence = np.zeros((len(indices), len(rest)), np.float32)
+    count = (len(indices), len(rest))
+    vertices, confidence = np.empty((*count, 3)), np.zeros(count, np.float32)
     vertices[0], confidence[0] = rest, 1.0
     anchors, failed = [indices[0]], {}
     last_good, anchor = (first, rest), (first, rest)
     use_anchors = config.anchor_similarity is not None
     for i, index in enumerate(tqdm(indices[1:], desc="track", unit="frame", disable=not progress), start=1):
-        frame = _prepare(load_frame(index), index, cameras, config)
+        frame = upcoming.result()
+        upcoming = loader.submit(prepared, indices[i + 1]) if i + 1 < len(indices) else None
         vertices[i] = last_good[1]
         if frame.surface is None:
             failed[index] = f"frame {index}: no surface (no stereo geometry)"

@@ -47,6 +47,7 @@ import numpy as np
 from polarface.capture.observations import OBSERVATION_NAMES
 from polarface.geometry.uv_raster import UVRaster
 from polarface.io.storage import PathOrUrl, open_zarr_group, storage_path
+from polarface.io.zarr_chunks import LocalChunkReader
 from polarface.texture.views import ViewSpec
 
 __all__ = ["TEXTURE_OBSERVATION_NAMES", "TexelGeometry", "UnwrapStore", "texel_geometry"]
@@ -231,8 +232,8 @@ class UnwrapStore:
 
     def geometry(self, rows: slice = slice(None), cols: slice = slice(None)) -> TexelGeometry:
         names = [f.name for f in dataclasses.fields(TexelGeometry)]
-        if self._cache is not None:
-            return TexelGeometry(*(self._cached_region(f"texel/{n}", rows, cols, None) for n in names))
+        if self._assembled("texel/position"):
+            return TexelGeometry(*(self._region(f"texel/{n}", rows, cols, None) for n in names))
         return TexelGeometry(*(np.asarray(self.root[f"texel/{n}"][rows, cols]) for n in names))
 
     # ----------------------------------------------------------------------------- data
@@ -261,9 +262,9 @@ class UnwrapStore:
                 np.zeros((0, height, width), bool),
                 np.zeros((0, height, width, light_count), bool),
             )
-        if self._cache is not None:
+        if self._assembled("obs"):
             chosen = np.arange(len(self.views)) if views is None else selection
-            return tuple(self._cached_region(name, rows, cols, chosen) for name in ("obs", "valid", "lit"))
+            return tuple(self._region(name, rows, cols, chosen) for name in ("obs", "valid", "lit"))
         if views is None:
             return (
                 np.asarray(self.root["obs"][:, rows, cols]),
@@ -276,15 +277,23 @@ class UnwrapStore:
         return obs, valid, lit
 
     def _array(self, name: str):
-        """The zarr array ``name`` (opened once per store object)."""
+        """The zarr array ``name`` and its :class:`LocalChunkReader` (None: read through zarr), opened
+        once per store object."""
         if name not in self._arrays:
-            self._arrays[name] = self.root[name]
+            array = self.root[name]
+            self._arrays[name] = (array, LocalChunkReader.for_array(array))
         return self._arrays[name]
 
-    def _cached_region(self, name: str, rows: slice, cols: slice, views: np.ndarray | None) -> np.ndarray:
+    def _assembled(self, name: str) -> bool:
+        """Whether regions of ``name`` are assembled from whole chunks (:meth:`_region`): through the
+        chunk cache, or decoded directly from a local store's chunk files (module docstring)."""
+        return self._cache is not None or self._array(name)[1] is not None
+
+    def _region(self, name: str, rows: slice, cols: slice, views: np.ndarray | None) -> np.ndarray:
         """``array[views, rows, cols]`` (``views`` None: an array without a view axis) assembled from
-        cached decoded chunks; the chunks not held are read, per chunk position, in one call."""
-        array = self._array(name)
+        decoded chunks (cached ones where the store has a cache); the chunks not held are decoded
+        directly or read through zarr, per chunk position, in one call."""
+        array = self._array(name)[0]
         height, width = self.resolution
         r0, r1, _ = rows.indices(height)
         c0, c1, _ = cols.indices(width)
@@ -309,17 +318,24 @@ class UnwrapStore:
 
     def _chunk_blocks(self, array, name: str, ids: list, i: int, j: int) -> list[np.ndarray]:
         """The decoded chunk ``(i, j)`` of ``array`` for each view of ``ids`` (``[None]``: no view axis),
-        from the cache, the missing ones read in one call and cached."""
-        cache = self._cache
+        clipped to the array: from the cache (if any), the missing ones decoded directly or read through
+        zarr in one call, and cached."""
+        cache, reader = self._cache, self._array(name)[1]
         keys = [(name, v, i, j) for v in ids]
-        blocks = [cache.get(key) for key in keys]
+        blocks = [cache.get(key) for key in keys] if cache is not None else [None] * len(keys)
         missing = [index for index, block in enumerate(blocks) if block is None]
         if missing:
-            height, width = array.shape[(0 if ids[0] is None else 1) : (2 if ids[0] is None else 3)]
-            chunk_h, chunk_w = array.chunks[(0 if ids[0] is None else 1) : (2 if ids[0] is None else 3)]
+            lead = 0 if ids[0] is None else 1
+            height, width = array.shape[lead : lead + 2]
+            chunk_h, chunk_w = array.chunks[lead : lead + 2]
             window = (slice(i * chunk_h, min((i + 1) * chunk_h, height)),
                       slice(j * chunk_w, min((j + 1) * chunk_w, width)))  # fmt: skip
-            if ids[0] is None:
+            if reader is not None:
+                inner = (0,) * (array.ndim - lead - 2)
+                clip = tuple(slice(0, part.stop - part.start) for part in window)
+                read = [reader.read((i, j, *inner))[clip] if ids[index] is None
+                        else reader.read((ids[index], i, j, *inner))[0][clip] for index in missing]
+            elif ids[0] is None:
                 read = [np.asarray(array[window])]
             else:
                 selection = (np.array([ids[index] for index in missing], dtype=np.int64), *window)
@@ -328,7 +344,8 @@ class UnwrapStore:
                 block = np.ascontiguousarray(block)
                 block.flags.writeable = False
                 blocks[index] = block
-                cache.put(keys[index], block)
+                if cache is not None:
+                    cache.put(keys[index], block)
         return blocks
 
     def patches(self, patch: int | None = None) -> Iterator[tuple[slice, slice]]:
@@ -353,6 +370,9 @@ class UnwrapStore:
         """``(Ht, Wt)`` number of fitting (not held-out) views that see each texel."""
         fitting = [i for i, v in enumerate(self.views) if not v.held_out]
         total = np.zeros(self.resolution, np.int32)
+        whole = slice(None)
         for i in fitting:
-            total += np.asarray(self.root["valid"][i]).astype(np.int32)
+            valid = self._region("valid", whole, whole, np.array([i])) if self._assembled("valid") else \
+                np.asarray(self.root["valid"][i])[None]  # fmt: skip
+            total += valid[0]
         return total

@@ -50,12 +50,12 @@ from polarface.inverse.polarimetric.engines import PolarimetricEngine, resolve_e
 from polarface.inverse.polarimetric.fit import (
     PolarimetricFit,
     _coverage,
-    _patch_side,
     _to_maps,
     haloed_slices,
     torch_fit_settings,
 )
 from polarface.inverse.polarimetric.optimise import learning_rate_schedule, optimise_patch
+from polarface.inverse.polarimetric.patch_units import patch_side
 from polarface.inverse.polarimetric.problem import (
     PatchProblem,
     build_patch_fused_samples,
@@ -349,9 +349,10 @@ def _fit_frame(
     scale = unwrap.mean_i_sss(fitting)
     if not scale > 0:
         raise ValueError("argument 'unwrap': no texel is visible in any fitting view")
-    mask_seen, view_count = _coverage(unwrap, config)
+    counts = unwrap.visible_count()
+    mask_seen, view_count = _coverage(unwrap, counts, config)
     state = _FrameState(_raw_maps(start, config), _raw_maps(static, config))
-    grid = list(unwrap.patches(_patch_side(unwrap, config, fitting)))
+    grid = list(unwrap.patches(patch_side(counts, config)))
     patches = frame_patches(grid, view_count > 0, seen_margin)
     atlas = np.asarray(unwrap.root["texel/mask"][...])
     for (rows, cols), patch in tqdm(patches, desc="dynamic fit", unit="patch", disable=not progress):

@@ -31,16 +31,17 @@ The patches are the units of an executor (:mod:`polarface.executors`; in this pr
 Ray tasks): :mod:`polarface.inverse.polarimetric.patch_units` orders them as a wavefront over the patch
 grid, and each patch runs once its earlier neighbours are done, so that patches run in parallel and the
 maps are, bit for bit, those of fitting the patches one after the other in row-major order. The
-checkpoint is rewritten after every patch, so an interrupted run resumes from the patches done to
-identical maps.
+checkpoint is rewritten after every patch (by a thread of its own, while the next patches run), so an
+interrupted run resumes from the patches done to identical maps.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
+import copy
 import dataclasses
 import json
 import logging
-import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -59,6 +60,7 @@ from polarface.inverse.polarimetric.patch_units import (
     PatchUnit,
     haloed_slices,
     patch_fronts,
+    patch_side,
     patch_waits,
     run_patch_unit,
     shared_unwrap,
@@ -101,16 +103,6 @@ class PolarimetricFit:
     view_count: np.ndarray | None = None
     units: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     fronts: list[list[int]] = dataclasses.field(default_factory=list)
-
-
-def _patch_side(unwrap: UnwrapStore, config: PolarimetricConfig, fitting: list[int]) -> int:
-    counts = np.zeros(unwrap.resolution, np.float64)
-    for i in fitting:
-        counts += np.asarray(unwrap.root["valid"][i])
-    seen = counts[counts > 0]
-    per_texel = float(seen.mean()) if seen.size else 1.0
-    side = int(math.sqrt(config.sample_budget / max(per_texel, 1.0))) - 2 * config.halo
-    return int(max(8, min(config.patch, side)))
 
 
 def fit_polarimetric(
@@ -250,6 +242,10 @@ class _FitState:
                 self.curve[step] += value
             self.folded += 1
 
+    def snapshot(self) -> _FitState:
+        """A copy that later patches do not change (what a checkpoint written in the background holds)."""
+        return copy.deepcopy(self)
+
     def save(self, checkpoint: Path, side: int, resolution: tuple[int, int]) -> None:
         """Write the state to ``checkpoint`` (``.npz``) atomically."""
         from polarface.io import atomic_path
@@ -309,10 +305,11 @@ class _Tally:
             self.seen[rows, cols] |= result.seen
 
 
-def _coverage(unwrap: UnwrapStore, config: PolarimetricConfig) -> tuple[np.ndarray, np.ndarray]:
-    """``(mask, view_count)`` of :class:`PolarimetricFit` from the store (it also counts the texels of
-    patches fitted before a resume)."""
-    view_count = unwrap.visible_count() * np.asarray(unwrap.root["texel/mask"][...])
+def _coverage(unwrap: UnwrapStore, counts: np.ndarray, config: PolarimetricConfig
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """``(mask, view_count)`` of :class:`PolarimetricFit` from the store's ``counts``
+    (:meth:`UnwrapStore.visible_count`; so it also counts the texels of patches fitted before a resume)."""
+    view_count = counts * np.asarray(unwrap.root["texel/mask"][...])
     if not view_count.any():
         raise ValueError("no texel is visible in any fitting view (all-invisible texels)")
     mask_seen = view_count >= int(config.min_views)
@@ -370,7 +367,8 @@ def _fit(
     torch.manual_seed(config.seed)
     scale = _checked_scale(unwrap)
     started = time.perf_counter()
-    side = _patch_side(unwrap, config, [i for i, v in enumerate(unwrap.views) if not v.held_out])
+    counts = unwrap.visible_count()
+    side = patch_side(counts, config)
     patches = list(unwrap.patches(side))
     fronts = patch_fronts(patches, side, config.halo)
     ckpt = Path(checkpoint) if checkpoint is not None else None
@@ -390,8 +388,8 @@ def _fit(
         state.apply(outcome.value, rows, cols, config.halo)
         tally.add(outcome.value, rows, cols, config.iterations)
         state.units[str(index)] = outcome.placement()
-        if ckpt is not None:
-            state.save(ckpt, side, unwrap.resolution)
+        if ckpt is not None:  # written by the saver thread while the workers go on with the next patches
+            saves.append(saver.submit(state.snapshot().save, ckpt, side, unwrap.resolution))
         bar.update(1)
         if on_patch is not None:
             on_patch(len(state.done), len(patches))
@@ -404,12 +402,17 @@ def _fit(
     position = {index: k for k, index in enumerate(todo)}
     waits = patch_waits(patches, side, config.halo)
     after = [[position[w] for w in waits[index] if w in position] for index in todo]
+    saves: list[concurrent.futures.Future] = []
     try:
-        executor.map_dependent(run_patch_unit, len(todo),
-                               lambda k: options.unit(todo[k], *patches[todo[k]], scale, state), after,
-                               failures=(), on_done=done)
+        # one saver thread writes the checkpoints in order; leaving the block waits for the last one
+        with concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="checkpoint") as saver:
+            executor.map_dependent(run_patch_unit, len(todo),
+                                   lambda k: options.unit(todo[k], *patches[todo[k]], scale, state), after,
+                                   failures=(), on_done=done)
     finally:
         bar.close()
+    for save in saves:
+        save.result()  # a checkpoint that could not be written fails the fit
     if failed:
         raise _lost_patch_error(failed, patches, len(state.done), ckpt)
     if len(state.done) < len(patches):  # stopped after stop_after_patches
@@ -417,7 +420,7 @@ def _fit(
             _to_maps(state.raw, config), tally.seen, state.curve, {}, 0.0, tally.samples,
             len(patches), complete=False, units=state.units, fronts=fronts,
         )  # fmt: skip
-    mask_seen, view_count = _coverage(unwrap, config)
+    mask_seen, view_count = _coverage(unwrap, counts, config)
     curve_mean = [v / max(len(patches), 1) for v in state.curve]
     timings = {
         "fit_s": time.perf_counter() - started, "optimise_s": tally.optimise_s, "refine_s": tally.refine_s,

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import os
 import time
 from collections.abc import Iterator, Sequence
@@ -63,6 +64,7 @@ __all__ = [
     "PatchUnit",
     "haloed_slices",
     "patch_fronts",
+    "patch_side",
     "patch_waits",
     "run_patch_unit",
     "shared_unwrap",
@@ -141,6 +143,15 @@ def _grid_cells(patches: Sequence[tuple[slice, slice]], side: int, halo: int) ->
             raise ValueError(f"argument 'patches': patch {index} ({rows}, {cols}) is not on the {side} grid")
         cells.append((rows.start // side, cols.start // side))
     return cells
+
+
+def patch_side(counts: np.ndarray, config: PolarimetricConfig) -> int:
+    """The patch side that holds about ``config.sample_budget`` samples with its halo, for ``counts``
+    ``(Ht, Wt)`` fitting views per texel (:meth:`UnwrapStore.visible_count`)."""
+    seen = counts[counts > 0]
+    per_texel = float(seen.mean()) if seen.size else 1.0
+    side = int(math.sqrt(config.sample_budget / max(per_texel, 1.0))) - 2 * config.halo
+    return int(max(8, min(config.patch, side)))
 
 
 def patch_fronts(patches: Sequence[tuple[slice, slice]], side: int, halo: int) -> list[list[int]]:
