@@ -2,7 +2,7 @@
 
 zarr v3 reads every chunk through its asynchronous codec pipeline. For the small chunks of the unwrap
 store (``(1, 64, 64, 3, 3)`` float32, 147 kB decoded) that costs about 0.6 ms per chunk on a 2-core
-laptop-class CPU, of which zstd's decoding is 0.14 ms (docs/performance.md, "Latest round"). A haloed
+laptop-class CPU, of which zstd's decoding is 0.14 ms (docs/performance.md, "Removed waste"). A haloed
 texture patch reads hundreds of such chunks. :class:`LocalChunkReader` reads a chunk's file and decodes
 it itself, for the one layout where that is exactly what zarr does: a local folder (zarr's
 ``LocalStore``), a regular chunk grid, no sharding, and the codecs ``bytes`` (little-endian or none)
