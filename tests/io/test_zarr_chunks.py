@@ -1,6 +1,8 @@
-"""Direct chunk reads of local zarr v3 arrays (io/zarr_chunks.py): every chunk equals zarr's own read of
-it (chunks straddling the array's edge, chunks never written, float and bool arrays), and arrays whose
-store or codecs are another layout are refused (read through zarr)."""
+"""Direct chunk reads and writes of local zarr v3 arrays (io/zarr_chunks.py): every chunk read equals
+zarr's own read of it (chunks straddling the array's edge, chunks never written, float and bool arrays),
+chunks written read back through zarr (edge chunks, chunks of fill values only left out as zarr leaves
+them out, unless the array writes empty chunks), bad chunks are refused, and arrays whose store or codecs
+are another layout are refused (read and written through zarr)."""
 
 from __future__ import annotations
 
@@ -11,10 +13,10 @@ import pytest
 import zarr
 from zarr.codecs import BloscCodec, BytesCodec, GzipCodec, ZstdCodec
 
-from polarface.io.zarr_chunks import LocalChunkReader
+from polarface.io.zarr_chunks import LocalChunks
 
 
-def _chunks_equal_zarrs(array, reader: LocalChunkReader) -> None:
+def _chunks_equal_zarrs(array, reader: LocalChunks) -> None:
     grid = [range(-(-size // chunk)) for size, chunk in zip(array.shape, array.chunks, strict=True)]
     for coords in itertools.product(*grid):
         window = tuple(slice(c * n, min((c + 1) * n, size))
@@ -38,7 +40,7 @@ def test_float_chunks_equal_zarr_reads(tmp_path, level):
     values[1, :4, :4] = 0.5  # a chunk of fill values only: zarr does not write it
     array[...] = values
     assert not (tmp_path / "a.zarr" / "c" / "1" / "0" / "0" / "0").exists()
-    reader = LocalChunkReader.for_array(array)
+    reader = LocalChunks.for_array(array)
     assert reader is not None
     _chunks_equal_zarrs(array, reader)
 
@@ -48,7 +50,7 @@ def test_bool_chunks_equal_zarr_reads(tmp_path):
                               fill_value=False)
     array[...] = np.random.default_rng(1).random(array.shape) > 0.5
     array[:4, 4:8] = False
-    reader = LocalChunkReader.for_array(array)
+    reader = LocalChunks.for_array(array)
     assert reader is not None
     _chunks_equal_zarrs(array, reader)
 
@@ -67,5 +69,48 @@ def test_other_layouts_are_read_through_zarr(tmp_path, layout):
                                   dtype="float32")
     else:
         array = zarr.create_array(tmp_path / "e.zarr", serializer=BytesCodec(endian="big"), **options)
-    assert LocalChunkReader.for_array(array) is None
-    assert LocalChunkReader.for_array(np.zeros(3)) is None  # not a zarr array
+    assert LocalChunks.for_array(array) is None
+    assert LocalChunks.for_array(np.zeros(3)) is None  # not a zarr array
+
+
+@pytest.mark.parametrize("dtype", ["float32", "bool"])
+def test_written_chunks_read_back_through_zarr(tmp_path, dtype):
+    rng = np.random.default_rng(2)
+    expected = rng.normal(size=(2, 9, 7)).astype(np.float32)
+    expected = (expected > 0) if dtype == "bool" else expected
+    written = zarr.create_array(tmp_path / "w.zarr", shape=expected.shape, chunks=(1, 4, 4), dtype=dtype,
+                                fill_value=0)
+    chunks = LocalChunks.for_array(written)
+    for v, i, j in itertools.product(range(2), range(3), range(2)):
+        chunks.write((v, i, j), expected[v : v + 1, 4 * i : 4 * i + 4, 4 * j : 4 * j + 4])  # edges: less
+    assert np.array_equal(np.asarray(written[...]), expected)
+    reference = zarr.create_array(tmp_path / "r.zarr", shape=expected.shape, chunks=(1, 4, 4), dtype=dtype,
+                                  fill_value=0)
+    reference[...] = expected  # zarr's own chunks: the same files exist, the same values decode
+
+    def files(name: str) -> set:
+        folder = tmp_path / name / "c"
+        return {path.relative_to(folder) for path in folder.rglob("*") if path.is_file()}
+
+    assert files("w.zarr") == files("r.zarr")  # the same chunks written (none of fill values only, no temp)
+
+
+def test_a_chunk_of_fill_values_is_removed_unless_empty_chunks_are_written(tmp_path):
+    for write_empty in (False, True):
+        array = zarr.create_array(tmp_path / f"e{write_empty}.zarr", shape=(4, 4), chunks=(2, 2),
+                                  dtype="float32", fill_value=1.5, config={"write_empty_chunks": write_empty})
+        chunks = LocalChunks.for_array(array)
+        path = tmp_path / f"e{write_empty}.zarr" / "c" / "1" / "0"
+        chunks.write((1, 0), np.zeros((2, 2)))
+        assert path.exists()
+        chunks.write((1, 0), np.full((2, 2), 1.5))
+        assert path.exists() == write_empty
+        assert np.array_equal(np.asarray(array[2:, :2]), np.full((2, 2), 1.5, np.float32))
+
+
+def test_a_chunk_that_does_not_fit_is_refused(tmp_path):
+    array = zarr.create_array(tmp_path / "b.zarr", shape=(4, 4), chunks=(2, 2), dtype="float32")
+    chunks = LocalChunks.for_array(array)
+    for values in (np.zeros((3, 2)), np.zeros((2, 2, 1)), np.zeros(2)):
+        with pytest.raises(ValueError, match="argument 'values' must fit a chunk"):
+            chunks.write((0, 0), values)

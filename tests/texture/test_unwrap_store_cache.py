@@ -94,3 +94,18 @@ def test_reads_equal_zarrs_own_reads(unwrap_path, views, cache_bytes):
     fitting = [i for i, view in enumerate(store.views) if not view.held_out]
     expected_count = np.asarray(store.root["valid"].get_orthogonal_selection((np.asarray(fitting),))).sum(0)
     assert np.array_equal(store.visible_count(), expected_count)
+
+
+def test_a_view_written_directly_reads_back_through_zarr_and_bad_shapes_are_refused(unwrap_path, tmp_path):
+    """write_view on a local store writes each chunk straight to its file (io/zarr_chunks.py): a store
+    written view by view from another store's arrays reads, through zarr, the same arrays."""
+    source = UnwrapStore.open(unwrap_path)
+    copy = UnwrapStore.create(tmp_path / "copy.zarr", source.geometry(), source.views, PATCH)
+    assert copy._array("obs")[1] is not None  # the direct path is taken
+    for index in range(len(source.views)):
+        copy.write_view(index, *(array[0] for array in source.read(slice(None), slice(None), [index])))
+    for name in ("obs", "valid", "lit"):
+        assert np.array_equal(np.asarray(copy.root[name][...]), np.asarray(source.root[name][...])), name
+    obs, valid, lit = source.read(slice(None), slice(None), [0])
+    with pytest.raises(ValueError, match="argument 'lit' must have shape"):
+        copy.write_view(0, obs[0], valid[0], lit[0, :, :, :1])

@@ -30,8 +30,8 @@ bounded by ``N`` whatever the number of views (the hit rate is what falls with m
 fit's wavefront reuses every chunk when the cache holds about four chunk rows of its fitting views,
 :mod:`polarface.inverse.polarimetric.patch_units`). Reads through the cache equal uncached reads.
 In a local folder the chunks are decoded straight from their files
-(:class:`polarface.io.zarr_chunks.LocalChunkReader`, about 4x faster per chunk than zarr's pipeline),
-with or without the cache; on a URL they are read through zarr.
+and a view's chunks are written straight to them (:class:`polarface.io.zarr_chunks.LocalChunks`, about
+4x faster per chunk than zarr's pipeline), with or without the cache; on a URL zarr reads and writes.
 
 Where: a local path or an fsspec URL (``memory://``, ``s3://bucket/key``;
 :func:`polarface.io.storage.storage_path`), opened through zarr's local or fsspec store; each chunk is
@@ -50,7 +50,7 @@ import numpy as np
 from polarface.capture.observations import OBSERVATION_NAMES
 from polarface.geometry.uv_raster import UVRaster
 from polarface.io.storage import PathOrUrl, open_zarr_group, storage_path
-from polarface.io.zarr_chunks import LocalChunkReader
+from polarface.io.zarr_chunks import LocalChunks
 from polarface.texture.views import ViewSpec
 
 __all__ = ["TEXTURE_OBSERVATION_NAMES", "TexelGeometry", "UnwrapStore", "texel_geometry"]
@@ -241,9 +241,27 @@ class UnwrapStore:
 
     # ----------------------------------------------------------------------------- data
     def write_view(self, index: int, obs: np.ndarray, valid: np.ndarray, lit: np.ndarray) -> None:
-        self.root["obs"][index] = obs
-        self.root["valid"][index] = valid
-        self.root["lit"][index] = lit
+        """Write view ``index``'s ``obs (Ht, Wt, 3, 3)``, ``valid (Ht, Wt)`` and ``lit (Ht, Wt, K)``, each
+        chunk in one piece, and record the view as done.
+
+        Raises:
+            ValueError: an array of another shape (naming it).
+        """
+        for name, values in (("obs", obs), ("valid", valid), ("lit", lit)):
+            array, chunks = self._array(name)
+            values = np.asarray(values)
+            if values.shape != tuple(array.shape[1:]):
+                raise ValueError(f"argument '{name}' must have shape {tuple(array.shape[1:])}; "
+                                 f"got {values.shape}")
+            if chunks is None:
+                array[index] = values
+                continue
+            chunk_h, chunk_w = array.chunks[1:3]
+            inner = (0,) * (array.ndim - 3)
+            for i in range(0, values.shape[0], chunk_h):
+                for j in range(0, values.shape[1], chunk_w):
+                    block = values[None, i : i + chunk_h, j : j + chunk_w]
+                    chunks.write((index, i // chunk_h, j // chunk_w, *inner), block)
         stats = dict(self.root.attrs.get("stats", {}))
         stats[str(int(index))] = [float(obs[..., 0, :][valid].sum()), int(valid.sum()) * 3]
         self.root.attrs["stats"] = dict(sorted(stats.items(), key=lambda item: int(item[0])))  # any order
@@ -280,12 +298,12 @@ class UnwrapStore:
         return obs, valid, lit
 
     def _array(self, name: str):
-        """The zarr array ``name`` and its :class:`LocalChunkReader` (None: read through zarr; so are
-        arrays whose chunks hold more than one view), opened once per store object."""
+        """The zarr array ``name`` and its :class:`LocalChunks` (None: read and written through zarr; so
+        are arrays whose chunks hold more than one view), opened once per store object."""
         if name not in self._arrays:
             array = self.root[name]
             one_view = name.startswith("texel/") or array.chunks[0] == 1
-            self._arrays[name] = (array, LocalChunkReader.for_array(array) if one_view else None)
+            self._arrays[name] = (array, LocalChunks.for_array(array) if one_view else None)
         return self._arrays[name]
 
     def _assembled(self, name: str) -> bool:
