@@ -235,9 +235,7 @@ class UnwrapStore:
 
     def geometry(self, rows: slice = slice(None), cols: slice = slice(None)) -> TexelGeometry:
         names = [f.name for f in dataclasses.fields(TexelGeometry)]
-        if self._assembled("texel/position"):
-            return TexelGeometry(*(self._region(f"texel/{n}", rows, cols, None) for n in names))
-        return TexelGeometry(*(np.asarray(self.root[f"texel/{n}"][rows, cols]) for n in names))
+        return TexelGeometry(*(self._read_region(f"texel/{n}", rows, cols, None) for n in names))
 
     # ----------------------------------------------------------------------------- data
     def write_view(self, index: int, obs: np.ndarray, valid: np.ndarray, lit: np.ndarray) -> None:
@@ -283,19 +281,18 @@ class UnwrapStore:
                 np.zeros((0, height, width), bool),
                 np.zeros((0, height, width, light_count), bool),
             )
-        if self._assembled("obs"):
-            chosen = np.arange(len(self.views)) if views is None else selection
-            return tuple(self._region(name, rows, cols, chosen) for name in ("obs", "valid", "lit"))
+        chosen = np.arange(len(self.views)) if views is None else selection
+        return tuple(self._read_region(name, rows, cols, chosen) for name in ("obs", "valid", "lit"))
+
+    def _read_region(self, name: str, rows: slice, cols: slice, views: np.ndarray | None) -> np.ndarray:
+        """``array[views, rows, cols]`` (``views`` None: an array without a view axis): assembled from
+        whole chunks where :meth:`_assembled`, else read through zarr in one call."""
+        if self._assembled(name):
+            return self._region(name, rows, cols, views)
+        array = self._array(name)[0]
         if views is None:
-            return (
-                np.asarray(self.root["obs"][:, rows, cols]),
-                np.asarray(self.root["valid"][:, rows, cols]),
-                np.asarray(self.root["lit"][:, rows, cols]),
-            )
-        obs = np.stack([np.asarray(self.root["obs"][int(v), rows, cols]) for v in selection])
-        valid = np.stack([np.asarray(self.root["valid"][int(v), rows, cols]) for v in selection])
-        lit = np.stack([np.asarray(self.root["lit"][int(v), rows, cols]) for v in selection])
-        return obs, valid, lit
+            return np.asarray(array[rows, cols])
+        return np.asarray(array.get_orthogonal_selection((np.asarray(views, np.int64), rows, cols)))
 
     def _array(self, name: str):
         """The zarr array ``name`` and its :class:`LocalChunks` (None: read and written through zarr; so
@@ -394,7 +391,5 @@ class UnwrapStore:
         total = np.zeros(self.resolution, np.int32)
         whole = slice(None)
         for i in fitting:
-            valid = self._region("valid", whole, whole, np.array([i])) if self._assembled("valid") else \
-                np.asarray(self.root["valid"][i])[None]  # fmt: skip
-            total += valid[0]
+            total += self._read_region("valid", whole, whole, np.array([i]))[0]
         return total
