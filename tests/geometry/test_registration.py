@@ -5,6 +5,7 @@ lazily; registered frames fuse into the model frame."""
 from __future__ import annotations
 
 import math
+import threading
 import weakref
 
 import numpy as np
@@ -145,7 +146,32 @@ def test_clouds_are_loaded_lazily(sweep):
     _, loader, _ = sweep
     counts = np.bincount(loader.calls, minlength=FRAMES)
     assert counts.max() <= 2  # one registration pass, one residual pass
-    assert loader.max_alive <= 2  # the loader's clouds are released (only downsampled copies are held)
+    # the loader's clouds are released (only downsampled copies are held): at most one per walk (the two
+    # walks run in two threads) and one not yet released
+    assert loader.max_alive <= 3
+
+
+def test_walks_run_in_threads_and_enter_the_graph_in_walk_order(head_surface):
+    from tqdm import tqdm
+
+    from polarface.geometry.registration_steps import chain_and_close
+
+    truth = true_poses(count=8)
+    threads = set()
+
+    def load(frame: int) -> PointCloud:
+        threads.add(threading.current_thread().name)
+        return partial_view(head_surface, truth[frame], seed=frame)
+
+    graph, _, reasons, _ = chain_and_close(list(range(8)), load, REFERENCE, RegistrationConfig(),
+                                           tqdm(disable=True))
+    assert not reasons and any(name.startswith("registration-walk") for name in threads)
+    assert list(graph.nodes) == [REFERENCE, 5, 6, 7, 3, 2, 1, 0]
+    odometry = [(source, target) for source, target, *_, uncertain in graph.edges if not uncertain]
+    assert odometry == [(5, 4), (6, 5), (7, 6), (3, 4), (2, 3), (1, 2), (0, 1)]
+    # each frame's loop closures follow its odometry edge, as one walk after the other adds them
+    sources = [source for source, *_ in graph.edges]
+    assert sources == sorted(sources[: sources.index(3)]) + sorted(sources[sources.index(3):], reverse=True)
 
 
 def test_frame_without_overlap_is_rejected_and_the_others_stay_right(head_surface):

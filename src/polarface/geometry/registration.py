@@ -25,9 +25,12 @@ Steps 1-4 are in :mod:`polarface.geometry.registration_steps`, the Open3D ICP, g
 they use in :mod:`polarface.geometry.registration_icp`; this module holds the settings, the results and
 the entry points (:func:`register_sequence`, :func:`register_pair`).
 
+The two walks outwards from the reference (steps 1 and 4) share nothing but the reference frame and run
+in two threads; the pose graph adds their nodes and edges in walk order, as one walk after the other would.
+
 Memory: ``load_cloud`` is called once per frame per pass; only a bounded window of downsampled clouds
-(the last ``max(loop_offsets)`` accepted frames of the current side and the reference) and a voxel
-model bounded by the head's surface area are held, whatever the number of frames.
+per walk (the last ``max(loop_offsets)`` accepted frames of its side and the reference) and a voxel
+model per walk bounded by the head's surface area are held, whatever the number of frames.
 
 Measured (partial views of the bundled head, independent samples per frame, 0.3 mm noise, 2 cores):
 24 frames at 5 deg (+-60 deg, ~126k points each): rotation error median 0.008 deg, max 0.015 deg,
@@ -214,7 +217,7 @@ def register_sequence(
     Args:
         frame_indices: capture frame indices in sequence order (adjacent entries are adjacent in time).
         load_cloud: ``frame index -> PointCloud`` in the rig world frame (mm); called on demand, at most
-            twice per frame, never holding all frames.
+            twice per frame, never holding all frames, from two threads at once (one per walk).
         reference: the frame whose world frame is the model frame; must be in ``frame_indices``.
         config: :class:`RegistrationConfig`.
         progress: show a tqdm bar.

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -64,24 +65,42 @@ def chain_and_close(frames, load_cloud, reference, config, bar):
     ``-centre`` (the reference cloud's centroid), so that poses have small translations and the pose graph
     is well conditioned (about the rig origin, 1 m away, Levenberg-Marquardt stalls on its first step).
 
+    The two walks share nothing but the reference frame, so they run in two threads (Open3D's ICP and
+    numpy's voxel reductions release the GIL); their nodes and edges are merged in walk order, as one
+    walk after the other would have added them.
+
     Returns ``(graph, relative, reasons, centre)``: ``relative[frame] = (anchor, T)`` with the rejected
     frame's local pose ``= P_anchor_optimised @ T``.
     """
-    graph, relative, reasons = _Graph(), {}, {}
     ref_levels, centre = registration_levels(load_cloud(int(reference)), None, config)
     if ref_levels is None:
         raise ValueError(f"argument 'load_cloud': the reference frame {reference} has fewer than 16 points")
     ref = _Frame(int(reference), ref_levels, np.eye(4))
-    graph.nodes[ref.index] = np.eye(4)
     bar.update(1)
     position = {f: i for i, f in enumerate(frames)}
-    for walk in _walks(frames, reference):
+
+    def walk_graph(walk: list[int]) -> tuple[_Graph, dict, dict]:
+        graph, relative, reasons = _Graph(), {}, {}
         window: collections.deque[_Frame] = collections.deque([ref], maxlen=config.window + 1)
         for frame in walk:
             levels, _ = registration_levels(load_cloud(frame), centre, config)
             _register_one(frame, levels, window, ref, position, graph, relative, reasons, config)
             bar.update(1)
+        return graph, relative, reasons
+
+    graph, relative, reasons = _Graph(nodes={ref.index: np.eye(4)}), {}, {}
+    for part, part_relative, part_reasons in _both_walks(walk_graph, frames, reference):
+        graph.nodes.update(part.nodes)
+        graph.edges.extend(part.edges)
+        relative.update(part_relative)
+        reasons.update(part_reasons)
     return graph, relative, reasons, centre
+
+
+def _both_walks(run_walk, frames: list[int], reference: int) -> list:
+    """``[run_walk(walk) for walk in _walks(frames, reference)]``, the two walks in two threads."""
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="registration-walk") as pool:
+        return list(pool.map(run_walk, _walks(frames, reference)))
 
 
 def _predict(window, frame: int, position: dict[int, int]) -> np.ndarray:
@@ -188,14 +207,15 @@ def all_poses(frames: list[int], optimised: dict[int, np.ndarray], relative: dic
 
 def residuals_against_model(frames, load_cloud, reference, poses, reasons, config, bar):
     """Step 4: fitness and point-to-plane RMSE of each frame against the voxel model of the accepted frames
-    nearer the reference (the reference is the model: fitness 1, RMSE 0)."""
+    nearer the reference (the reference is the model: fitness 1, RMSE 0); the two walks in two threads."""
     pose_of = dict(zip(frames, poses, strict=True))
     fitness = np.zeros(len(frames))
     rmse = np.full(len(frames), np.nan)
     row = {f: i for i, f in enumerate(frames)}
     reference_model = model_cloud(load_cloud(int(reference)), np.eye(4), config)
     fitness[row[int(reference)]], rmse[row[int(reference)]] = 1.0, 0.0
-    for walk in _walks(frames, reference):
+
+    def walk_residuals(walk: list[int]) -> None:  # each walk writes its own rows
         model = reference_model
         for frame in walk:
             cloud = model_cloud(load_cloud(frame), pose_of[frame], config)
@@ -205,4 +225,6 @@ def residuals_against_model(frames, load_cloud, reference, poses, reasons, confi
             fitness[row[frame]], rmse[row[frame]] = point_to_plane(cloud, model, config.final_distance_mm)
             if frame not in reasons:
                 model = PointCloud.concatenate([model, cloud]).voxel_downsample(config.voxel_mm)
+
+    _both_walks(walk_residuals, frames, reference)
     return fitness, rmse
