@@ -108,4 +108,6 @@ def test_a_view_written_directly_reads_back_through_zarr_and_bad_shapes_are_refu
         assert np.array_equal(np.asarray(copy.root[name][...]), np.asarray(source.root[name][...])), name
     obs, valid, lit = source.read(slice(None), slice(None), [0])
     with pytest.raises(ValueError, match="argument 'lit' must have shape"):
-        copy.write_view(0, obs[0], valid[0], lit[0, :, :, :1])
+        copy.write_view(0, obs[0] + 1.0, valid[0], lit[0, :, :, :1])
+    # nothing of the refused view is written: its obs are still the source's
+    assert np.array_equal(np.asarray(copy.root["obs"][0]), np.asarray(source.root["obs"][0]))

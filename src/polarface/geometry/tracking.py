@@ -306,7 +306,8 @@ def track_mesh(
         cameras: camera id -> calibrated camera (rig world, mm); frames may hold images of a subset.
         load_frame: frame index -> :class:`TrackingFrame`; called once per frame, in order, one frame
             ahead of the tracking and from another thread (it overlaps the frame before).
-        frames: capture frame indices, processed in order. config: :class:`TrackingConfig`.
+        frames: capture frame indices, processed in order.
+        config: :class:`TrackingConfig`.
         progress: show a tqdm bar.
 
     Returns:

@@ -245,12 +245,13 @@ class UnwrapStore:
         Raises:
             ValueError: an array of another shape (naming it).
         """
-        for name, values in (("obs", obs), ("valid", valid), ("lit", lit)):
+        arrays = {"obs": np.asarray(obs), "valid": np.asarray(valid), "lit": np.asarray(lit)}
+        for name, values in arrays.items():  # every shape checked before anything is written
+            expected = tuple(self._array(name)[0].shape[1:])
+            if values.shape != expected:
+                raise ValueError(f"argument '{name}' must have shape {expected}; got {values.shape}")
+        for name, values in arrays.items():
             array, chunks = self._array(name)
-            values = np.asarray(values)
-            if values.shape != tuple(array.shape[1:]):
-                raise ValueError(f"argument '{name}' must have shape {tuple(array.shape[1:])}; "
-                                 f"got {values.shape}")
             if chunks is None:
                 array[index] = values
                 continue
