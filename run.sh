@@ -23,6 +23,26 @@ setup() {
     "$VENV/bin/python" -m pip install --quiet -e ".$extras"
     touch "$stamp"
   fi
+  if [ ! -f "$VENV/.polarface-system" ] || [ "$stamp" -nt "$VENV/.polarface-system" ]; then
+    system_libraries
+    touch "$VENV/.polarface-system"
+  fi
+}
+
+# System libraries that Open3D's wheel links and a minimal machine may lack (a bare Debian has no
+# libusb-1.0): installed with apt-get when running as root; otherwise the error names the packages.
+system_libraries() {
+  "$VENV/bin/python" -c "import open3d" >/dev/null 2>&1 && return 0
+  local packages
+  packages=$("$VENV/bin/python" -c \
+    "from polarface.geometry.open3d_library import DEBIAN_PACKAGES; print(' '.join(DEBIAN_PACKAGES))")
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "run.sh: installing the system libraries Open3D links: $packages" >&2
+    # shellcheck disable=SC2086
+    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $packages >/dev/null) \
+      || echo "run.sh: apt-get could not install $packages" >&2
+  fi
+  "$VENV/bin/python" -c "from polarface.geometry.open3d_library import open3d_module; open3d_module()"
 }
 
 cmd=${1:-}

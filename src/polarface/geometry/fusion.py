@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from polarface.geometry.mesh import TriangleMesh
+from polarface.geometry.open3d_library import open3d_module
 from polarface.geometry.point_cloud import PointCloud, VoxelAccumulator
 from polarface.geometry.poses import invert_rigid
 
@@ -128,7 +129,7 @@ def poisson_mesh(cloud: PointCloud, config: PoissonConfig = PoissonConfig()) -> 
             non-finite values or no valid normals, or when the trims leave nothing.
     """
     cloud = confident_points(cloud, config)
-    import open3d as o3d
+    o3d = open3d_module()
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     extent = float(np.ptp(cloud.points, axis=0).max())

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from polarface.geometry.open3d_library import open3d_module
 from polarface.geometry.poses import check_rigid
 from polarface.io.atomic import atomic_path
 
@@ -131,7 +132,7 @@ class PointCloud:
 
     def to_open3d(self):  # -> open3d.geometry.PointCloud
         """An ``open3d.geometry.PointCloud`` with points, normals and colours (lazy import)."""
-        import open3d as o3d
+        o3d = open3d_module()
 
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
         cloud.normals = o3d.utility.Vector3dVector(self.normals)

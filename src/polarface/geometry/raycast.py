@@ -32,6 +32,7 @@ import numpy as np
 
 from polarface._validation import inputs_trusted
 from polarface.geometry.mesh import TriangleMesh
+from polarface.geometry.open3d_library import open3d_module
 
 __all__ = ["ClosestPoints", "RayCaster", "RayHits", "closest_surface_points", "embree_available"]
 
@@ -365,7 +366,7 @@ class ClosestPoints:
 def closest_surface_points(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> ClosestPoints:
     """Closest points of ``points`` ``(N, 3)`` mm on the triangles ``faces`` ``(F, 3)`` of ``vertices``
     ``(V, 3)`` mm (Open3D ``RaycastingScene``, float32 about the vertices' centroid: ~1e-5 mm)."""
-    import open3d as o3d
+    o3d = open3d_module()
 
     vertices = np.asarray(vertices, np.float64)
     points = np.asarray(points, np.float64).reshape(-1, 3)

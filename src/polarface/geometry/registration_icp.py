@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from polarface.geometry.open3d_library import open3d_module
 from polarface.geometry.point_cloud import PointCloud
 from polarface.geometry.poses import invert_rigid
 
@@ -123,7 +124,7 @@ def scaled_motion(motion: np.ndarray, factor: float) -> np.ndarray:
 
 def fpfh_features(cloud, voxel_mm: float):
     """``(downsampled cloud, FPFH features)`` of an Open3D cloud with normals."""
-    import open3d as o3d
+    o3d = open3d_module()
 
     down = cloud.voxel_down_sample(voxel_mm)
     features = o3d.pipelines.registration.compute_fpfh_feature(
@@ -135,7 +136,7 @@ def fpfh_features(cloud, voxel_mm: float):
 def global_retry(source_levels, target_levels, config: RegistrationConfig):
     """ICP from a global FPFH + RANSAC registration (source -> target); ``(T, fitness, rmse, information)``
     when it passes the fitness and RMSE tests, else None. RANSAC is seeded: runs are reproducible."""
-    import open3d as o3d
+    o3d = open3d_module()
 
     reg = o3d.pipelines.registration
     voxel = config.global_voxel_mm

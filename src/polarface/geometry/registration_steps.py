@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from polarface.geometry.open3d_library import open3d_module
 from polarface.geometry.point_cloud import PointCloud
 from polarface.geometry.poses import check_rigid, invert_rigid
 from polarface.geometry.registration_icp import (
@@ -158,8 +159,8 @@ def _register_one(frame, levels, window, ref, position, graph, relative, reasons
 
 def optimise(graph: _Graph, reference: int, config: RegistrationConfig) -> dict[int, np.ndarray]:
     """Step 3: Levenberg-Marquardt pose-graph optimisation; returns frame -> optimised pose P."""
-    import open3d as o3d
-    from open3d.pipelines import registration as reg
+    o3d = open3d_module()
+    reg = o3d.pipelines.registration
 
     order = list(graph.nodes)
     if len(order) < 2:
