@@ -42,7 +42,13 @@ system_libraries() {
     (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $packages >/dev/null) \
       || echo "run.sh: apt-get could not install $packages" >&2
   fi
-  "$VENV/bin/python" -c "from polarface.geometry.open3d_library import open3d_module; open3d_module()"
+  "$VENV/bin/python" -c "
+import sys
+from polarface.geometry.open3d_library import open3d_module
+try:
+    open3d_module()
+except ImportError as exc:
+    sys.exit(f'run.sh: {exc}')"
 }
 
 cmd=${1:-}
