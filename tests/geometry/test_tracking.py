@@ -14,12 +14,11 @@ import numpy as np
 import pytest
 
 from polarface.geometry import PinholeCamera, TriangleMesh
+from polarface.geometry.tracked_file import load_tracked, save_tracked
 from polarface.geometry.tracking import (
     TrackedSequence,
     TrackingConfig,
     TrackingFrame,
-    load_tracked,
-    save_tracked,
     track_mesh,
 )
 

@@ -66,12 +66,11 @@ from polarface.geometry.stereo import (
     match_stereo_pair,
     rectify_pair,
 )
+from polarface.geometry.tracked_file import load_tracked, save_tracked
 from polarface.geometry.tracking import (
     TrackedSequence,
     TrackingConfig,
     TrackingFrame,
-    load_tracked,
-    save_tracked,
     track_mesh,
 )
 from polarface.geometry.uv_raster import (

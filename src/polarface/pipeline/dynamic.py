@@ -10,7 +10,7 @@ mesh ``mesh.obj`` with its atlas, ``maps/``, ``rig.json``) and a capture of the 
                            failed frames, timings
       stereo/NNNNNN.ply    each dynamic frame's fused stereo mesh (rig world, mm)
       tracked.npz          the reference mesh's vertices tracked through the sequence
-                           (:func:`polarface.geometry.tracking.save_tracked`)
+                           (:func:`polarface.geometry.tracked_file.save_tracked`)
     RESULT/frames/NNNN/    one RESULT-like folder per frame: mesh.obj (the tracked mesh, model frame),
                            render/srgb_linear.exr (the frame rendered at the first polarimetric camera),
                            unwrap.zarr, maps/ (all polarimetric maps and the chromophores), previews/,
@@ -53,7 +53,8 @@ from polarface.executors import Executor, LocalExecutor, UnitOutcome, map_units_
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.poses import invert_rigid
 from polarface.geometry.registration import RegistrationConfig
-from polarface.geometry.tracking import TrackingConfig, load_tracked
+from polarface.geometry.tracked_file import load_tracked
+from polarface.geometry.tracking import TrackingConfig
 from polarface.inverse.polarimetric.dynamic import DynamicConfig
 from polarface.io import json_values
 from polarface.pipeline.dynamic_geometry import TrackingFolder, align_reference, stereo_pass, track_sequence

@@ -25,12 +25,11 @@ from polarface.executors import Executor, LocalExecutor, UnitOutcome
 from polarface.geometry.mesh import TriangleMesh, load_mesh, sample_surface
 from polarface.geometry.point_cloud import PointCloud
 from polarface.geometry.registration import RegistrationConfig, register_pair
+from polarface.geometry.tracked_file import load_tracked, save_tracked
 from polarface.geometry.tracking import (
     TrackedSequence,
     TrackingConfig,
     TrackingFrame,
-    load_tracked,
-    save_tracked,
     track_mesh,
 )
 from polarface.io import read_json_object, write_json_atomic
