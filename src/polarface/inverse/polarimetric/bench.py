@@ -117,16 +117,16 @@ def _cap_samples(side: int, frames: int):
 def _model_observations(batch: SampleBatch, normals: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     """``(S, 3, 3)`` observations of the model itself for uniform skin-like parameters."""
     with torch.no_grad():
-        n = batch.count
+        n, device = batch.count, normals.device
         pred = render_samples(
             batch,
             normals[batch.texel],
-            torch.full((n,), 1.42, dtype=dtype),
-            torch.full((n,), 0.4, dtype=dtype),
-            torch.full((n,), 0.9, dtype=dtype),
-            torch.full((n,), 0.5, dtype=dtype),
-            torch.full((n,), 0.25, dtype=dtype),
-            torch.full((n, 3), 0.4, dtype=dtype),
+            torch.full((n,), 1.42, dtype=dtype, device=device),
+            torch.full((n,), 0.4, dtype=dtype, device=device),
+            torch.full((n,), 0.9, dtype=dtype, device=device),
+            torch.full((n,), 0.5, dtype=dtype, device=device),
+            torch.full((n,), 0.25, dtype=dtype, device=device),
+            torch.full((n, 3), 0.4, dtype=dtype, device=device),
         )
         return torch.stack([pred.i_sss, pred.i_zeta, pred.i_s], dim=1)
 

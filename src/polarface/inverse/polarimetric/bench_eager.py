@@ -62,7 +62,8 @@ def _eager_texel_step(samples: list[dict], params: dict[str, torch.Tensor], opti
 
 
 def _eager_texel_inputs(problem: PatchProblem, views: list[ViewSpec], texel: int) -> tuple[list[dict], dict]:
-    """The baseline's per-view inputs and its leaf parameters for one texel of ``problem``."""
+    """The baseline's per-view inputs and its leaf parameters for one texel of ``problem``, on the CPU
+    whatever the problem's device (the eager baseline is a CPU baseline)."""
     batch = problem.batch
     chosen = torch.nonzero(batch.texel == texel)[:, 0]
     samples = []
@@ -75,7 +76,7 @@ def _eager_texel_inputs(problem: PatchProblem, views: list[ViewSpec], texel: int
                 "lights": torch.tensor(view.light_positions, dtype=torch.float32),
                 "intensity": torch.tensor(view.light_intensity, dtype=torch.float32),
                 "channels": torch.tensor(view.channels),
-                "observed": batch.observed[s],
+                "observed": batch.observed[s].cpu(),
             }
         )
     row, col = divmod(int(texel), problem.shape[1])
@@ -89,7 +90,7 @@ def _eager_texel_inputs(problem: PatchProblem, views: list[ViewSpec], texel: int
         "rho_s": torch.tensor(0.0, requires_grad=True),
         "rho_ss": torch.tensor(0.0, requires_grad=True),
         "rho_sss_bar": torch.zeros(6, requires_grad=True),
-        "normal": problem.frame[2][row, col].clone().requires_grad_(True),
+        "normal": problem.frame[2][row, col].detach().cpu().clone().requires_grad_(True),
     }
     return samples, params
 
