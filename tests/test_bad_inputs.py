@@ -898,6 +898,8 @@ def _reconstruct_rows() -> list[Row]:
         "--lr": ("0", "-0.03", "nan", "inf"),
         "--refine-lobes": ("-1",),
         "--unwrap-cache-mb": ("-1", "lots"),
+        "--patch": ("0", "3", "lots"),
+        "--sample-budget": ("999", "-1"),
         "--holdout-every": ("-1",),
         "--threads": ("0", "-1"),
     }.items():

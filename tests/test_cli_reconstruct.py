@@ -242,6 +242,11 @@ def test_resume_refuses_other_options_or_capture(sim, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "option 'iterations' was 3, now 20" in err and "without --resume" in err
     assert len(err.strip().splitlines()) == 1
+    # the patch grid (--patch, --sample-budget; larger by default on a GPU) cannot change mid-run
+    assert main(_args(sim, out, "--iterations", "3", "--resume", "--patch", "32",
+                      "--sample-budget", "5000")) == 2
+    err = capsys.readouterr().err
+    assert "option 'patch' was 64, now 32" in err and "option 'sample_budget' was 300000, now 5000" in err
     # another capture (one frame's raw content changed) is refused, naming the capture
     other = tmp_path / "other_sim"
     shutil.copytree(sim, other)

@@ -98,6 +98,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "only, the maps do not depend on it (docs/performance.md)",
     )
     parser.add_argument(
+        "--patch", type=int, default=None, metavar="TEXELS",
+        help="largest texture patch side fitted at once (default 64 on the CPU, 256 on a CUDA device)",
+    )
+    parser.add_argument(
+        "--sample-budget", type=int, default=None, metavar="SAMPLES",
+        help="most texel x view samples per patch (default 300000 on the CPU, 2000000 on a CUDA device; "
+        "docs/performance.md, 'The CUDA path')",
+    )
+    parser.add_argument(
         "--view-check", action="store_true",
         help="after the polarimetric fit, re-render every view and warn about a camera or frame whose "
         "residuals stand out (a miscalibrated camera, a wrong head pose); also writes the eta uncertainty "
@@ -171,6 +180,8 @@ def _reconstruct(args: argparse.Namespace, out: Path, executor=None) -> dict:
             ("refine_lobes_iterations", args.refine_lobes),
             ("lobes", args.lobes),
             ("unwrap_cache_mb", args.unwrap_cache_mb),
+            ("patch", args.patch),
+            ("sample_budget", args.sample_budget),
         )
         if v is not None
     }

@@ -331,6 +331,15 @@ def run_stages(ctx: ReconstructContext, stages=None) -> dict[str, Any]:
     return folder.read_result()
 
 
+def _device_fit_options(device: str) -> dict[str, int]:
+    """:func:`polarface.inverse.polarimetric.device_fit_options` of the device this process fits on
+    (``"auto"``: resolved here, so that a resumed RESULT records the patch grid it was started with)."""
+    from polarface.device import resolve_device
+    from polarface.inverse.polarimetric import device_fit_options
+
+    return device_fit_options(resolve_device(device))
+
+
 def reconstruct(
     inputs: ReconstructInputs,
     out: str | Path,
@@ -354,7 +363,8 @@ def reconstruct(
         fit_options: :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides; with stereo
             geometry (no mesh in ``inputs``) ``optimizer`` and ``iterations`` default to the paper's
             RMSprop for 150 iterations (``_STEREO_FIT_DEFAULTS``; neither applies when ``optimizer``
-            is given).
+            is given); on a CUDA device ``patch`` and ``sample_budget`` default to larger patches
+            (:func:`polarface.inverse.polarimetric.device_fit_options`).
         holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
         dynamic: a dynamic capture of the same rig (or a simulation folder) reconstructed frame by frame
             after the static stages; frames: its frames to fit (``"0-4,7"``; None: all).
@@ -378,6 +388,7 @@ def reconstruct(
     stereo = inputs.mesh_path is None
     if stereo and "optimizer" not in options:
         options = {**_STEREO_FIT_DEFAULTS, **options}
+    options = {**_device_fit_options(device), **options}
     geometry_dir = ResultFolder(out).geometry_dir if stereo else inputs.geometry_dir
     ctx = ReconstructContext(
         inputs.capture, out,

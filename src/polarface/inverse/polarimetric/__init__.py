@@ -23,6 +23,7 @@ from polarface.inverse.polarimetric.bench import benchmark_problem, run_benchmar
 from polarface.inverse.polarimetric.config import (
     PARAMETER_NAMES,
     PolarimetricConfig,
+    device_fit_options,
     initial_raw,
     maps_from_raw,
     raw_from_maps,
@@ -94,6 +95,7 @@ __all__ = [
     "build_patch_fused_samples",
     "build_patch_samples",
     "data_losses",
+    "device_fit_options",
     "dynamic_regularisers",
     "fit_diagnostics",
     "fit_dynamic_frame",

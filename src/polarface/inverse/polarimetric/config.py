@@ -20,10 +20,19 @@ __all__ = [
     "NO_LOBE_RAW",
     "PARAMETER_NAMES",
     "PolarimetricConfig",
+    "device_fit_options",
     "initial_raw",
     "maps_from_raw",
     "raw_from_maps",
 ]
+
+#: Patch side and sample budget on a CUDA device (:func:`device_fit_options`); the budget shrinks on
+#: a GPU with less memory, at :data:`CUDA_BYTES_PER_SAMPLE` and a :data:`CUDA_MEMORY_FRACTION` of it.
+CUDA_PATCH, CUDA_SAMPLE_BUDGET = 256, 2_000_000
+#: GPU memory the torch engine's loss and gradient take per sample (measured on an H200: 4.6 GB at
+#: 1.33e6 samples, 8.2 GB at 2.36e6; docs/performance.md, "The CUDA path"), rounded up.
+CUDA_BYTES_PER_SAMPLE = 4000
+CUDA_MEMORY_FRACTION = 0.4
 
 #: Output maps (``rho_sss_bar`` has 6 channels, the others one).
 PARAMETER_NAMES = (*SURFACE_PARAMETER_NAMES, "rho_sss_bar", "displacement_mm")
@@ -217,3 +226,32 @@ def initial_raw(resolution: tuple[int, int], config: PolarimetricConfig) -> dict
     if config.lobes == "one":
         raw["rho_ss"][:] = NO_LOBE_RAW
     return raw
+
+
+def device_fit_options(device: torch.device | str, memory_bytes: int | None = None) -> dict[str, int]:
+    """:class:`PolarimetricConfig` options for fitting on ``device`` where the user set none: larger
+    patches on a CUDA device (``patch`` :data:`CUDA_PATCH`, ``sample_budget`` :data:`CUDA_SAMPLE_BUDGET`
+    or what :data:`CUDA_MEMORY_FRACTION` of its memory holds), none on the CPU.
+
+    The defaults (64-texel patches, 3e5 samples) suit the CPU's fused kernel, whose rate does not grow
+    with the patch. The torch engine on a GPU is bound by kernel launches at that size: on an H200 it
+    evaluates 4.4e6 texel-view iterations/s on a 48 x 48 patch, 2.7e7 on 128 x 128 and 3.6e7 from
+    about 1.3e6 samples on (``polarface bench --device cuda --side N``); the tiny preset's static
+    polarimetric stage takes 158 s in 16 patches and 16 s in one (docs/performance.md, "The CUDA path").
+
+    Args:
+        device: a torch device or its name (``"cuda"``, ``"cuda:1"``, ``"cpu"``).
+        memory_bytes: the GPU's memory (None: asked of torch for a CUDA device).
+
+    Raises:
+        ValueError: ``memory_bytes`` < 1.
+    """
+    device = torch.device(device)
+    if device.type != "cuda":
+        return {}
+    if memory_bytes is None:
+        memory_bytes = torch.cuda.get_device_properties(device).total_memory
+    if int(memory_bytes) < 1:
+        raise ValueError(f"argument 'memory_bytes' must be >= 1; got {memory_bytes}")
+    fits = int(CUDA_MEMORY_FRACTION * int(memory_bytes) / CUDA_BYTES_PER_SAMPLE)
+    return {"patch": CUDA_PATCH, "sample_budget": max(min(CUDA_SAMPLE_BUDGET, fits), 1000)}

@@ -25,9 +25,9 @@ SIMD layout: samples are processed in blocks of 32. A scalar loop gathers each s
 parameters, view tables, observations and lights into the rows of one structure-of-arrays scratch
 array; every later phase (view geometry, the forward loop over lights, the per-channel losses and
 their reverse pass, the reverse loop over lights) is a loop over the block's samples that addresses
-only constant rows of that array, so LLVM vectorises it across samples (16 float32 lanes with
-AVX-512; in float32 for a float32 fit); a last scalar loop adds each sample's gradient into its
-texel's float64 sums. Vectorising across samples rather than across the lights also vectorises the
+only constant rows of that array, so LLVM vectorises it across samples (in float32 for a float32 fit;
+16 lanes where LLVM uses 512-bit vectors, 8 on Intel cores, whose tuning prefers 256-bit vectors); a
+last scalar loop adds each sample's gradient into its texel's float64 sums. Vectorising across samples rather than across the lights also vectorises the
 per-sample work (exit Fresnel, losses); docs/reconstruct.md gives the measured effect.
 
 Each light's physics (:func:`_light`, with its partial derivatives) is evaluated once per iteration: the
