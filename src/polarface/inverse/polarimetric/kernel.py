@@ -27,8 +27,9 @@ array; every later phase (view geometry, the forward loop over lights, the per-c
 their reverse pass, the reverse loop over lights) is a loop over the block's samples that addresses
 only constant rows of that array, so LLVM vectorises it across samples (in float32 for a float32 fit;
 16 lanes where LLVM uses 512-bit vectors, 8 on Intel cores, whose tuning prefers 256-bit vectors); a
-last scalar loop adds each sample's gradient into its texel's float64 sums. Vectorising across samples rather than across the lights also vectorises the
-per-sample work (exit Fresnel, losses); docs/reconstruct.md gives the measured effect.
+last scalar loop adds each sample's gradient into its texel's float64 sums. Vectorising across samples
+rather than across the lights also vectorises the per-sample work (exit Fresnel, losses);
+docs/reconstruct.md gives the measured effect.
 
 Each light's physics (:func:`_light`, with its partial derivatives) is evaluated once per iteration: the
 forward loop keeps the 22 values per light and sample that the reverse loop needs (channel-weighted
