@@ -246,7 +246,9 @@ def test_resume_refuses_other_options_or_capture(sim, tmp_path, capsys):
     assert main(_args(sim, out, "--iterations", "3", "--resume", "--patch", "32",
                       "--sample-budget", "5000")) == 2
     err = capsys.readouterr().err
-    assert "option 'patch' was 64, now 32" in err and "option 'sample_budget' was 300000, now 5000" in err
+    grid = recorded["options"]["patch"], recorded["options"]["sample_budget"]
+    assert f"option 'patch' was {grid[0]}, now 32" in err
+    assert f"option 'sample_budget' was {grid[1]}, now 5000" in err
     # another capture (one frame's raw content changed) is refused, naming the capture
     other = tmp_path / "other_sim"
     shutil.copytree(sim, other)
@@ -282,3 +284,26 @@ def test_resume_mid_fit_with_other_iterations_is_refused(sim, tmp_path):
     with pytest.raises(ValueError, match="option 'iterations' was 15, now 20"):
         run_stages(context(20))
     assert not (out / "maps" / "eta.exr").exists()
+
+
+def test_the_device_chooses_the_patch_grid_and_a_resume_keeps_it(sim, tmp_path, monkeypatch, capsys):
+    import polarface.inverse.polarimetric as polarimetric
+
+    gpu_grid = {"patch": 8, "sample_budget": 4000}  # as a GPU's device_fit_options would, scaled down
+    monkeypatch.setattr(polarimetric, "device_fit_options", lambda device, units_per_gpu=1: dict(gpu_grid))
+    out = tmp_path / "gpu"
+    assert main(_args(sim, out, "--iterations", "2")) == 0
+    recorded = json.loads((out / "result.json").read_text())["fingerprint"]["options"]
+    assert (recorded["patch"], recorded["sample_budget"]) == (8, 4000)
+    # resumed on "another device" (the CPU's defaults): the recorded grid is kept, not refused
+    monkeypatch.setattr(polarimetric, "device_fit_options", lambda device, units_per_gpu=1: {})
+    assert main(_args(sim, out, "--iterations", "2", "--resume")) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["stages"]["polarimetric"]["config"]["patch"] == 8
+    # the user's options win over the device's
+    monkeypatch.setattr(polarimetric, "device_fit_options", lambda device, units_per_gpu=1: dict(gpu_grid))
+    other = tmp_path / "user"
+    assert main(_args(sim, other, "--iterations", "2", "--patch", "12")) == 0
+    recorded = json.loads((other / "result.json").read_text())["fingerprint"]["options"]
+    assert (recorded["patch"], recorded["sample_budget"]) == (12, 4000)
+    capsys.readouterr()

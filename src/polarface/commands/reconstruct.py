@@ -99,11 +99,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--patch", type=int, default=None, metavar="TEXELS",
-        help="largest texture patch side fitted at once (default 64 on the CPU, 256 on a CUDA device)",
+        help="largest texture patch side the static fit optimises at once (default 64 on the CPU, 256 on "
+        "a CUDA device; a resume keeps the RESULT's)",
     )
     parser.add_argument(
         "--sample-budget", type=int, default=None, metavar="SAMPLES",
-        help="most texel x view samples per patch (default 300000 on the CPU, 2000000 on a CUDA device; "
+        help="most texel x view samples per patch of the static fit (default 300000 on the CPU; on a "
+        "CUDA device 2000000 or what 40%% of its memory holds; a resume keeps the RESULT's; "
         "docs/performance.md, 'The CUDA path')",
     )
     parser.add_argument(

@@ -331,13 +331,32 @@ def run_stages(ctx: ReconstructContext, stages=None) -> dict[str, Any]:
     return folder.read_result()
 
 
-def _device_fit_options(device: str) -> dict[str, int]:
-    """:func:`polarface.inverse.polarimetric.device_fit_options` of the device this process fits on
-    (``"auto"``: resolved here, so that a resumed RESULT records the patch grid it was started with)."""
+_PATCH_GRID = ("patch", "sample_budget")  # the fit options that a device chooses (device_fit_options)
+
+
+def _units_per_gpu(executor: Any) -> int:
+    """How many patches may share one GPU at a time: a process executor's workers, Ray's
+    ``1 / gpus_per_unit`` for a fraction of a GPU per task (1 for whole GPUs); 1 in this process."""
+    gpus = getattr(executor, "gpus_per_unit", None)
+    if gpus:
+        return max(1, int(1.0 / gpus)) if gpus < 1 else 1
+    return max(1, int(getattr(executor, "workers", None) or 1))
+
+
+def _patch_grid(device: str, executor: Any, out: Path, resume: bool) -> dict[str, int]:
+    """``patch`` and ``sample_budget`` where the user gave none: on a resume those the RESULT recorded
+    (its fingerprint), so that it goes on with the grid it started with on any device; otherwise
+    :func:`polarface.inverse.polarimetric.device_fit_options` of the device resolved here (``"auto"``:
+    this machine's), its GPU memory shared by the patches that :func:`_units_per_gpu` may run at once."""
     from polarface.device import resolve_device
     from polarface.inverse.polarimetric import device_fit_options
 
-    return device_fit_options(resolve_device(device))
+    if resume:
+        recorded = ResultFolder(out).read_result().get("fingerprint")
+        options = recorded.get("options") if isinstance(recorded, dict) else None
+        if isinstance(options, dict) and all(isinstance(options.get(k), int) for k in _PATCH_GRID):
+            return {k: options[k] for k in _PATCH_GRID}
+    return device_fit_options(resolve_device(device), units_per_gpu=_units_per_gpu(executor))
 
 
 def reconstruct(
@@ -363,8 +382,8 @@ def reconstruct(
         fit_options: :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides; with stereo
             geometry (no mesh in ``inputs``) ``optimizer`` and ``iterations`` default to the paper's
             RMSprop for 150 iterations (``_STEREO_FIT_DEFAULTS``; neither applies when ``optimizer``
-            is given); on a CUDA device ``patch`` and ``sample_budget`` default to larger patches
-            (:func:`polarface.inverse.polarimetric.device_fit_options`).
+            is given); ``patch`` and ``sample_budget`` default to larger patches on a CUDA device
+            and, on a resume, to the RESULT's own (:func:`_patch_grid`).
         holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
         dynamic: a dynamic capture of the same rig (or a simulation folder) reconstructed frame by frame
             after the static stages; frames: its frames to fit (``"0-4,7"``; None: all).
@@ -388,7 +407,7 @@ def reconstruct(
     stereo = inputs.mesh_path is None
     if stereo and "optimizer" not in options:
         options = {**_STEREO_FIT_DEFAULTS, **options}
-    options = {**_device_fit_options(device), **options}
+    options = {**_patch_grid(device, executor, out, resume), **options}
     geometry_dir = ResultFolder(out).geometry_dir if stereo else inputs.geometry_dir
     ctx = ReconstructContext(
         inputs.capture, out,

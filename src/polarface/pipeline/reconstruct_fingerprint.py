@@ -18,7 +18,9 @@ def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
     """What changes the result: capture, mesh, poses, texture resolution, hold-out and fit options.
 
     The device and the thread count are left out (they change float rounding only, not what is
-    fitted); progress bars and the memory-only ``unwrap_cache_mb`` too. Keys: ``docs/result_folder.md``,
+    fitted), but not the patch grid a device chooses (``patch``, ``sample_budget``: a resume keeps the
+    recorded one, :func:`polarface.pipeline.reconstruct._patch_grid`); progress bars and the memory-only
+    ``unwrap_cache_mb`` are left out too. Keys: ``docs/result_folder.md``,
     "Resume fingerprint".
     """
     from polarface.inverse.polarimetric import PolarimetricConfig

@@ -22,9 +22,11 @@ def test_a_large_gpu_gets_the_full_budget_and_a_small_one_what_its_memory_holds(
     assert h200 == {"patch": 256, "sample_budget": 2_000_000}
     small = device_fit_options(torch.device("cuda", 1), memory_bytes=8 * 2**30)
     assert small["patch"] == 256
-    assert small["sample_budget"] == int(CUDA_MEMORY_FRACTION * 8 * 2**30 / CUDA_BYTES_PER_SAMPLE)
-    assert small["sample_budget"] * CUDA_BYTES_PER_SAMPLE <= 0.4 * 8 * 2**30
-    assert small["sample_budget"] < 2_000_000
+    assert small["sample_budget"] == int(CUDA_MEMORY_FRACTION * 8 * 2**30 / CUDA_BYTES_PER_SAMPLE) < 2_000_000
+    # two worker processes fitting on one GPU share its memory
+    shared = device_fit_options("cuda", memory_bytes=8 * 2**30, units_per_gpu=2)["sample_budget"]
+    assert shared == int(CUDA_MEMORY_FRACTION * 4 * 2**30 / CUDA_BYTES_PER_SAMPLE)
+    assert device_fit_options("cuda", memory_bytes=143_155 * 2**20, units_per_gpu=2) == h200
     # a tiny card still gets a valid configuration
     assert device_fit_options("cuda", memory_bytes=1)["sample_budget"] == 1000
     for options in (h200, small):
@@ -39,10 +41,12 @@ def test_the_gpu_options_give_larger_patches_than_the_cpu_defaults():
     assert gpu**2 * 30 < 2_000_000 < (gpu + 2 * 4 + 1) ** 2 * 30
 
 
-@pytest.mark.parametrize("memory", [0, -5])
-def test_bad_memory_is_refused_by_name(memory):
-    with pytest.raises(ValueError, match="memory_bytes"):
-        device_fit_options("cuda", memory_bytes=memory)
+@pytest.mark.parametrize(
+    ("argument", "value"), [("memory_bytes", 0), ("memory_bytes", -5), ("units_per_gpu", 0)]
+)
+def test_bad_arguments_are_refused_by_name(argument, value):
+    with pytest.raises(ValueError, match=argument):
+        device_fit_options("cuda", **{"memory_bytes": 2**30, argument: value})
 
 
 def test_a_cuda_device_without_memory_given_asks_torch(monkeypatch):

@@ -228,23 +228,27 @@ def initial_raw(resolution: tuple[int, int], config: PolarimetricConfig) -> dict
     return raw
 
 
-def device_fit_options(device: torch.device | str, memory_bytes: int | None = None) -> dict[str, int]:
+def device_fit_options(
+    device: torch.device | str, memory_bytes: int | None = None, units_per_gpu: int = 1
+) -> dict[str, int]:
     """:class:`PolarimetricConfig` options for fitting on ``device`` where the user set none: larger
     patches on a CUDA device (``patch`` :data:`CUDA_PATCH`, ``sample_budget`` :data:`CUDA_SAMPLE_BUDGET`
-    or what :data:`CUDA_MEMORY_FRACTION` of its memory holds), none on the CPU.
+    or what :data:`CUDA_MEMORY_FRACTION` of its memory holds, shared by ``units_per_gpu`` patches fitted
+    on it at once), none on the CPU.
 
     The defaults (64-texel patches, 3e5 samples) suit the CPU's fused kernel, whose rate does not grow
     with the patch. The torch engine on a GPU is bound by kernel launches at that size: on an H200 it
-    evaluates 4.4e6 texel-view iterations/s on a 48 x 48 patch, 2.7e7 on 128 x 128 and 3.6e7 from
+    evaluates 5.6e6 texel-view iterations/s on a 48 x 48 patch, 3.2e7 on 128 x 128 and 3.5e7 from
     about 1.3e6 samples on (``benchmarks/bench_cuda.py``); the tiny preset's static
     polarimetric stage takes 158 s in 16 patches and 16 s in one (docs/performance.md, "The CUDA path").
 
     Args:
         device: a torch device or its name (``"cuda"``, ``"cuda:1"``, ``"cpu"``).
         memory_bytes: the GPU's memory (None: asked of torch for a CUDA device).
+        units_per_gpu: patches fitted on one GPU at the same time (worker processes sharing it).
 
     Raises:
-        ValueError: ``memory_bytes`` < 1.
+        ValueError: ``memory_bytes`` or ``units_per_gpu`` < 1.
     """
     device = torch.device(device)
     if device.type != "cuda":
@@ -253,5 +257,7 @@ def device_fit_options(device: torch.device | str, memory_bytes: int | None = No
         memory_bytes = torch.cuda.get_device_properties(device).total_memory
     if int(memory_bytes) < 1:
         raise ValueError(f"argument 'memory_bytes' must be >= 1; got {memory_bytes}")
-    fits = int(CUDA_MEMORY_FRACTION * int(memory_bytes) / CUDA_BYTES_PER_SAMPLE)
+    if int(units_per_gpu) < 1:
+        raise ValueError(f"argument 'units_per_gpu' must be >= 1; got {units_per_gpu}")
+    fits = int(CUDA_MEMORY_FRACTION * int(memory_bytes) / int(units_per_gpu) / CUDA_BYTES_PER_SAMPLE)
     return {"patch": CUDA_PATCH, "sample_budget": max(min(CUDA_SAMPLE_BUDGET, fits), 1000)}
