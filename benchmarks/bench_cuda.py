@@ -10,8 +10,9 @@ Prints, for the ``polarface bench`` patch (:func:`polarface.inverse.polarimetric
   1e-9 (loss) and 1e-7 (gradient), float32 within 20x the CPU's float32 difference (floors 1e-5, 1e-4);
   the command exits 1 when one fails.
 * **rate against patch size**: texel-view iterations per second of one loss + backward evaluation
-  (median of ``--repeats`` timed runs of about ``--seconds`` each, after a warm-up), and on CUDA the
-  peak memory torch allocated for it and that per sample: the measurements behind
+  (``polarface bench``'s ``torch_objective`` workload: median of ``--repeats`` calibrated repeats of
+  about ``--seconds`` each), and on CUDA the peak memory torch allocated and that per sample: the
+  measurements behind
   :func:`polarface.inverse.polarimetric.device_fit_options` (docs/performance.md, "The CUDA path").
 * the fit options a reconstruction takes on this device (``device_fit_options``).
 
@@ -24,13 +25,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import statistics
-import time
 
 import numpy as np
 import torch
 
-from polarface.inverse.polarimetric import benchmark_problem, device_fit_options
+from polarface.inverse.polarimetric import benchmark_problem, device_fit_options, run_benchmark
 from polarface.inverse.polarimetric.config import PolarimetricConfig, initial_raw
 
 
@@ -44,12 +43,8 @@ def _raw_variables(side: int, seed: int) -> dict[str, np.ndarray]:
     }
 
 
-def _leaves(raw: dict[str, np.ndarray], dtype: torch.dtype, device: torch.device) -> dict[str, torch.Tensor]:
-    return {k: torch.as_tensor(v, dtype=dtype, device=device).requires_grad_(True) for k, v in raw.items()}
-
-
 def _loss_and_grad(problem, raw: dict[str, np.ndarray], dtype: torch.dtype, device: torch.device):
-    leaves = _leaves(raw, dtype, device)
+    leaves = {k: torch.as_tensor(v, dtype=dtype, device=device).requires_grad_(True) for k, v in raw.items()}
     total, _ = problem.loss(leaves)
     total.backward()
     grads = {k: v.grad.detach().to("cpu", torch.float64).numpy() for k, v in leaves.items()}
@@ -91,40 +86,23 @@ def parity(device: torch.device, side: int, frames: int, seed: int) -> dict:
     return report
 
 
-def rate(device: torch.device, side: int, frames: int, seconds: float, repeats: int, seed: int) -> dict:
-    """Texel-view iterations/s of one float32 loss + backward on a ``side^2`` patch, and its peak memory."""
-    problem = benchmark_problem(side, frames, dtype=torch.float32, device=device).problems["torch"]
-    raw = _raw_variables(side, seed)
-    leaves = _leaves(raw, torch.float32, device)
+def rate(device: torch.device, side: int, frames: int, seconds: float, repeats: int) -> dict:
+    """``polarface bench``'s ``torch_objective`` workload (one float32 loss + backward of the torch
+    engine) on a ``side^2`` patch: texel-view iterations/s, and on CUDA the peak memory torch allocated
+    during the benchmark (problem set-up included) and that per sample."""
     cuda = device.type == "cuda"
-
-    def run(n: int) -> float:
-        if cuda:
-            torch.cuda.synchronize(device)
-        tick = time.perf_counter()
-        for _ in range(n):
-            for leaf in leaves.values():
-                leaf.grad = None
-            total, _ = problem.loss(leaves)
-            total.backward()
-        if cuda:
-            torch.cuda.synchronize(device)
-        return time.perf_counter() - tick
-
     if cuda:
         torch.cuda.reset_peak_memory_stats(device)
-    once = run(1)  # warm-up (and the peak memory of one evaluation)
+    bench = run_benchmark(
+        side, frames, baseline_texels=0, device=device, seconds=seconds * repeats, repeats=repeats,
+        workloads=["torch_objective"],
+    )
     peak = torch.cuda.max_memory_allocated(device) if cuda else None
-    iterations = max(1, int(seconds / max(once, 1e-6)))
-    samples = int(problem.batch.count)
-    rates = [samples * iterations / run(iterations) for _ in range(repeats)]
+    timed, samples = bench["workloads"]["torch_objective"], int(bench["samples"])
     return {
         "side": side,
         "samples": samples,
-        "median": statistics.median(rates),
-        "min": min(rates),
-        "max": max(rates),
-        "iterations_per_repeat": iterations,
+        **{k: timed[k] for k in ("median", "min", "max", "iterations_per_repeat")},
         "peak_allocated_bytes": peak,
         "bytes_per_sample": peak / samples if peak else None,
     }
@@ -151,7 +129,7 @@ def main() -> None:
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "torch": torch.__version__,
         "parity": parity(device, args.parity_side, args.frames, args.seed),
-        "rates": [rate(device, s, args.frames, args.seconds, args.repeats, args.seed) for s in args.sides],
+        "rates": [rate(device, s, args.frames, args.seconds, args.repeats) for s in args.sides],
         "device_fit_options": device_fit_options(device),
     }
     if args.json:

@@ -286,7 +286,7 @@ def test_resume_mid_fit_with_other_iterations_is_refused(sim, tmp_path):
     assert not (out / "maps" / "eta.exr").exists()
 
 
-def test_the_device_chooses_the_patch_grid_and_a_resume_keeps_it(sim, tmp_path, monkeypatch, capsys):
+def test_the_device_chooses_the_patch_grid_and_a_resume_keeps_it(sim, tmp_path, monkeypatch):
     import polarface.inverse.polarimetric as polarimetric
 
     gpu_grid = {"patch": 8, "sample_budget": 4000}  # as a GPU's device_fit_options would, scaled down
@@ -306,4 +306,3 @@ def test_the_device_chooses_the_patch_grid_and_a_resume_keeps_it(sim, tmp_path, 
     assert main(_args(sim, other, "--iterations", "2", "--patch", "12")) == 0
     recorded = json.loads((other / "result.json").read_text())["fingerprint"]["options"]
     assert (recorded["patch"], recorded["sample_budget"]) == (12, 4000)
-    capsys.readouterr()

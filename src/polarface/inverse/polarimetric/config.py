@@ -30,7 +30,7 @@ __all__ = [
 #: a GPU with less memory, at :data:`CUDA_BYTES_PER_SAMPLE` and a :data:`CUDA_MEMORY_FRACTION` of it.
 CUDA_PATCH, CUDA_SAMPLE_BUDGET = 256, 2_000_000
 #: GPU memory the torch engine's loss and gradient take per sample (``benchmarks/bench_cuda.py`` on an
-#: H200: 3 616-4 471 bytes from 2.4e6 down to 8.3e4 samples; docs/performance.md, "The CUDA path").
+#: H200: 3 619-4 474 bytes from 2.4e6 down to 8.3e4 samples; docs/performance.md, "The CUDA path").
 CUDA_BYTES_PER_SAMPLE = 4000
 CUDA_MEMORY_FRACTION = 0.4
 
@@ -238,7 +238,7 @@ def device_fit_options(
 
     The defaults (64-texel patches, 3e5 samples) suit the CPU's fused kernel, whose rate does not grow
     with the patch. The torch engine on a GPU is bound by kernel launches at that size: on an H200 it
-    evaluates 5.6e6 texel-view iterations/s on a 48 x 48 patch, 3.2e7 on 128 x 128 and 3.5e7 from
+    evaluates 4.5e6 texel-view iterations/s on a 48 x 48 patch, 2.7e7 on 128 x 128 and 3.6e7 from
     about 1.3e6 samples on (``benchmarks/bench_cuda.py``); the tiny preset's static
     polarimetric stage takes 158 s in 16 patches and 16 s in one (docs/performance.md, "The CUDA path").
 
