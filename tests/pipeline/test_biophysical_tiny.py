@@ -72,3 +72,9 @@ def test_render_matches_observation_at_training_view(tiny):
         estimate = rendered.images[name][..., channels][both]
         relative = np.sqrt(np.mean((estimate - reference) ** 2)) / np.sqrt(np.mean(reference**2))
         assert relative < 0.02, (name, relative)
+    # the total intensity alone (polarization=False, as the dynamic stage renders its frames): the same
+    # pixels, s0 = I0 + I90 to float32 rounding, from the first row of the Mueller chain only
+    total = render_result_view(ResultAppearance.load(result), camera.id, pose, polarization=False)
+    assert set(total.images) == {"s0"} and np.array_equal(total.mask, rendered.mask)
+    summed = rendered.images["i0"] + rendered.images["i90"]
+    assert np.allclose(total.images["s0"], summed, rtol=1e-5, atol=1e-6 * float(summed.max()))

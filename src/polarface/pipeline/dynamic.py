@@ -144,15 +144,16 @@ def _frame_done(frame_folder: ResultFolder, config: DynamicStageConfig) -> bool:
 
 def _render_frame(frame_folder: ResultFolder, alignment: np.ndarray) -> None:
     """Render the frame's maps on its tracked mesh at the first polarimetric camera, unpolarized
-    (``I0 + I90``), as linear RGB: ``frames/NNNN/render/srgb_linear.exr`` (the layout of ``polarface
-    render``; the report animates these with one exposure)."""
+    (the total intensity ``s0 = I0 + I90``, rendered alone), as linear RGB:
+    ``frames/NNNN/render/srgb_linear.exr`` (the layout of ``polarface render``; the report animates
+    these with one exposure)."""
     from polarface.io import write_exr
     from polarface.render import linear_rgb_from_channels, render_result_view
     from polarface.results import ResultAppearance
 
     appearance = ResultAppearance.load(frame_folder)
-    view = render_result_view(appearance, None, alignment)
-    rgb = linear_rgb_from_channels(view.images["i0"] + view.images["i90"], appearance.rig)
+    view = render_result_view(appearance, None, alignment, polarization=False)
+    rgb = linear_rgb_from_channels(view.images["s0"], appearance.rig)
     write_exr(frame_folder.root / "render" / "srgb_linear.exr", np.where(view.mask[..., None], rgb, 0.0)
               .astype(np.float32), ["R", "G", "B"])
 

@@ -99,7 +99,8 @@ class RenderedResult:
     """One rendered view.
 
     Attributes:
-        images: ``i0``, ``i45``, ``i90``, ``i135`` ``(h, w, 6)`` float32 analyzer images (all six channels).
+        images: ``i0``, ``i45``, ``i90``, ``i135`` ``(h, w, 6)`` float32 analyzer images (all six channels);
+            ``s0`` alone, the total intensity, when rendered with ``polarization=False``.
         mask, uv, face_id, depth: as :class:`polarface.render.renderer.ViewRender`.
         textures: the :class:`polarface.render.shading.FrameTextures` used (for Mueller images).
         mesh_world, caster, camera, lights, intensity: the scene.
@@ -127,6 +128,7 @@ def render_result_view(
     edits: dict[str, float] | None = None,
     strip_width_mm: float | None = None,
     strip_offset_mm: float = 0.0,
+    polarization: bool = True,
 ) -> RenderedResult:
     """Render the RESULT at one camera of its rig.
 
@@ -139,9 +141,12 @@ def render_result_view(
         strip_width_mm: if given, light enters only within this band (mm) around the plane through the
             head centre spanned by the camera's up and viewing axes (shifted by ``strip_offset_mm``
             along the camera's right vector); specular lobes are switched off.
+        polarization: False renders the total intensity ``s0`` alone (``I0 + I90`` to float rounding):
+            only the first row of the Mueller chain is evaluated, as for the rig's RGB cameras.
 
     Returns:
-        :class:`RenderedResult` with six-channel analyzer images.
+        :class:`RenderedResult` with six-channel analyzer images (``s0`` alone without
+        ``polarization``).
     """
     rig = appearance.rig
     camera = rig.camera(camera_id) if camera_id else rig.polarimetric_cameras()[0]
@@ -158,7 +163,7 @@ def render_result_view(
     strip = None if strip_width_mm is None else (pinhole.right_vector, strip_width_mm, strip_offset_mm)
     textures = _result_textures(appearance, caster, raster, lights, intensity, edits or {}, strip)
     view = render_view(
-        caster, mesh_world, pinhole, textures, lights, intensity, tuple(range(6)), polarization=True
+        caster, mesh_world, pinhole, textures, lights, intensity, tuple(range(6)), polarization=polarization
     )
     return RenderedResult(
         view.images,
