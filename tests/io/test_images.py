@@ -3,7 +3,16 @@
 import numpy as np
 import pytest
 
-from polarface.io import atomic_path, colormap_png, read_exr, read_png, write_exr, write_figure_png, write_png
+from polarface.io import (
+    agg_figure,
+    atomic_path,
+    colormap_png,
+    read_exr,
+    read_png,
+    write_exr,
+    write_figure_png,
+    write_png,
+)
 
 
 def test_exr_round_trip(tmp_path):
@@ -78,3 +87,34 @@ def test_write_figure_png_matches_savefig(tmp_path):
     with pytest.raises(TypeError, match="argument 'figure'"):
         write_figure_png(tmp_path / "bad.png", np.zeros((4, 4)))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fast.png", "savefig.png"]
+
+
+def test_agg_figure_draws_the_pyplot_figure_outside_pyplot(tmp_path):
+    """``agg_figure`` makes what ``plt.subplots`` makes (the same pixels once written, layout engine and
+    subplot options included) without registering it with pyplot; a bad grid is refused by matplotlib."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    def draw(fig, axes):
+        for k, ax in enumerate(axes.flat):
+            handle = ax.imshow(np.linspace(0, 1, 64).reshape(8, 8) ** (k + 1), cmap="magma")
+            ax.set_title(f"map {k}")
+            fig.colorbar(handle, ax=ax, label="unit")
+        return fig
+
+    options = {"figsize": (4.0, 2.2), "dpi": 60, "layout": "constrained", "squeeze": False}
+    before = plt.get_fignums()
+    figure, axes = agg_figure(1, 2, **options)
+    assert axes.shape == (1, 2) and plt.get_fignums() == before
+    write_figure_png(tmp_path / "agg.png", draw(figure, axes))
+    write_figure_png(tmp_path / "pyplot.png", draw(*plt.subplots(1, 2, **options)))
+    assert plt.get_fignums() == before  # the pyplot figure is closed
+    agg, pyplot = read_png(tmp_path / "agg.png"), read_png(tmp_path / "pyplot.png")
+    assert agg.shape == (132, 240, 3)
+    np.testing.assert_array_equal(agg, pyplot)
+    single_figure, single_axes = agg_figure(figsize=(2.0, 2.0))
+    assert single_figure.dpi == matplotlib.rcParams["figure.dpi"] and single_axes.figure is single_figure
+    with pytest.raises(ValueError):
+        agg_figure(0, 1, figsize=(2.0, 2.0))

@@ -92,6 +92,10 @@ def test_stage_writes_outputs(fitted_result):
         assert (result / "maps" / f"{name}.exr").is_file()
     for name in ("c_m", "chromophores", "subsurface_srgb", "rho_sss_bar_residual", "in_gamut"):
         assert (result / "previews" / f"{name}.png").is_file()
+    # the panel is the four chromophore previews side by side, pixel for pixel
+    maps = [read_png(result / "previews" / f"{name}.png") for name in ("c_m", "beta_m", "c_h_in", "c_h_out")]
+    panel = read_png(result / "previews" / "chromophores.png")
+    np.testing.assert_array_equal(panel, np.concatenate(maps, axis=1))
     residual = read_exr(result / "maps" / "rho_sss_bar_residual.exr")
     assert set(residual) == {"relative", "gamut_distance"} and residual["relative"].shape == (32, 32)
     assert float(residual["gamut_distance"].max()) < 1e-3

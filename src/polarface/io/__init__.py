@@ -6,6 +6,7 @@ Physics modules (``optics``, ``skin``) never import from here.
 
 from polarface.io.atomic import atomic_directory, atomic_path, write_json_atomic
 from polarface.io.images import (
+    agg_figure,
     colormap_png,
     encode_png,
     image_header,
@@ -21,6 +22,7 @@ from polarface.io.storage import UrlPath, is_url, local_copy, storage_path
 
 __all__ = [
     "UrlPath",
+    "agg_figure",
     "atomic_directory",
     "atomic_path",
     "colormap_png",

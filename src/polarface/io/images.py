@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 __all__ = [
+    "agg_figure",
     "colormap_png",
     "encode_png",
     "image_header",
@@ -159,14 +160,37 @@ def write_png(path: PathOrUrl, image: np.ndarray, *, bit_depth: int = 8) -> Stor
     return storage_path(path)
 
 
+def agg_figure(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], dpi: float | None = None,
+               layout: str | None = None, **subplots_kwargs) -> tuple[Figure, Any]:
+    """A matplotlib figure on its own Agg canvas and its axes, as ``plt.subplots(nrows, ncols, ...)`` makes
+    them but outside pyplot: no figure manager is registered, so nothing needs closing (closing a pyplot
+    figure runs a garbage collection). Drawn by :func:`write_figure_png` into the same pixels as the
+    pyplot figure; about 20 % less time for a map preview (measured in ``docs/performance.md``).
+
+    Args:
+        nrows, ncols: the grid of axes; figsize: inches; dpi: dots per inch (None: matplotlib's
+            ``figure.dpi``); layout: the figure's layout engine (``"constrained"``, ``"tight"`` or None);
+        subplots_kwargs: passed to :meth:`matplotlib.figure.Figure.subplots` (``sharex``, ``squeeze``...).
+
+    Returns:
+        ``(figure, axes)``: one Axes, or an array of them (``Figure.subplots``'s rules).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=figsize, dpi=dpi, layout=layout)
+    FigureCanvasAgg(figure)
+    return figure, figure.subplots(nrows, ncols, **subplots_kwargs)
+
+
 def write_figure_png(path: PathOrUrl, figure: Figure, *, dpi: float | None = None) -> StoragePath:
-    """Write a matplotlib ``figure`` as an 8-bit RGB PNG, atomically, and close it.
+    """Write a matplotlib ``figure`` as an 8-bit RGB PNG, atomically, and close it (a pyplot figure).
 
     The figure is drawn once on an Agg canvas at ``dpi`` (default: the figure's) and its pixels encoded
     by :func:`encode_png`: the same image as ``savefig``, which draws a figure with a layout engine twice
     and compresses with PIL's slower default level (about 0.06 s instead of 0.11 s for a map preview).
+    Figures made by :func:`agg_figure` are not known to pyplot and need no closing.
     """
-    import matplotlib.pyplot as plt
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -174,10 +198,14 @@ def write_figure_png(path: PathOrUrl, figure: Figure, *, dpi: float | None = Non
         raise TypeError(f"argument 'figure' must be a matplotlib Figure; got {type(figure).__name__}")
     if dpi is not None:
         figure.set_dpi(dpi)
+    managed = getattr(figure.canvas, "manager", None) is not None  # made by pyplot
     canvas = FigureCanvasAgg(figure)
     canvas.draw()
     pixels = np.asarray(canvas.buffer_rgba())[..., :3]
-    plt.close(figure)
+    if managed:
+        import matplotlib.pyplot as plt
+
+        plt.close(figure)
     return write_png(path, pixels, bit_depth=8)
 
 
@@ -307,10 +335,8 @@ def colormap_png(
 def _figure_png(path: PathOrUrl, shown: np.ma.MaskedArray, limits: tuple[float, float],
                 cmap: str, title: str | None, label: str | None, colorbar: bool) -> None:
     """Draw a masked ``(H, W)`` map with matplotlib (title, scale bar with ``label``) as a PNG."""
-    import matplotlib.pyplot as plt
-
     height, width = shown.shape
-    fig, ax = plt.subplots(figsize=(max(3.0, 4.0 * width / max(height, 1)) + 1.6, 4.4), dpi=100)
+    fig, ax = agg_figure(figsize=(max(3.0, 4.0 * width / max(height, 1)) + 1.6, 4.4), dpi=100)
     handle = ax.imshow(shown, cmap=cmap, vmin=limits[0], vmax=limits[1], interpolation="nearest")
     ax.set_axis_off()
     if title:

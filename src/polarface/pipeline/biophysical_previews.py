@@ -1,9 +1,9 @@
 """Previews of the biophysical stage: chromophore colour maps, the four-map panel, sRGB, residuals.
 
 Files (under ``RESULT/previews``): ``c_m.png`` ... (colour maps with scale bars, ranges from
-:data:`polarface.results.CHROMOPHORE_PREVIEWS`), ``chromophores.png`` (the four maps in one panel, like
-the paper's teaser), ``subsurface_srgb.png`` (sRGB under D65), ``rho_sss_bar_residual.png`` and
-``in_gamut.png``.
+:data:`polarface.results.CHROMOPHORE_PREVIEWS`), ``chromophores.png`` (the four maps' previews side by
+side in one panel, like the paper's teaser), ``subsurface_srgb.png`` (sRGB under D65),
+``rho_sss_bar_residual.png`` and ``in_gamut.png``.
 """
 
 from __future__ import annotations
@@ -13,29 +13,17 @@ from pathlib import Path
 import numpy as np
 
 from polarface.inverse.biophysical import PARAMETER_ORDER, per_texel_relative_residual
-from polarface.io import colormap_png, write_figure_png, write_png
+from polarface.io import colormap_png, read_png, write_png
 from polarface.results import CHROMOPHORE_PREVIEWS, ResultFolder
 
 __all__ = ["write_previews", "write_residual_previews"]
 
 
-def _write_panel(path: Path, parameters: np.ndarray, mask: np.ndarray) -> None:
-    """The four chromophore maps side by side with colour bars (matplotlib, atomically)."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 4, figsize=(16, 4.4), dpi=100)
-    for ax, (i, name) in zip(axes, enumerate(PARAMETER_ORDER), strict=True):
-        label, low, high, cmap = CHROMOPHORE_PREVIEWS[name]
-        shown = np.ma.array(parameters[..., i], mask=~mask)
-        handle = ax.imshow(shown, cmap=cmap, vmin=low, vmax=high, interpolation="nearest")
-        ax.set_title(label)
-        ax.set_axis_off()
-        fig.colorbar(handle, ax=ax, fraction=0.046, pad=0.04)
-    fig.tight_layout()
-    write_figure_png(path, fig)
+def _write_panel(path: Path, previews: list[Path]) -> None:
+    """The four chromophore previews (equal-sized colour maps with scale bars) side by side in one PNG,
+    atomically: the panel is composed from their pixels, not drawn again."""
+    images = [read_png(preview)[..., :3] for preview in previews]
+    write_png(path, np.concatenate(images, axis=1), bit_depth=8)
 
 
 def write_previews(
@@ -70,7 +58,7 @@ def write_previews(
                 colorbar=True,
             )
         )
-    _write_panel(folder.preview_path("chromophores"), parameters, mask)
+    _write_panel(folder.preview_path("chromophores"), written)
     written.append(folder.preview_path("chromophores"))
     _, srgb = spectrum_to_srgb(np.moveaxis(spectral, 0, -1).astype(np.float64), wavelengths_nm)
     srgb = np.where(mask[..., None], srgb, 0.0)

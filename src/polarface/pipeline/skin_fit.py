@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from polarface.io import atomic_path, write_figure_png, write_json_atomic
+from polarface.io import agg_figure, atomic_path, write_figure_png, write_json_atomic
 from polarface.skin.chromophores import HAEMOGLOBIN_TABLE_RANGE_NM
 from polarface.skin.fitting import FIT_PARAMETER_NAMES, FitSettings, fit_reflectance_spectra
 
@@ -168,15 +168,10 @@ def _plot(
     fitted: np.ndarray,
     rmse: np.ndarray,
 ) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     shown = min(len(names), 64)
     cols = min(8, shown)
     rows = (shown + cols - 1) // cols
-    fig, axes = plt.subplots(
+    fig, axes = agg_figure(
         rows, cols, figsize=(2.2 * cols, 1.8 * rows), sharex=True, sharey=True, squeeze=False
     )
     for k, ax in enumerate(axes.flat):

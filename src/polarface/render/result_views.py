@@ -28,7 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from polarface.geometry.poses import load_poses
-from polarface.io import colormap_png, write_exr, write_figure_png, write_json_atomic, write_png
+from polarface.io import agg_figure, colormap_png, write_exr, write_figure_png, write_json_atomic, write_png
 from polarface.optics.stokes import aolp, linear_dop
 from polarface.render.colour import encode_srgb, linear_rgb_from_channels, linear_srgb_to_lab
 from polarface.render.relight import RenderedResult, mueller_images, parse_edits, render_result_view
@@ -224,14 +224,9 @@ def _write_strip(
 
 def _mueller_preview(path: Path, mueller: np.ndarray, mask: np.ndarray) -> None:
     """3x3 panel of ``M_ij / M_00`` (``m00`` itself normalised to its 99th percentile)."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
     m00 = mueller[..., 0, 0]
     scale = max(float(np.percentile(m00[mask], 99)), 1e-12) if mask.any() else 1.0
-    fig, axes = plt.subplots(3, 3, figsize=(9, 9), dpi=100)
+    fig, axes = agg_figure(3, 3, figsize=(9, 9), dpi=100)
     for i in range(3):
         for j in range(3):
             if i == j == 0:
@@ -253,14 +248,9 @@ def _mueller_preview(path: Path, mueller: np.ndarray, mask: np.ndarray) -> None:
 
 def _strip_profile(path: Path, rgb: np.ndarray, mask: np.ndarray) -> None:
     """Plot of the strip image's intensity along the middle row (red, green, blue)."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
     rows = np.nonzero(mask.any(axis=1))[0]
     row = int(rows[len(rows) // 2]) if rows.size else rgb.shape[0] // 2
-    fig, ax = plt.subplots(figsize=(7, 3.5), dpi=100)
+    fig, ax = agg_figure(figsize=(7, 3.5), dpi=100)
     for c, colour in enumerate(("red", "green", "blue")):
         ax.plot(np.maximum(rgb[row, :, c], 1e-5), color=colour, label=colour)
     ax.set_yscale("log")  # the subsurface tail beyond the stripe spans decades

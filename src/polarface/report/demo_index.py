@@ -224,12 +224,7 @@ def _pairs(result: ResultFolder, truth: ResultFolder) -> dict[str, tuple[np.ndar
 def _comparison_png(path: Path, name: str, truth: np.ndarray, estimate: np.ndarray,
                     valid: np.ndarray) -> None:
     """Ground truth | reconstruction (one shared scale bar) | error (its own symmetric scale bar)."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    from polarface.io import write_figure_png
+    from polarface.io import agg_figure, write_figure_png
 
     both = np.concatenate([truth[valid], estimate[valid]])
     lo, hi = (float(np.percentile(both, 1)), float(np.percentile(both, 99))) if both.size else (0.0, 1.0)
@@ -238,7 +233,7 @@ def _comparison_png(path: Path, name: str, truth: np.ndarray, estimate: np.ndarr
     limit = float(np.percentile(np.abs(error[valid]), 99)) if valid.any() else 1.0
     limit = limit if limit > 0 else 1e-6
     unit = _UNITS.get(name, "1")
-    figure, axes = plt.subplots(1, 3, figsize=(15.0, 4.6), dpi=100, layout="constrained")
+    figure, axes = agg_figure(1, 3, figsize=(15.0, 4.6), dpi=100, layout="constrained")
     panels = (("ground truth", truth, lo, hi, "viridis"), ("reconstruction", estimate, lo, hi, "viridis"),
               ("error (reconstruction - truth)", error, -limit, limit, "coolwarm"))
     handles = []

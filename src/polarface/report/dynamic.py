@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from polarface.io import atomic_path, storage_path, write_figure_png
+from polarface.io import agg_figure, atomic_path, storage_path, write_figure_png
 from polarface.render.colour import encode_srgb
 from polarface.report.html import HtmlPage, Section
 from polarface.report.streamed import streamed_percentiles, streamed_std
@@ -290,13 +290,8 @@ def changing_region(c_h_out: Iterable[np.ndarray], mask: np.ndarray, percentile:
 
 
 def _write_chromophore_plot(path: Path, frames: _Frames, region: np.ndarray, face: np.ndarray) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
     times = frames.times_s if np.isfinite(frames.times_s).all() else np.asarray(frames.indices, np.float64)
-    figure, axes = plt.subplots(1, 4, figsize=(16, 3.6), dpi=100)
+    figure, axes = agg_figure(1, 4, figsize=(16, 3.6), dpi=100)
     for ax, name in zip(axes, CHROMOPHORE_MAPS, strict=True):
         ax.set_title(CHROMOPHORE_PREVIEWS[name][0])
         ax.set_xlabel("time (s)" if times is frames.times_s else "frame")

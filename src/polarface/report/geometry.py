@@ -14,7 +14,7 @@ from polarface.capture.rig import Rig
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.stereo import StereoDepth
-from polarface.io.images import colormap_png, write_figure_png, write_png
+from polarface.io.images import agg_figure, colormap_png, write_figure_png, write_png
 from polarface.report.html import HtmlPage, ImageItem
 
 __all__ = ["write_depth_previews", "write_geometry_report"]
@@ -45,15 +45,10 @@ def _shaded_render(mesh: TriangleMesh, camera) -> np.ndarray:
 
 
 def _residual_plot(path: Path, summary: dict[str, Any]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
     rows = summary["registration"]["frames"]
     frames = [row["frame"] for row in rows]
     rmse = [np.nan if row["rmse_mm"] is None else row["rmse_mm"] for row in rows]
-    fig, ax = plt.subplots(figsize=(7, 3.2), dpi=100)
+    fig, ax = agg_figure(figsize=(7, 3.2), dpi=100)
     ax.plot(frames, rmse, "o-", label="inlier RMSE (mm)")
     ax.plot(frames, [row["fitness"] for row in rows], "s-", label="fitness (overlap fraction)")
     rejected = [int(f) for f in summary.get("rejected_frames", {})]

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from polarface.io import colormap_png, write_figure_png
+from polarface.io import agg_figure, colormap_png, write_figure_png
 from polarface.report.html import HtmlPage, ImageItem
 from polarface.results import DIAGNOSTIC_MAPS, POLARIMETRIC_MAPS, ResultFolder
 from polarface.results.layout import EXPORTS_DIR
@@ -89,12 +89,8 @@ def _add_loss_section(page: HtmlPage, folder: ResultFolder) -> None:
     curve = folder.read_loss_curve()
     if curve is None:
         return
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, axes = plt.subplots(figsize=(5, 3))
+    figure, axes = agg_figure(figsize=(5, 3))
     axes.semilogy(np.arange(len(curve)), np.maximum(curve, 1e-12))
     axes.set_xlabel("iteration (per patch)")
     axes.set_ylabel("mean total loss")
