@@ -118,3 +118,19 @@ def test_agg_figure_draws_the_pyplot_figure_outside_pyplot(tmp_path):
     assert single_figure.dpi == matplotlib.rcParams["figure.dpi"] and single_axes.figure is single_figure
     with pytest.raises(ValueError):
         agg_figure(0, 1, figsize=(2.0, 2.0))
+
+
+def test_map_previews_leave_pyplot_alone(tmp_path):
+    """Writing a map preview with a scale bar does not import pyplot (whose import picks a backend and
+    whose figures must be closed): the package's figures are made by ``agg_figure``."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, numpy as np\n"
+        "from polarface.io import colormap_png\n"
+        f"colormap_png({str(tmp_path / 'p.png')!r}, np.eye(8), title='t', colorbar=True)\n"
+        "print('matplotlib.pyplot' in sys.modules)\n"
+    )
+    shown = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert shown.stdout.strip() == "False" and (tmp_path / "p.png").is_file()

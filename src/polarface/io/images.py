@@ -301,10 +301,7 @@ def colormap_png(
             third of a 1400 px page wide); otherwise the PNG is pixel-exact, one pixel per value.
         label: the scale bar's label, e.g. its units (``"AoLP (rad)"``); implies ``colorbar``.
     """
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    from matplotlib import colormaps
+    from matplotlib import colormaps  # no backend is chosen: the package's figures never use pyplot
 
     image = np.asarray(image, dtype=np.float64)
     if image.ndim != 2:
