@@ -199,7 +199,8 @@ def write_figure_png(path: PathOrUrl, figure: Figure, *, dpi: float | None = Non
     if dpi is not None:
         figure.set_dpi(dpi)
     managed = getattr(figure.canvas, "manager", None) is not None  # made by pyplot
-    canvas = FigureCanvasAgg(figure)
+    # an Agg canvas already attached (every agg_figure) is drawn on; any other is replaced by one
+    canvas = figure.canvas if isinstance(figure.canvas, FigureCanvasAgg) else FigureCanvasAgg(figure)
     canvas.draw()
     pixels = np.asarray(canvas.buffer_rgba())[..., :3]
     if managed:
