@@ -61,7 +61,7 @@ case "$cmd" in
   test)
     setup "[dev]"
     bash tests/tools/install_test_tools.sh "$VENV"
-    exec "$VENV/bin/python" -m pytest -n "${POLARFACE_TEST_WORKERS:-2}" "$@"
+    exec "$VENV/bin/python" -m pytest -n "${POLARFACE_TEST_WORKERS:-2}" --dist worksteal "$@"
     ;;
   *)
     echo "usage: ./run.sh demo [--out DIR] | ./run.sh test [pytest args]" >&2

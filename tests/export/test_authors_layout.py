@@ -21,7 +21,7 @@ from polarface.render import texel_shading_normals
 from polarface.results import ResultFolder
 from polarface.texture import UnwrapStore
 
-ITERATIONS = "30"  # the shared RESULT's fit (tests/export/conftest.py)
+ITERATIONS = "60"  # the shared RESULT's fit (tests/conftest.py, tiny_sequence)
 
 
 def test_polarizer_images_follow_malus_law() -> None:

@@ -213,12 +213,9 @@ def test_bad_input_is_refused(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def tiny_dynamic(tmp_path_factory):
-    from polarface.simulate import SimulationConfig, simulate
-
-    root = tmp_path_factory.mktemp("tiny_dynamic")
-    simulate(root, SimulationConfig(preset="tiny", sequences=("dynamic",)), progress=False)
-    return root
+def tiny_dynamic(tiny_sim):
+    """The shared tiny simulation (tests/conftest.py; this module reads its dynamic sequence)."""
+    return tiny_sim
 
 
 def test_tiny_head_stays_put_under_changing_skin_colour(tiny_dynamic):

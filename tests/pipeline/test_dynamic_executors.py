@@ -8,48 +8,29 @@ work runs on the executor, and the geometry is not recomputed for each run.
 
 from __future__ import annotations
 
-import os
 import shutil
 import socket
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import pytest
-import torch
 
 from polarface.cli import main
 from polarface.executors import RayExecutor
-from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
 from polarface.pipeline.dynamic import reconstruct_dynamic
-from polarface.simulate.pipeline import SimulationConfig, simulate
 from ray_fixtures import RAY_CPUS, ray_instance, ray_worker_running_a_unit  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    """``(SIM, static RESULT, RESULT with the dynamic stage run by the local executor)``."""
-    root = tmp_path_factory.mktemp("dynamic_executors")
-    sim = root / "sim"
-    simulate(sim, SimulationConfig(preset="tiny", sequences=("static", "dynamic")), progress=False)
-    static = root / "static"
-    reconstruct(resolve_reconstruct_inputs(sim, geometry=sim / "ground_truth"), static,
-                fit_options={"iterations": 60}, progress=False)
-    local = root / "local"
-    shutil.copytree(static, local)
-    # The reference runs in a fresh process, as a user's 'polarface dynamic' does: under pytest-xdist
-    # this process has run hundreds of tests before, and their left-over process state has been seen to
-    # change the in-process reference's last bits (the Ray workers start clean).
-    # Its torch threads are this process's (the Ray workers adopt them too; the render's reductions
-    # depend on them in the last bit).
-    env = {**os.environ, "OMP_NUM_THREADS": str(torch.get_num_threads())}
-    subprocess.run([sys.executable, "-m", "polarface.cli", "dynamic", str(local), str(sim), "--quiet"],
-                   check=True, capture_output=True, env=env)
-    return sim, static, local
+def tiny(tiny_sequence, tiny_sequence_dynamic):
+    """``(SIM, static RESULT, RESULT with the dynamic stage run by the local executor)``: the shared tiny
+    sequence (tests/conftest.py); the reference ran in a fresh process with this process's torch
+    threads."""
+    sim, static = tiny_sequence
+    return sim, static, tiny_sequence_dynamic
 
 
 def _copy_with_tracking(tiny, target: Path) -> Path:

@@ -16,25 +16,17 @@ import polarface.pipeline.dynamic as dynamic_module
 from polarface.capture.store import CaptureStore
 from polarface.cli import main
 from polarface.io import read_exr, write_png
-from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
 from polarface.pipeline.dynamic import DynamicStageConfig, reconstruct_dynamic
 from polarface.pipeline.dynamic_inputs import parse_frame_selection
 from polarface.results import ResultFolder
-from polarface.simulate.pipeline import SimulationConfig, simulate
 
 MAPS = ("rho_s", "rho_ss", "displacement_mm", "c_h_out", "c_m")
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    """``(SIM, static RESULT)``: the tiny simulation and its static reconstruction (geometry given)."""
-    root = tmp_path_factory.mktemp("dynamic")
-    sim = root / "sim"
-    simulate(sim, SimulationConfig(preset="tiny", sequences=("static", "dynamic")), progress=False)
-    static = root / "static"
-    reconstruct(resolve_reconstruct_inputs(sim, geometry=sim / "ground_truth"), static,
-                fit_options={"iterations": 60}, progress=False)
-    return sim, static
+def tiny(tiny_sequence):
+    """``(SIM, static RESULT)``: the shared tiny sequence (tests/conftest.py)."""
+    return tiny_sequence
 
 
 @pytest.fixture(scope="module")

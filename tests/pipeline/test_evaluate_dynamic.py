@@ -23,15 +23,14 @@ from polarface.pipeline.evaluate_dynamic import (
     pressed_patch_weight,
 )
 from polarface.results import CHROMOPHORE_MAPS, POLARIMETRIC_MAPS, RHO_SSS_BAR, ResultFolder
-from polarface.simulate import SimulationConfig, blood_flow_factor, simulate
+from polarface.simulate import SimulationConfig, blood_flow_factor
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory) -> Path:
-    """The tiny preset's dynamic sequence (2 frames, 1 s apart) with its ground truth (~15 s)."""
-    root = tmp_path_factory.mktemp("sim_dynamic")
-    simulate(root, SimulationConfig(preset="tiny", sequences=("dynamic",)), progress=False)
-    return root
+def sim(tiny_sim) -> Path:
+    """The shared tiny simulation (tests/conftest.py): its dynamic sequence (2 frames, 1 s apart) with
+    its ground truth."""
+    return tiny_sim
 
 
 def _rotation_x(angle_rad: float) -> np.ndarray:

@@ -22,17 +22,15 @@ from polarface.executors import LocalExecutor, RayExecutor
 from polarface.geometry import load_poses
 from polarface.pipeline.dynamic_geometry import TrackingFolder, stereo_pass
 from polarface.pipeline.geometry import GeometryConfig, reconstruct_geometry
-from polarface.simulate import SimulationConfig, simulate
 from ray_fixtures import RAY_CPUS, ray_instance  # noqa: F401 (fixture)
 
 CONFIG = GeometryConfig(texture_resolution=256, frame_meshes=True)  # the frames' meshes are units' files too
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("geometry_executors") / "sim"
-    simulate(root, SimulationConfig(preset="tiny"), progress=False)
-    return root
+def sim(tiny_sim) -> Path:
+    """The shared tiny simulation (tests/conftest.py)."""
+    return tiny_sim
 
 
 @pytest.fixture(scope="module")

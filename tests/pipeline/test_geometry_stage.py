@@ -14,15 +14,13 @@ from polarface.cli import main
 from polarface.geometry import StereoConfig, load_mesh, load_poses, rasterize_uv
 from polarface.geometry.raycast import closest_surface_points
 from polarface.pipeline import GeometryConfig, reconstruct, reconstruct_geometry, resolve_reconstruct_inputs
-from polarface.simulate import SimulationConfig, simulate
 from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
 
 
 @pytest.fixture(scope="module")
-def sim(tmp_path_factory):
-    root = tmp_path_factory.mktemp("tiny_sim")
-    simulate(root, SimulationConfig(preset="tiny", sequences=("static",)), progress=False)
-    return root
+def sim(tiny_sim):
+    """The shared tiny simulation (tests/conftest.py; this module reads its static sequence)."""
+    return tiny_sim
 
 
 @pytest.fixture(scope="module")

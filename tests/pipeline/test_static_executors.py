@@ -28,7 +28,6 @@ from polarface.executors import RayExecutor
 from polarface.inverse.polarimetric import PolarimetricConfig, fit_polarimetric
 from polarface.pipeline import ReconstructContext, run_stages
 from polarface.pipeline.reconstruct import stage_polarimetric, stage_prepare
-from polarface.simulate.pipeline import SimulationConfig, simulate
 from polarface.texture import UnwrapStore
 from polarimetric_reference import row_major_fit
 from ray_fixtures import RAY_CPUS, ray_instance, ray_worker_running_a_unit  # noqa: F401 (fixture)
@@ -64,11 +63,11 @@ def context(sim: Path, out: Path, stop: int | None = None, executor=None) -> Rec
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    """``(SIM, RESULT after the prepare stage, RESULT of the polarimetric stage on the local executor)``."""
+def tiny(tiny_sim, tmp_path_factory):
+    """``(SIM, RESULT after the prepare stage, RESULT of the polarimetric stage on the local executor)``;
+    SIM is the shared tiny simulation (tests/conftest.py)."""
     root = tmp_path_factory.mktemp("static_executors")
-    sim, prepared, local = root / "sim", root / "prepared", root / "local"
-    simulate(sim, SimulationConfig(preset="tiny", sequences=("static",)), progress=False)
+    sim, prepared, local = tiny_sim, root / "prepared", root / "local"
     prepared.mkdir()
     run_stages(context(sim, prepared), [("prepare", stage_prepare)])
     shutil.copytree(prepared, local)
