@@ -76,6 +76,22 @@ def test_save_load_round_trip(tmp_path, uv_sphere, suffix):
     assert not list(tmp_path.glob(".tmp-*"))  # atomic write left nothing behind
 
 
+def test_a_file_read_again_unchanged_is_not_parsed_again(tmp_path, uv_sphere):
+    """load_mesh keeps the meshes it read: the same file, unchanged and with the same options, gives the
+    same read-only mesh; a file replaced (as save_obj does, by renaming) or other options read it again."""
+    path = tmp_path / "sphere.obj"
+    save_obj(path, uv_sphere)
+    first = load_mesh(path)
+    assert load_mesh(str(path)) is first
+    assert not first.vertices.flags.writeable
+    assert load_mesh(path, scale=2.0) is not first
+    np.testing.assert_allclose(load_mesh(path, scale=2.0).vertices, 2.0 * first.vertices)
+    save_obj(path, uv_sphere.with_vertices(uv_sphere.vertices + 1.0))
+    moved = load_mesh(path)
+    assert moved is not first
+    np.testing.assert_allclose(moved.vertices, first.vertices + 1.0, atol=1e-6)
+
+
 def test_obj_seams_are_split(tmp_path):
     text = "\n".join(
         [

@@ -110,3 +110,24 @@ def test_positions_flowed_out_of_the_crop_are_flagged():
 def test_bad_crop_margin_is_refused(margin):
     with pytest.raises(ValueError, match="flow_crop_margin_px"):
         TrackingConfig(flow_crop_margin_px=margin)
+
+
+def test_median_over_cameras_is_numpys_nanmedian():
+    """The merge's per-vertex median of the cameras' hits: numpy's ``nanmedian`` bit for bit, odd and even
+    camera counts, all-NaN vertices NaN."""
+    import warnings
+
+    from polarface.geometry.tracking_steps import _median_over_cameras
+
+    rng = np.random.default_rng(3)
+    for cameras, missing in ((10, 0.5), (7, 0.2), (2, 0.6), (1, 0.3)):
+        values = rng.normal(0.0, 100.0, (cameras, 500, 3))
+        values[rng.random((cameras, 500)) < missing] = np.nan
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            want = np.nanmedian(values, axis=0)
+        got = _median_over_cameras(values)
+        np.testing.assert_array_equal(got, want)
+        assert np.isnan(got[np.isnan(values).all(axis=(0, 2))]).all()
+    two = np.array([[[1.0, 2.0, 3.0]], [[2.0, 4.0, 5.0]]])
+    assert _median_over_cameras(two).tolist() == [[1.5, 3.0, 4.0]]

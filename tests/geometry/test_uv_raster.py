@@ -15,6 +15,7 @@ from polarface.geometry import (
     sample_texture,
     texel_uv,
     texels_to_world,
+    uv_raster,
 )
 
 
@@ -110,10 +111,33 @@ def test_head_atlas_coverage(head):
 
 
 def test_batching_does_not_change_result(uv_sphere):
+    uv_raster._COVERAGES.clear()  # both rasterised, not the second taken from the first
     a = rasterize_uv(uv_sphere, 64)
+    uv_raster._COVERAGES.clear()
     b = rasterize_uv(uv_sphere, 64, batch_texels=257)
     np.testing.assert_array_equal(a.face_id, b.face_id)
     np.testing.assert_array_equal(a.barycentric, b.barycentric)
+
+
+def test_coverage_is_shared_by_rasters_of_the_same_faces_and_uvs(uv_sphere, plane):
+    """A posed or deformed copy of a mesh reuses the coverage (read-only, the same arrays); its geometry
+    is its own and equals a fresh rasterisation's; other UVs or another resolution rasterise again."""
+    uv_raster._COVERAGES.clear()
+    first = rasterize_uv(uv_sphere, 64)
+    bent = uv_sphere.with_vertices(uv_sphere.vertices * np.array([1.0, 1.3, 0.8]))
+    shared = rasterize_uv(bent, 64)
+    assert shared.face_id is first.face_id and shared.barycentric is first.barycentric
+    assert not shared.face_id.flags.writeable and not shared.barycentric.flags.writeable
+    uv_raster._COVERAGES.clear()
+    fresh = rasterize_uv(bent, 64)
+    for name in ("face_id", "barycentric", "mask", "position", "normal", "texel_size_u", "texel_size_v"):
+        np.testing.assert_array_equal(getattr(shared, name), getattr(fresh, name))
+    assert not np.array_equal(shared.position, first.position)
+    assert rasterize_uv(bent, 32).face_id is not fresh.face_id  # another resolution
+    flipped = TriangleMesh.from_arrays(uv_sphere.vertices, uv_sphere.faces, 1.0 - uv_sphere.uv)
+    assert not np.array_equal(rasterize_uv(flipped, 64).face_id, fresh.face_id)  # other UVs
+    rasterize_uv(plane, 16)
+    assert len(uv_raster._COVERAGES) <= uv_raster._COVERAGE_ENTRIES
 
 
 def test_sample_texture_reference_values():

@@ -16,6 +16,8 @@ This module is geometry, not physics: numpy in and out, never differentiated.
 from __future__ import annotations
 
 import dataclasses
+import threading
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -234,7 +236,9 @@ def load_mesh(path: PathOrUrl, *, flip_v: bool = False, scale: float = 1.0) -> T
     GLB/glTF go through trimesh (which converts glTF's v-down texture coordinates to v up), OBJ is parsed
     here so that per-corner UVs (``f v/vt``) are kept and seams are split, PLY through trimesh (UVs from
     per-vertex ``s, t`` / ``u, v`` / ``texture_u, texture_v`` properties). Normals are recomputed,
-    area-weighted and smooth across seams. A multi-mesh scene is concatenated.
+    area-weighted and smooth across seams. A multi-mesh scene is concatenated. A local file read again,
+    unchanged, with the same options gives the same (read-only) mesh without parsing it again
+    (:data:`_READ_MESHES`).
 
     Args:
         path: mesh file (a local path or a URL, read from a local copy).
@@ -247,8 +251,6 @@ def load_mesh(path: PathOrUrl, *, flip_v: bool = False, scale: float = 1.0) -> T
         ValueError: naming the file, on unreadable files, missing UVs, non-triangle faces, NaN positions
             or an empty mesh.
     """
-    import trimesh
-
     path = storage_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file '{path}' does not exist")
@@ -258,6 +260,41 @@ def load_mesh(path: PathOrUrl, *, flip_v: bool = False, scale: float = 1.0) -> T
     suffix = path.suffix.lower()
     if suffix not in (".glb", ".gltf", ".obj", ".ply"):
         raise ValueError(f"mesh file '{path}': unsupported format '{suffix}' (GLB, glTF, OBJ, PLY)")
+    stat = path.stat()
+    key = (str(Path(path).resolve()), stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns, bool(flip_v),
+           float(scale))
+    with _READ_LOCK:
+        mesh = _READ_MESHES.get(key)
+        if mesh is not None:
+            _READ_MESHES.move_to_end(key)
+            return mesh
+    mesh = _read_mesh_file(path, suffix, flip_v, scale)
+    with _READ_LOCK:
+        _READ_MESHES[key] = mesh
+        while len(_READ_MESHES) > _READ_ENTRIES or sum(map(_mesh_bytes, _READ_MESHES.values())) > _READ_BYTES:
+            _READ_MESHES.popitem(last=False)
+    return mesh
+
+
+#: The last meshes read from local files, by path, file identity (device, inode, size, modification time)
+#: and the reading options: at most :data:`_READ_ENTRIES` of them and :data:`_READ_BYTES` of arrays. A
+#: :class:`TriangleMesh` is read-only, so readers share it: the stages of a dynamic frame read its
+#: ``mesh.obj`` (and every frame the reference mesh) once per process instead of 2-3 times (0.18 s each
+#: for the 23 k-vertex head, 2.3 MB of arrays). A file replaced or rewritten is read again.
+_READ_MESHES: OrderedDict[tuple, TriangleMesh] = OrderedDict()
+_READ_ENTRIES = 4
+_READ_BYTES = 64 << 20
+_READ_LOCK = threading.Lock()
+
+
+def _mesh_bytes(mesh: TriangleMesh) -> int:
+    return mesh.vertices.nbytes + mesh.faces.nbytes + mesh.uv.nbytes + mesh.normals.nbytes
+
+
+def _read_mesh_file(path: Path, suffix: str, flip_v: bool, scale: float) -> TriangleMesh:
+    """:func:`load_mesh` of a local file of a supported ``suffix``, read and checked."""
+    import trimesh
+
     if suffix == ".obj":
         parsed = load_obj_per_corner(path)
         if parsed is None:
@@ -342,11 +379,13 @@ def save_obj(path: PathOrUrl, mesh: TriangleMesh, *, precision: int = 6) -> Stor
         "# polarface TriangleMesh: positions in mm, uv v-up",
         f"# {mesh.vertex_count} vertices, {mesh.face_count} triangles",
     ]
-    fmt3 = f"{{:.{precision}f}} {{:.{precision}f}} {{:.{precision}f}}"
-    v_lines = ["v " + fmt3.format(*row) for row in mesh.vertices]
-    vt_lines = [f"vt {u:.9f} {v:.9f}" for u, v in mesh.uv]
-    vn_lines = [f"vn {x:.7f} {y:.7f} {z:.7f}" for x, y, z in mesh.normals]
-    one = mesh.faces + 1
+    # rows as Python numbers (tolist): the same text as from numpy scalars, formatted faster (the demo's
+    # head: 0.33 -> 0.29 s)
+    fmt3 = f"v {{:.{precision}f}} {{:.{precision}f}} {{:.{precision}f}}"
+    v_lines = [fmt3.format(*row) for row in mesh.vertices.tolist()]
+    vt_lines = [f"vt {u:.9f} {v:.9f}" for u, v in mesh.uv.tolist()]
+    vn_lines = [f"vn {x:.7f} {y:.7f} {z:.7f}" for x, y, z in mesh.normals.tolist()]
+    one = (mesh.faces + 1).tolist()
     f_lines = [f"f {a}/{a}/{a} {b}/{b}/{b} {c}/{c}/{c}" for a, b, c in one]
     text = "\n".join(lines + v_lines + vt_lines + vn_lines + f_lines) + "\n"
     with atomic_path(path) as tmp:

