@@ -29,10 +29,10 @@ decoded chunks held reach ``N`` bytes, so a region's reads decode only the chunk
 bounded by ``N`` whatever the number of views (the hit rate is what falls with many views: the static
 fit's wavefront reuses every chunk when the cache holds about four chunk rows of its fitting views,
 :mod:`polarface.inverse.polarimetric.patch_units`). Reads through the cache equal uncached reads.
-In a local folder the chunks are decoded straight from their files
-and a view's chunks, and the texel geometry's when the store is made, are written straight to them
-(:class:`polarface.io.zarr_chunks.LocalChunks`, about
-4x faster per chunk than zarr's pipeline), with or without the cache; on a URL zarr reads and writes.
+In a local folder the chunks are decoded straight from their files and a view's chunks, and the texel
+geometry's when the store is made, are written straight to them
+(:class:`polarface.io.zarr_chunks.LocalChunks`, about 4x faster per chunk than zarr's pipeline), with or
+without the cache; on a URL zarr reads and writes.
 
 Where: a local path or an fsspec URL (``memory://``, ``s3://bucket/key``;
 :func:`polarface.io.storage.storage_path`), opened through zarr's local or fsspec store; each chunk is
