@@ -132,11 +132,21 @@ def _write_texel_array(array, values: np.ndarray) -> None:
     if chunks is None:
         array[...] = values
         return
-    chunk_h, chunk_w = array.chunks[:2]
-    inner = (0,) * (array.ndim - 2)
+    _write_chunk_grid(chunks, array.chunks[:2], values, ())
+
+
+def _write_chunk_grid(chunks: LocalChunks, chunk_hw: tuple[int, int], values: np.ndarray,
+                      leading: tuple[int, ...]) -> None:
+    """Write ``values`` ``(Ht, Wt, ...)`` whole, one ``chunk_hw`` texel block per chunk, at chunk-grid
+    positions ``(*leading, row, col, 0, ...)`` (``leading``: axes of chunk size 1 before the texels, the
+    view index of ``obs``, ``valid`` and ``lit``)."""
+    chunk_h, chunk_w = chunk_hw
+    inner = (0,) * (values.ndim - 2)
+    ones = (1,) * len(leading)
     for i in range(0, values.shape[0], chunk_h):
         for j in range(0, values.shape[1], chunk_w):
-            chunks.write((i // chunk_h, j // chunk_w, *inner), values[i : i + chunk_h, j : j + chunk_w])
+            block = values[i : i + chunk_h, j : j + chunk_w]
+            chunks.write((*leading, i // chunk_h, j // chunk_w, *inner), block.reshape(ones + block.shape))
 
 
 class UnwrapStore:
@@ -270,12 +280,7 @@ class UnwrapStore:
             if chunks is None:
                 array[index] = values
                 continue
-            chunk_h, chunk_w = array.chunks[1:3]
-            inner = (0,) * (array.ndim - 3)
-            for i in range(0, values.shape[0], chunk_h):
-                for j in range(0, values.shape[1], chunk_w):
-                    block = values[None, i : i + chunk_h, j : j + chunk_w]
-                    chunks.write((index, i // chunk_h, j // chunk_w, *inner), block)
+            _write_chunk_grid(chunks, array.chunks[1:3], values, (index,))
         stats = dict(self.root.attrs.get("stats", {}))
         stats[str(int(index))] = [float(obs[..., 0, :][valid].sum()), int(valid.sum()) * 3]
         self.root.attrs["stats"] = dict(sorted(stats.items(), key=lambda item: int(item[0])))  # any order
