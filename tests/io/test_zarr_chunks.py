@@ -114,3 +114,28 @@ def test_a_chunk_that_does_not_fit_is_refused(tmp_path):
     for values in (np.zeros((3, 2)), np.zeros((2, 2, 1)), np.zeros(2)):
         with pytest.raises(ValueError, match="argument 'values' must fit a chunk"):
             chunks.write((0, 0), values)
+
+
+@pytest.mark.parametrize(("dtype", "fill"), [("float32", 0.0), ("float32", np.nan), ("float32", 1.5),
+                                             ("bool", False), ("bool", True), ("int16", 0), ("int16", -3)])
+def test_chunks_of_fill_values_are_told_as_numpy_compares_them(tmp_path, dtype, fill):
+    """The test for a chunk of fill values only answers as ``np.array_equal(chunk, full_like(chunk, fill),
+    equal_nan=...)`` (the file is removed exactly then): ``-0.0`` counts as a fill of ``0.0``, NaN as a
+    fill of NaN, a value that rounds to the fill in the array's dtype counts as fill (tested after the
+    cast), an edge chunk's padding is fill."""
+    array = zarr.create_array(tmp_path / "f.zarr", shape=(3, 3), chunks=(2, 2), dtype=dtype, fill_value=fill)
+    chunks = LocalChunks.for_array(array)
+    fill_value = np.asarray(fill, dtype)
+    cases = [np.full((2, 2), fill_value), np.full((1, 1), fill_value)]  # a whole chunk, an edge chunk
+    if dtype == "float32":
+        cases += [np.where(np.eye(2, dtype=bool), -fill_value, fill_value), np.full((2, 2), fill) + 1e-50,
+                  np.full((2, 2), np.nan), np.array([[fill, 2.0], [fill, fill]])]
+    else:
+        cases += [np.array([[fill_value, ~fill_value if dtype == "bool" else fill_value + 1]] * 2)]
+    for values in cases:
+        chunk = np.full((2, 2), fill_value)
+        chunk[: values.shape[0], : values.shape[1]] = values
+        expected_empty = np.array_equal(chunk, np.full_like(chunk, fill_value), equal_nan=dtype == "float32")
+        chunks.write((0, 0), values)
+        assert (tmp_path / "f.zarr" / "c" / "0" / "0").exists() != expected_empty, values
+        assert np.array_equal(np.asarray(array[:2, :2]), chunk, equal_nan=dtype == "float32")

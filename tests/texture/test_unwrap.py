@@ -180,6 +180,23 @@ def test_footprint_rejects_mixed_pixels_at_edges_and_occluders():
     assert footprint_sees_surface(caster, camera, points[:0], normals[:0], pixels[:0], 1, 3.0).shape == (0,)
 
 
+def test_footprint_pixel_table_equals_numpy_unique():
+    """The footprints' pixels and each entry's position among them, from the per-pixel table, are
+    ``np.unique(..., return_inverse=True)``'s: overlapping footprints, pixels 0 and the last, one entry."""
+    from polarface.texture.footprint import _unique_pixels
+
+    rng = np.random.default_rng(3)
+    width, height = 37, 23
+    base = rng.integers(0, width * height - 10, size=(400, 1))
+    cases = [base + np.arange(9)[None], np.array([[0, width * height - 1, 0]]), np.array([[5]])]
+    for flat in cases:
+        unique, inverse = _unique_pixels(flat, width * height)
+        expected_unique, expected_inverse = np.unique(flat, return_inverse=True)
+        assert np.array_equal(unique, expected_unique)
+        assert np.array_equal(inverse, expected_inverse.reshape(flat.shape))
+        assert np.array_equal(unique[inverse], flat)
+
+
 def test_footprint_test_removes_boundary_samples_of_the_sphere_cap(capture):
     """On the sphere-cap capture the test drops some samples next to the cap's silhouette edge only."""
     _info, store, mesh, poses, root = capture

@@ -93,13 +93,23 @@ class LocalChunks:
         if values.ndim != len(self.chunk_shape) or any(
                 n > c for n, c in zip(values.shape, self.chunk_shape, strict=True)):
             raise ValueError(f"argument 'values' must fit a chunk {self.chunk_shape}; got {values.shape}")
-        chunk = np.full(self.chunk_shape, self.metadata.fill_value, self.dtype)
+        fill = self.metadata.fill_value
+        chunk = np.full(self.chunk_shape, fill, self.dtype)
         chunk[tuple(slice(0, n) for n in values.shape)] = values
         path = self._path(coords)
-        if not self.write_empty and np.array_equal(chunk, np.full_like(chunk, self.metadata.fill_value),
-                                                   equal_nan=chunk.dtype.kind in "fc"):
+        if not self.write_empty and _only_fill(chunk, fill):
             path.unlink(missing_ok=True)
             return
         encoded = self._zstd.encode(chunk)
         with atomic_path(path) as tmp:
             Path(tmp).write_bytes(encoded)
+
+
+def _only_fill(chunk: np.ndarray, fill) -> bool:
+    """Whether every value of ``chunk`` is the fill value (NaN equal to a NaN fill; ``-0.0`` equal to
+    ``0.0``), as ``np.array_equal(chunk, full_like(chunk, fill), equal_nan=...)`` without the copy."""
+    if chunk.dtype.kind in "fc" and np.isnan(fill):
+        return bool(np.isnan(chunk).all())
+    if fill == 0:
+        return not chunk.any()
+    return bool((chunk == fill).all())

@@ -47,7 +47,7 @@ def footprint_sees_surface(
     cols = np.clip(base_x[:, None, None] + offsets[None, None, :], 0, camera.width - 1)
     rows = np.clip(base_y[:, None, None] + offsets[None, :, None], 0, camera.height - 1)
     flat = (rows * camera.width + cols).reshape(count, -1)
-    unique, inverse = np.unique(flat, return_inverse=True)
+    unique, inverse = _unique_pixels(flat, camera.width * camera.height)
     centres = np.stack([unique % camera.width, unique // camera.width], axis=-1).astype(np.float64)
     origins, directions = camera.pixel_rays(centres)
     hits = caster.first_hits(origins, directions)
@@ -59,3 +59,15 @@ def footprint_sees_surface(
         plane_distance = offset[:, None] / facing
     ok = hits.hit[inverse] & (np.abs(hits.distance[inverse] - plane_distance) < tolerance_mm)
     return ok.all(axis=1)
+
+
+def _unique_pixels(flat: np.ndarray, pixel_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(flat, return_inverse=True)`` of pixel indices ``0 <= flat < pixel_count``: the sorted
+    pixels used and each entry's position among them (shaped as ``flat``), from a per-pixel table of the
+    image instead of a sort of the ``(N, P)`` entries (the footprints overlap: entries outnumber pixels)."""
+    used = np.zeros(pixel_count, bool)
+    used[flat] = True
+    unique = np.flatnonzero(used)
+    position = np.zeros(pixel_count, np.int64)
+    position[unique] = np.arange(unique.size)
+    return unique, position[flat]

@@ -194,7 +194,7 @@ class UnwrapStore:
             chunks=(1, *chunk, light_count),
             fill_value=False,
         )
-        root.attrs.update(
+        root.update_attributes(  # one metadata write (``attrs.update`` writes once per key)
             {
                 "format": _FORMAT,
                 "version": 1,
@@ -283,9 +283,11 @@ class UnwrapStore:
             _write_chunk_grid(chunks, array.chunks[1:3], values, (index,))
         stats = dict(self.root.attrs.get("stats", {}))
         stats[str(int(index))] = [float(obs[..., 0, :][valid].sum()), int(valid.sum()) * 3]
-        self.root.attrs["stats"] = dict(sorted(stats.items(), key=lambda item: int(item[0])))  # any order
-        done = sorted(self.done() | {int(index)})
-        self.root.attrs["done"] = done
+        # one write of the group's metadata for both (``attrs[key] = ...`` writes it once per key)
+        self.root.update_attributes({
+            "stats": dict(sorted(stats.items(), key=lambda item: int(item[0]))),  # any order
+            "done": sorted(self.done() | {int(index)}),
+        })
 
     def mark_complete(self) -> None:
         self.root.attrs["complete"] = True
