@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -143,6 +144,39 @@ def test_obj_written_irregularly_loads_as_the_regular_file(tmp_path, uv_sphere, 
     regular, irregular = load_mesh(tmp_path / "regular.obj"), load_mesh(tmp_path / "irregular.obj")
     for name in ("vertices", "faces", "uv", "normals"):
         assert np.array_equal(getattr(regular, name), getattr(irregular, name)), name
+
+
+_OBJ_LINES = ["# header", "v 0.1 0.2 0.3", "v 1 0 0", "v 0 1 0", "v 1 1 0.5", "vt 0 0", "vt 1 0", "vt 0.5 1",
+              "vn 0 0 1", "f 1/1 2/2 3/3", "f 2/2 4/3 3/1"]
+
+
+@pytest.mark.parametrize(
+    ("edit", "regular"),
+    [
+        (lambda lines: lines, True),
+        (lambda lines: ["o a", *lines[1:3], lines[5], lines[9], "g b", *lines[3:5], "s off", *lines[6:8],
+                        lines[10], "usemtl m"], True),  # groups, objects, interleaved blocks
+        (lambda lines: ["", *lines, "  ", "#v 9 9 9"], True),  # blank lines, a comment that looks like a v
+        (lambda lines: [line + " 1" if line.startswith(("v ", "vt ")) else line for line in lines], True),
+        (lambda lines: [*lines, "f -1/-1 -2/-2 -3/-3", "vtx 1 2", "vn\t1 2 3"], True),  # relative indices
+        (lambda lines: [*lines, "f 1/1 2/2 3/3 4/1"], False),  # a quad
+        (lambda lines: [*lines, "vt\t0.1 0.2"], False),  # a keyword and a tab
+        (lambda lines: [*lines, "f 1//1 2//2 3//3"], False),  # no texture coordinates
+        (lambda lines: [*lines, "f 1/1/1 2/2/1 3/3/1"], False),  # two corner forms
+        (lambda lines: [*lines, "v"], False),
+    ],
+)
+def test_obj_regular_reader_equals_the_line_by_line_parser(edit, regular):
+    """The grouped, numpy-read path returns the line-by-line parser's arrays for every file it takes, and
+    None (the line-by-line parser then reads or refuses the file) for the irregular ones."""
+    from polarface.geometry.obj_file import _obj_arrays_by_line, _obj_arrays_regular
+
+    lines = edit(list(_OBJ_LINES))
+    parsed = _obj_arrays_regular(lines)
+    assert (parsed is not None) == regular
+    if regular:
+        for got, expected in zip(parsed, _obj_arrays_by_line(lines, Path("x.obj")), strict=True):
+            assert got.dtype == expected.dtype and np.array_equal(got, expected)
 
 
 def test_load_bundled_glb_v_convention():

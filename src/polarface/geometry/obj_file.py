@@ -33,23 +33,43 @@ def _obj_arrays_regular(lines: list[str]) -> _ObjArrays | None:
     indices ``(F, 3)`` of positions and of texture coordinates, parsed by numpy's C reader when the
     file is regular: every ``v``/``vt``/``f`` line starts with its keyword and one space, and every face
     is a triangle in one ``v/vt`` or ``v/vt/vn`` form. None otherwise (then the line-by-line parser
-    reads it and names what is wrong)."""
-    known = ("v ", "vt ", "vn ", "f ", "#")
-    for line in (line for line in lines if not line.startswith(known)):
-        parts = line.split()
-        if parts and parts[0] in ("v", "vt", "f"):
-            return None
-    faces = [line for line in lines if line.startswith("f ")]
-    if not faces or any("//" in line for line in faces):
+    reads it and names what is wrong).
+
+    The lines are sorted into groups by their first two characters in one pass (a file has a handful of
+    groups); only lines outside the known groups are split to look at their keyword."""
+    groups: dict[str, list[str]] = {}
+    for line in lines:
+        key = line[:2]
+        group = groups.get(key)
+        if group is None:
+            group = groups[key] = []
+        group.append(line)
+    positions, texcoords, faces = groups.pop("v ", []), [], groups.pop("f ", [])
+    for key, group in groups.items():
+        if key.startswith("#"):
+            continue
+        if key in ("vt", "vn"):
+            known = [line for line in group if line.startswith(f"{key} ")]
+            texcoords = known if key == "vt" else texcoords
+            if len(known) == len(group):
+                continue
+            group = [line for line in group if not line.startswith(f"{key} ")]
+        for line in group:
+            parts = line.split()
+            if parts and parts[0] in ("v", "vt", "f"):
+                return None
+    if not faces:
         return None
+    face_text = "\n".join(faces)
+    if "//" in face_text:
+        return None
+    face_rows = face_text[2:].replace("\nf ", "\n").replace("/", " ").split("\n")  # without "f "
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # an empty selection is irregular too
-            positions = np.loadtxt([line for line in lines if line.startswith("v ")], usecols=(1, 2, 3),
-                                   dtype=np.float64, ndmin=2)
-            texcoords = np.loadtxt([line for line in lines if line.startswith("vt ")], usecols=(1, 2),
-                                   dtype=np.float64, ndmin=2)
-            corners = np.loadtxt([line[2:].replace("/", " ") for line in faces], dtype=np.int64, ndmin=2)
+            positions = np.loadtxt(positions, usecols=(1, 2, 3), dtype=np.float64, ndmin=2)
+            texcoords = np.loadtxt(texcoords, usecols=(1, 2), dtype=np.float64, ndmin=2)
+            corners = np.loadtxt(face_rows, dtype=np.int64, ndmin=2)
     except (ValueError, UserWarning):
         return None
     if corners.shape[1] not in (6, 9):  # v/vt or v/vt/vn triangles
