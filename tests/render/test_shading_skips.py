@@ -103,10 +103,12 @@ def _reference_view(caster, mesh, camera, textures, lights, intensity, channels,
     return fragments, analyzer_images(stokes, polarization), visible
 
 
-def test_render_view_gives_the_full_paths_bits(small_rig):
+def test_render_view_gives_the_full_paths_images(small_rig):
     """The head, turned to face the rig at 1 m: ``render_view`` (s0 alone for RGB, s0..s2 for the
-    polarization camera, shadow rays only towards modules lighting a fragment from the front) gives the
-    bits of the full per-module path, and some shadow rays are skipped."""
+    polarization camera, shadow rays only towards modules lighting a fragment from the front, the lobes
+    in one compiled loop) gives the images of the full per-module path to float32 rounding (torch's
+    float32 square root is not IEEE's: tests/render/test_lobe_kernel.py), and some shadow rays are
+    skipped."""
     asset = load_head_asset(texture_resolution=128)
     turn = np.diag([-1.0, 1.0, -1.0, 1.0])
     turn[2, 3] = 1000.0
@@ -131,4 +133,6 @@ def test_render_view_gives_the_full_paths_bits(small_rig):
         pixel = np.unravel_index(fragments.pixel, view.mask.shape)
         assert set(view.images) == set(expected)
         for name, image in expected.items():
-            assert view.images[name][pixel].tobytes() == image.numpy().tobytes()
+            got, image = view.images[name][pixel], image.numpy()
+            assert np.abs(got - image).max() <= 4 * np.finfo(np.float32).eps * np.abs(image).max()
+            assert np.mean(got == image) > 0.95  # the same expressions: most pixels the same bits

@@ -15,9 +15,10 @@ of :class:`~polarface.optics.image_formation.PolarimetricImages`:
   both lobes are exactly 0 (``torch.where``), so no shadow ray whose answer cannot matter is cast.
 
 Inputs are torch tensors of one floating dtype (the shading's: float32 or float64); units and frames as
-:mod:`polarface.optics.image_formation` (mm, world frame; Stokes in the camera frame). The lobes stay in
-torch: torch's float32 ``sqrt`` is not correctly rounded (about 0.7 % of values differ by one ulp from
-IEEE ``sqrt``), so a fused numba kernel (tried: about 0.5 s less per demo frame) would change the bits.
+:mod:`polarface.optics.image_formation` (mm, world frame; Stokes in the camera frame). This is the
+differentiable reference; the renderers use its compiled twin,
+:func:`polarface.render.lobe_kernel.add_lobes_fused`, which agrees with it to float rounding (torch's
+float32 ``sqrt`` is not correctly rounded: about 0.7 % of its values differ by one ulp from IEEE's).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import torch
 from polarface._validation import check_range
 from polarface.optics._kernels import _check_geometry, _Light, _lobe_terms, _LobeView, _prepare_lights, _split
 
-__all__ = ["ShadowTest", "add_lobes"]
+__all__ = ["ShadowTest", "add_lobes", "checked_lobe_inputs"]
 
 #: Lazy shadow-ray visibility for :func:`add_lobes`: ``test(k, rows)`` -> ``(len(rows),)`` bool, whether
 #: light ``k`` is visible from the points ``rows`` (``(M,)`` int64 indices).
@@ -77,12 +78,55 @@ def add_lobes(
         ValueError: shapes that do not match (``stokes``, ``visible`` or its answers), and, outside
             :func:`polarface._validation.trusted_inputs`, the value checks of ``render_polarimetric``.
     """
+    visible, lights, intensities, polarizer = checked_lobe_inputs(
+        stokes, normal, position, camera_center, camera_up, light_positions, light_intensity, eta, alpha_s,
+        alpha_ss, rho_s, rho_ss, visible, light_stokes,
+    )  # fmt: skip
+    lazy, components = callable(visible), stokes.shape[-1]
+    numpy_dtype = np.float32 if position.dtype == torch.float32 else np.float64
+    normal3, position3, up3 = _split(normal), _split(position), _split(camera_up)
+    view = _LobeView(normal3, position3, _split(camera_center), up3, eta, alpha_s, alpha_ss)
+    for k in range(lights.shape[0]):
+        light = _Light(lights[k], position3, normal3, up3)
+        if lazy:
+            lit = _ask(visible, k, ((light.cos_i > 0.0) & (view.cos_o[..., 0] > 0.0)).numpy())
+        else:
+            lit = visible[:, k]
+        if skip_unlit and not lit.any():
+            continue
+        term_s, term_ss = _lobe_terms(light, view, intensities[k], polarizer[k], rho_s, rho_ss, components)
+        terms = term_s + term_ss
+        if not lit.all():  # 1 * x is x: multiply only where some point is shadowed
+            terms = torch.from_numpy(lit.astype(numpy_dtype))[:, None, None] * terms
+        stokes = stokes + terms
+    return stokes
+
+
+def checked_lobe_inputs(
+    stokes: torch.Tensor,
+    normal: torch.Tensor,
+    position: torch.Tensor,
+    camera_center: torch.Tensor,
+    camera_up: torch.Tensor,
+    light_positions: np.ndarray,
+    light_intensity: torch.Tensor,
+    eta: torch.Tensor,
+    alpha_s: torch.Tensor,
+    alpha_ss: torch.Tensor,
+    rho_s: torch.Tensor,
+    rho_ss: torch.Tensor,
+    visible: np.ndarray | ShadowTest,
+    light_stokes: torch.Tensor | None,
+) -> tuple[np.ndarray | ShadowTest, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The checks of :func:`add_lobes` (its arguments); returns ``(visible`` as a bool array or the test,
+    the lights ``(K, 3)``, their intensities ``(K, C')`` and polarizer states ``(K, 4)``, in the dtype of
+    ``position)``. Shapes are always checked, values outside
+    :func:`polarface._validation.trusted_inputs` only."""
     count, lights_count, components = position.shape[0], np.shape(light_positions)[0], stokes.shape[-1]
     if stokes.ndim != 3 or stokes.shape[0] != count or not 1 <= components <= 4:
         raise ValueError(f"argument 'stokes' must be (N, C, S) with N = {count}, 1 <= S <= 4; "
                          f"got {tuple(stokes.shape)}")
-    lazy = callable(visible)
-    if not lazy:
+    if not callable(visible):
         visible = np.asarray(visible)
         if visible.shape != (count, lights_count) or visible.dtype != bool:
             raise ValueError(f"argument 'visible' must be (N, K) = {(count, lights_count)} bool; "
@@ -97,22 +141,7 @@ def add_lobes(
         check_range(value, name, 0.0, None, low_inclusive=inclusive)
     polarizer = None if light_stokes is None else torch.as_tensor(light_stokes, dtype=dtype)
     intensities, polarizer = _prepare_lights(lights, light_intensity, polarizer)
-    normal3, position3, up3 = _split(normal), _split(position), _split(camera_up)
-    view = _LobeView(normal3, position3, _split(camera_center), up3, eta, alpha_s, alpha_ss)
-    for k in range(lights_count):
-        light = _Light(lights[k], position3, normal3, up3)
-        if lazy:
-            lit = _ask(visible, k, ((light.cos_i > 0.0) & (view.cos_o[..., 0] > 0.0)).numpy())
-        else:
-            lit = visible[:, k]
-        if skip_unlit and not lit.any():
-            continue
-        term_s, term_ss = _lobe_terms(light, view, intensities[k], polarizer[k], rho_s, rho_ss, components)
-        terms = term_s + term_ss
-        if not lit.all():  # 1 * x is x: multiply only where some point is shadowed
-            terms = torch.from_numpy(lit.astype(numpy_dtype))[:, None, None] * terms
-        stokes = stokes + terms
-    return stokes
+    return visible, lights, intensities, polarizer
 
 
 def _ask(test: ShadowTest, light: int, front: np.ndarray) -> np.ndarray:

@@ -26,8 +26,9 @@ from scipy import ndimage
 from polarface._validation import trusted_inputs
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import sample_texture
-from polarface.optics.lobes import ShadowTest, add_lobes
+from polarface.optics.lobes import ShadowTest
 from polarface.optics.pbssrdf import SURFACE_PARAMETER_NAMES
+from polarface.render.lobe_kernel import add_lobes_fused
 
 __all__ = [
     "PARAMETER_ORDER",
@@ -246,7 +247,7 @@ def lobe_stokes(
         ValueError: shapes that do not match, a ``visible`` test answering the wrong shape, and (outside
             :func:`polarface._validation.trusted_inputs`) the value checks of ``render_polarimetric``.
     """
-    return add_lobes(
+    return add_lobes_fused(
         stokes, material.normal, position, camera_center, camera_up, light_positions, intensity,
         material.eta, material.alpha_s, material.alpha_ss, material.rho_s, material.rho_ss, visible,
         light_stokes=light_stokes, skip_unlit=skip_unlit,
