@@ -9,7 +9,8 @@ polarization to the exitance, and
 the specular and single-scattering lobes of :func:`polarface.optics.render_polarimetric` are added for
 each LED module times its shadow-ray visibility (:func:`lobe_stokes`; the image formation is linear in
 the lights), computing only the Stokes components the camera keeps. The physics itself lives in
-:mod:`polarface.optics.image_formation` and :mod:`polarface.optics.lobes`.
+:mod:`polarface.optics.image_formation` and :mod:`polarface.optics.lobes` (its compiled loops in
+:mod:`polarface.render.lobe_kernel`).
 
 Frames and units: world mm; Stokes vectors in the camera frame (``docs/conventions.md``); radiance in
 LED intensity units per mm^2 per sr.
@@ -220,10 +221,11 @@ def lobe_stokes(
 ) -> torch.Tensor:
     """``stokes`` plus the specular and single-scattering Stokes ``(N, C, S)`` of every visible LED.
 
-    :func:`polarface.optics.lobes.add_lobes` with the fragments' material: the lobes of
-    :func:`polarface.optics.render_polarimetric` (the same floating-point expressions, so the same
-    bits), light by light, with the view geometry computed once; only the ``S`` components of ``stokes``
-    are computed (``S = 1``: the first row of the Mueller chain, ``s0``, for an RGB camera).
+    :func:`polarface.optics.lobes.add_lobes` with the fragments' material, in compiled loops
+    (:func:`polarface.render.lobe_kernel.add_lobes_fused`: its expressions, equal to it to float
+    rounding): the lobes of :func:`polarface.optics.render_polarimetric`, light by light, with the view
+    geometry computed once; only the ``S`` components of ``stokes`` are computed (``S = 1``: the first
+    row of the Mueller chain, ``s0``, for an RGB camera).
 
     Args:
         material: the fragments' material; position: ``(N, 3)`` mm (float32 or float64: the dtype of
