@@ -255,8 +255,8 @@ def _lobes(normal, position, centre, up, lights, intensity, polarizer, eta, alph
                     stokes[ch, s, lo + j] = work[accumulators + ch * components + s, j]
 
 
-def _fused_inputs(stokes, normal, position, camera_center, camera_up, light_intensity, eta, alpha_s, alpha_ss,
-                  rho_s, rho_ss) -> bool:
+def _fused_inputs(stokes, normal, position, camera_center, camera_up, light_positions, light_intensity, eta,
+                  alpha_s, alpha_ss, rho_s, rho_ss) -> bool:
     """Whether the loop takes these tensors: CPU, no gradients, one dtype (float32 or float64), one
     ``eta`` and roughness per fragment (``(N, 1)``), lobe albedos ``(N, 1)`` or ``(N, C)``."""
     tensors = (stokes, normal, position, camera_center, camera_up, light_intensity, eta, alpha_s, alpha_ss,
@@ -288,7 +288,7 @@ def add_lobes_fused(
     light_stokes: torch.Tensor | None = None,
     skip_unlit: bool = True,
 ) -> torch.Tensor:
-    """:func:`polarface.optics.lobes.add_lobes` (same arguments, shapes and checks) in one compiled loop:
+    """:func:`polarface.optics.lobes.add_lobes` (same arguments, shapes and checks) in compiled loops:
     ``stokes`` ``(N, C, S)`` plus the specular and single-scattering Stokes of every visible light.
 
     Equal to ``add_lobes`` to float rounding (module docstring); what the loop does not take (gradients,
@@ -301,7 +301,7 @@ def add_lobes_fused(
     """
     arguments = (stokes, normal, position, camera_center, camera_up, light_positions, light_intensity, eta,
                  alpha_s, alpha_ss, rho_s, rho_ss)
-    if stokes.ndim != 3 or not _fused_inputs(stokes, *arguments[1:5], light_intensity, *arguments[7:]):
+    if stokes.ndim != 3 or not _fused_inputs(*arguments):
         return add_lobes(*arguments, visible, light_stokes=light_stokes, skip_unlit=skip_unlit)
     visible, lights, intensities, polarizer = checked_lobe_inputs(*arguments, visible, light_stokes)
     if intensities.shape[1] not in (1, stokes.shape[1]):  # add_lobes names what does not broadcast
