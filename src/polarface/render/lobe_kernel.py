@@ -63,15 +63,15 @@ def _view(i, normal, position, centre, up, const):  # pragma: no cover - compile
 
 
 @numba.njit(inline="always", **_JIT)
-def _to_light(i, light, normal, position, const):  # pragma: no cover - compiled by numba
-    """Unit direction to ``light`` ``(3,)``, ``1 / distance^2`` and ``cos_i`` of fragment ``i``
-    (``polarface.optics._kernels._Light``)."""
+def _to_light(lx, ly, lz, px, py, pz, nx, ny, nz, const):  # pragma: no cover - compiled by numba
+    """Unit direction from the point ``p`` with normal ``n`` to the light at ``l``, ``1 / distance^2`` and
+    ``cos_i`` (``polarface.optics._kernels._Light``): one formula for the front mask and the lobes."""
     one, tiny = const[3], const[6]
-    dx, dy, dz = light[0] - position[0, i], light[1] - position[1, i], light[2] - position[2, i]
+    dx, dy, dz = lx - px, ly - py, lz - pz
     distance2 = max(dx * dx + dy * dy + dz * dz, tiny)
     inv = one / math.sqrt(distance2)
     ix, iy, iz = dx * inv, dy * inv, dz * inv
-    cos_i = min(max(normal[0, i] * ix + normal[1, i] * iy + normal[2, i] * iz, -one), one)
+    cos_i = min(max(nx * ix + ny * iy + nz * iz, -one), one)
     return ix, iy, iz, inv * inv, cos_i
 
 
@@ -82,7 +82,9 @@ def _front(normal, position, centre, up, lights, const, front):  # pragma: no co
     for i in range(normal.shape[1]):
         cos_o = _view(i, normal, position, centre, up, const)[3]
         for k in range(lights.shape[0]):
-            front[i, k] = cos_o > zero and _to_light(i, lights[k], normal, position, const)[4] > zero
+            cos_i = _to_light(lights[k, 0], lights[k, 1], lights[k, 2], position[0, i], position[1, i],
+                              position[2, i], normal[0, i], normal[1, i], normal[2, i], const)[4]
+            front[i, k] = cos_o > zero and cos_i > zero
 
 
 @numba.njit(inline="always", **_JIT)
@@ -138,18 +140,15 @@ def _light_terms(work, count, light, stokes, up, const):  # pragma: no cover - c
     mask and the four Stokes components of the Fresnel reflection (``polarface.optics._kernels``'s
     ``_lobe_terms`` and ``_specular_stokes``). Straight-line code (selects, no branches): LLVM vectorises
     the loop over the fragments."""
-    zero, quarter, half, one, tiny, eps2 = const[0], const[1], const[2], const[3], const[6], const[7]
+    zero, quarter, half, one, eps2 = const[0], const[1], const[2], const[3], const[7]
     lx, ly, lz = light[0], light[1], light[2]
     s0, s1, s2, s3 = stokes[0], stokes[1], stokes[2], stokes[3]
     ux, uy, uz = up[0], up[1], up[2]
     for j in range(count):
         nx, ny, nz = work[_NX, j], work[_NY, j], work[_NZ, j]
         ox, oy, oz, cos_o = work[_OX, j], work[_OY, j], work[_OZ, j], work[_COSO, j]
-        dx, dy, dz = lx - work[_PX, j], ly - work[_PY, j], lz - work[_PZ, j]
-        distance2 = max(dx * dx + dy * dy + dz * dz, tiny)
-        inv = one / math.sqrt(distance2)
-        ix, iy, iz = dx * inv, dy * inv, dz * inv
-        cos_i = min(max(nx * ix + ny * iy + nz * iz, -one), one)
+        px, py, pz = work[_PX, j], work[_PY, j], work[_PZ, j]
+        ix, iy, iz, inv_d2, cos_i = _to_light(lx, ly, lz, px, py, pz, nx, ny, nz, const)
         along = ux * ix + uy * iy + uz * iz
         pix, piy, piz = ux - along * ix, uy - along * iy, uz - along * iz
         hx, hy, hz = ix + ox, iy + oy, iz + oz
@@ -183,7 +182,7 @@ def _light_terms(work, count, light, stokes, up, const):  # pragma: no cover - c
         work[_SPEC + 2, j] = s_o * v1 + c_o * v2
         work[_SPEC + 3, j] = r_retarded * s3
         cos_h = nx * hx + ny * hy + nz * hz
-        work[_GEO, j] = quarter * max(cos_i, zero) * (inv * inv)
+        work[_GEO, j] = quarter * max(cos_i, zero) * inv_d2
         work[_D_S, j] = _ggx_d(cos_h, work[_AS, j], const)
         work[_G_S, j] = _g1_over_cos(cos_i, work[_AS, j], const)
         work[_D_SS, j] = _ggx_d(cos_h, work[_ASS, j], const)
@@ -257,8 +256,9 @@ def _lobes(normal, position, centre, up, lights, intensity, polarizer, eta, alph
 
 def _fused_inputs(stokes, normal, position, camera_center, camera_up, light_positions, light_intensity, eta,
                   alpha_s, alpha_ss, rho_s, rho_ss) -> bool:
-    """Whether the loop takes these tensors: CPU, no gradients, one dtype (float32 or float64), one
-    ``eta`` and roughness per fragment (``(N, 1)``), lobe albedos ``(N, 1)`` or ``(N, C)``."""
+    """Whether the loop takes these tensors (``add_lobes``'s arguments; the light positions are numpy): CPU,
+    no gradients, one dtype (float32 or float64), one ``eta`` and roughness per fragment (``(N, 1)``),
+    lobe albedos ``(N, 1)`` or ``(N, C)``."""
     tensors = (stokes, normal, position, camera_center, camera_up, light_intensity, eta, alpha_s, alpha_ss,
                rho_s, rho_ss)
     count, channels = stokes.shape[0], stokes.shape[1]
