@@ -45,18 +45,23 @@ def _constants(dtype: np.dtype) -> np.ndarray:
 
 
 @numba.njit(inline="always", **_JIT)
+def _unit_or(x, y, z, fx, fy, fz, least, one):  # pragma: no cover - compiled by numba
+    """``(x, y, z)`` normalised, or the fallback ``(fx, fy, fz)`` where its squared norm is ``<= least``
+    (``torch.where(degenerate, fallback, v * rsqrt(...))`` of ``polarface.optics._kernels``)."""
+    norm2 = x * x + y * y + z * z
+    degenerate = norm2 <= least
+    inv = one / math.sqrt(one if degenerate else norm2)
+    return (fx if degenerate else x * inv), (fy if degenerate else y * inv), (fz if degenerate else z * inv)
+
+
+@numba.njit(inline="always", **_JIT)
 def _view(i, normal, position, centre, up, const):  # pragma: no cover - compiled by numba
     """Fragment ``i``'s view direction ``w_o``, ``cos_o`` and camera up projected on ``w_o``
     (``polarface.optics._kernels._Viewer``)."""
-    one, tiny = const[3], const[6]
+    one = const[3]
     nx, ny, nz = normal[0, i], normal[1, i], normal[2, i]
     cx, cy, cz = centre[0] - position[0, i], centre[1] - position[1, i], centre[2] - position[2, i]
-    distance2 = cx * cx + cy * cy + cz * cz
-    degenerate = distance2 <= tiny
-    inv = one / math.sqrt(one if degenerate else distance2)
-    ox = nx if degenerate else cx * inv
-    oy = ny if degenerate else cy * inv
-    oz = nz if degenerate else cz * inv
+    ox, oy, oz = _unit_or(cx, cy, cz, nx, ny, nz, const[6], one)
     cos_o = min(max(nx * ox + ny * oy + nz * oz, -one), one)
     along = up[0] * ox + up[1] * oy + up[2] * oz
     return ox, oy, oz, cos_o, up[0] - along * ox, up[1] - along * oy, up[2] - along * oz
@@ -151,13 +156,7 @@ def _light_terms(work, count, light, stokes, up, const):  # pragma: no cover - c
         ix, iy, iz, inv_d2, cos_i = _to_light(lx, ly, lz, px, py, pz, nx, ny, nz, const)
         along = ux * ix + uy * iy + uz * iz
         pix, piy, piz = ux - along * ix, uy - along * iy, uz - along * iz
-        hx, hy, hz = ix + ox, iy + oy, iz + oz
-        norm2 = hx * hx + hy * hy + hz * hz
-        degenerate = norm2 <= eps2
-        inv_h = one / math.sqrt(one if degenerate else norm2)
-        hx = ox if degenerate else hx * inv_h
-        hy = oy if degenerate else hy * inv_h
-        hz = oz if degenerate else hz * inv_h
+        hx, hy, hz = _unit_or(ix + ox, iy + oy, iz + oz, ox, oy, oz, eps2, one)
         c_i, s_i = _double_angle(hx, hy, hz, -ix, -iy, -iz, pix, piy, piz, const)
         c_i, s_i = -c_i, -s_i
         u1 = c_i * s1 + s_i * s2
