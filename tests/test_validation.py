@@ -8,6 +8,7 @@ from polarface._validation import (
     array_api,
     as_float_tensor,
     broadcast_named,
+    broadcast_shape,
     check_last_dim,
     check_range,
     check_unit_vectors,
@@ -47,3 +48,19 @@ def test_range_shape_checks():
         check_unit_vectors(torch.ones(2, 3), "n")
     with pytest.raises(ValueError, match="'a' \\(2,\\), 'b' \\(3,\\)"):
         broadcast_named(("a", torch.zeros(2)), ("b", torch.zeros(3)))
+
+
+@pytest.mark.parametrize(
+    "shapes",
+    [((4, 1), (1, 3)), ((), (2, 3)), ((5, 1, 3), (4, 1), (3,)), ((0, 3), (1, 3)), ((2,),), ()],
+)
+def test_broadcast_shape_is_torchs(shapes):
+    shape = broadcast_shape(*shapes)
+    assert isinstance(shape, torch.Size) and shape == torch.broadcast_shapes(*shapes)
+
+
+def test_broadcast_shape_refuses_mismatch():
+    with pytest.raises(RuntimeError):
+        torch.broadcast_shapes((2,), (3,))
+    with pytest.raises(ValueError):
+        broadcast_shape((2,), (3,))

@@ -24,6 +24,7 @@ __all__ = [
     "array_api",
     "as_float_tensor",
     "broadcast_named",
+    "broadcast_shape",
     "check_finite",
     "check_last_dim",
     "check_range",
@@ -192,14 +193,24 @@ def check_unit_vectors(tensor: torch.Tensor, name: str, atol: float = 1e-3) -> t
     return tensor
 
 
+def broadcast_shape(*shapes: tuple[int, ...]) -> torch.Size:
+    """The broadcast of ``shapes`` (``torch.broadcast_shapes``'s result, by numpy's rules, which are
+    torch's). ValueError where they do not broadcast.
+
+    ``torch.broadcast_shapes`` imports torch's symbolic-shape machinery (sympy) on its first call, about
+    0.6 s in every process (measured); numpy's function is a plain computation.
+    """
+    return torch.Size(np.broadcast_shapes(*(tuple(shape) for shape in shapes)))
+
+
 def broadcast_named(*named: tuple[str, torch.Tensor]) -> list[torch.Tensor]:
     """Broadcast tensors to one shape; on failure name the arguments and their shapes.
 
     Example: ``a, b = broadcast_named(("cos_theta_i", c), ("eta", e))``.
     """
     try:
-        shape = torch.broadcast_shapes(*(t.shape for _, t in named))
-    except RuntimeError as exc:
+        shape = broadcast_shape(*(t.shape for _, t in named))
+    except ValueError as exc:
         desc = ", ".join(f"'{n}' {tuple(t.shape)}" for n, t in named)
         raise ValueError(f"arguments have shapes that do not broadcast: {desc}") from exc
     return [t.expand(shape) for _, t in named]

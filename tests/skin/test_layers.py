@@ -152,3 +152,26 @@ def test_gradcheck_subsurface_albedo():
 def test_numpy_in_numpy_out():
     out = subsurface_albedo(np.array([0.05, 0.1]), 0.5, 0.03, 0.03, WL.numpy())
     assert isinstance(out, np.ndarray) and out.shape == (2, 15)
+
+
+def test_layer_totals_in_blocks_are_the_whole_arrays(monkeypatch):
+    """Large inputs go through in blocks of the broadcast shape: the same values and gradients."""
+    import polarface.skin.layers as layers
+
+    rng = np.random.default_rng(5)
+    texels = 1003  # blocks of 64 elements end inside rows of the (texels, L) broadcast shape
+    params = [torch.tensor(rng.uniform(low, high, texels), requires_grad=True)
+              for low, high in (PARAMETER_RANGES[name] for name in ("c_m", "beta_m", "c_h_in", "c_h_out"))]
+
+    def totals_and_grads(block: int):
+        monkeypatch.setattr(layers, "_TOTALS_BLOCK", block)
+        optics = layer_optics(*params, WL)
+        totals = layer_totals(*optics)
+        grads = torch.autograd.grad(sum(t.sum() for t in totals), params)
+        return [t.detach() for t in totals], grads
+
+    whole, whole_grads = totals_and_grads(10**9)
+    blocked, blocked_grads = totals_and_grads(64)
+    assert whole[0].shape == (texels, WL.numel())
+    for a, b in zip(whole + list(whole_grads), blocked + list(blocked_grads), strict=True):
+        assert torch.equal(a, b)

@@ -31,6 +31,7 @@ import numba
 import numpy as np
 
 from polarface._validation import inputs_trusted
+from polarface.geometry.embree_packets import PacketScene, packet_scene
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.open3d_library import open3d_module
 
@@ -176,6 +177,7 @@ class RayCaster:
         self._face_normals = mesh.face_normals()
         self._faces = np.ascontiguousarray(mesh.faces, np.int64)  # the scene's triangles, for the kernels
         self._vertices = np.ascontiguousarray(mesh.vertices, np.float64)
+        self._packets: PacketScene | bool | None = False  # built on the first shadow query
 
     @staticmethod
     def _check_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -205,10 +207,23 @@ class RayCaster:
 
     def _blocked(self, origins32: np.ndarray, directions32: np.ndarray, limits: np.ndarray) -> np.ndarray:
         """``(R,)`` bool: Embree's occlusion query of scene-frame rays (:meth:`_scene_rays`) within the
-        float64 lengths ``limits`` ``(R,)`` (a zero length is never blocked)."""
+        float64 lengths ``limits`` ``(R,)`` (a zero length is never blocked): in coherent packets
+        (:mod:`polarface.geometry.embree_packets`), or one ray at a time through embreex where Embree's
+        library is not at hand (the same answers)."""
         dists = np.minimum(limits, _MISS_DISTANCE).astype(np.float32)
+        packets = self._packet_scene()
+        if packets is not None:
+            return packets.occluded(origins32, directions32, dists) & (limits > 0)
         result = self._scene.scene.run(origins32, directions32, dists=dists, query="OCCLUDED")
         return (np.asarray(result) != -1) & (limits > 0)
+
+    def _packet_scene(self) -> PacketScene | None:
+        """The packet scene of embreex's triangles (built on the first shadow query), or None."""
+        if self._packets is False:
+            wrap, source = self._scene, self._intersector.mesh
+            shifted = (np.asarray(source.vertices, np.float64) - wrap.origin) * wrap.scale
+            self._packets = packet_scene(shifted.astype(np.float32), np.asarray(source.faces))
+        return self._packets  # type: ignore[return-value]
 
     def first_hits(self, origins: np.ndarray, directions: np.ndarray) -> RayHits:
         """Closest intersection of each ray ``origin + t direction``, ``t > 0``.

@@ -29,6 +29,7 @@ import torch
 from polarface._validation import (
     array_api,
     broadcast_named,
+    broadcast_shape,
     check_last_dim,
     check_range,
     check_unit_vectors,
@@ -51,7 +52,7 @@ __all__ = [
 
 def _matrix4(rows: list[list[torch.Tensor | float]], like: torch.Tensor) -> torch.Tensor:
     """Stack a nested 4x4 list of broadcastable tensors / floats into a ``(..., 4, 4)`` tensor."""
-    shape = torch.broadcast_shapes(like.shape, *(e.shape for row in rows for e in row
+    shape = broadcast_shape(like.shape, *(e.shape for row in rows for e in row
                                                  if isinstance(e, torch.Tensor)))
     zero = torch.zeros(shape, dtype=like.dtype, device=like.device)
     entries = [[zero + e for e in row] for row in rows]

@@ -30,7 +30,13 @@ import math
 
 import torch
 
-from polarface._validation import array_api, broadcast_named, check_range, check_unit_vectors
+from polarface._validation import (
+    array_api,
+    broadcast_named,
+    broadcast_shape,
+    check_range,
+    check_unit_vectors,
+)
 from polarface.optics.fresnel import _amplitudes, _terms
 from polarface.optics.microfacet import _g1_over_cos, _ggx_d
 from polarface.optics.mueller import (
@@ -62,7 +68,7 @@ def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def _half_vector(w_i: torch.Tensor, w_o: torch.Tensor) -> torch.Tensor:
-    return _safe_normalize(w_i + w_o, w_o.expand(torch.broadcast_shapes(w_i.shape, w_o.shape)))
+    return _safe_normalize(w_i + w_o, w_o.expand(broadcast_shape(w_i.shape, w_o.shape)))
 
 
 def _check_geometry(**vectors: torch.Tensor) -> None:
@@ -143,7 +149,7 @@ def pbssrdf_specular_mueller(
     check_range(eta, "eta", 1.0, None, low_inclusive=False)
     check_range(alpha, "alpha", 0.0, None, low_inclusive=False)
     check_range(rho, "rho", 0.0, None)
-    _check_scalars(torch.broadcast_shapes(normal.shape, w_i.shape, w_o.shape), eta=eta, alpha=alpha, rho=rho)
+    _check_scalars(broadcast_shape(normal.shape, w_i.shape, w_o.shape), eta=eta, alpha=alpha, rho=rho)
     return _specular(normal, w_i, w_o, up, eta, alpha, rho)
 
 
@@ -193,7 +199,7 @@ def pbssrdf_subsurface_mueller(
     check_range(eta_i, "eta_i", 1.0, None, low_inclusive=False)
     check_range(eta_o, "eta_o", 1.0, None, low_inclusive=False)
     check_range(profile, "profile", 0.0, None)
-    shape = torch.broadcast_shapes(normal_i.shape, w_i.shape, normal_o.shape, w_o.shape)
+    shape = broadcast_shape(normal_i.shape, w_i.shape, normal_o.shape, w_o.shape)
     _check_scalars(shape, eta_i=eta_i, eta_o=eta_o, profile=profile)
     return _subsurface(normal_i, w_i, normal_o, w_o, up, eta_i, eta_o, profile)
 
@@ -233,7 +239,7 @@ def pbssrdf_mueller(
         ``(..., 4, 4)`` Mueller matrix from the light frame to the camera frame.
     """
     _check_geometry(normal=normal, w_i=w_i, w_o=w_o, up=up)
-    shape = torch.broadcast_shapes(normal.shape, w_i.shape, w_o.shape)
+    shape = broadcast_shape(normal.shape, w_i.shape, w_o.shape)
     _check_params(shape, eta, alpha_s, alpha_ss, rho_s, rho_ss, rho_sss_bar)
     return (_specular(normal, w_i, w_o, up, eta, alpha_s, rho_s)
             + _specular(normal, w_i, w_o, up, eta, alpha_ss, rho_ss)
@@ -277,7 +283,7 @@ def pbssrdf_coaxial_mueller(
         ``(..., 4, 4)`` Mueller matrix.
     """
     _check_geometry(normal=normal, w_o=w_o, up=up)
-    shape = torch.broadcast_shapes(normal.shape, w_o.shape)
+    shape = broadcast_shape(normal.shape, w_o.shape)
     _check_params(shape, eta, alpha_s, alpha_ss, rho_s, rho_ss, rho_sss_bar)
     x_out, y_out = _stokes_frame(w_o, up)
     xi, zeta = double_angle_cos_sin(normal, x_out, y_out)

@@ -143,6 +143,21 @@ def _srgb_linear_of_chromophores(
     return spectral.spectrum_to_srgb(r_bar, wavelengths)[0]
 
 
+def _nearest_table_entry(table: np.ndarray):
+    """A function mapping points ``(n, 3)`` float64 to the index ``(n,)`` int64 of their nearest row of
+    ``table`` ``(T, 3)`` (Euclidean), the first of equal rows: a k-d tree over the distinct rows.
+
+    The table repeats rows where its chromophores are clamped; among those the first index is the one
+    an ``argmin`` over all rows gives, so the multipliers do not depend on how ties are broken.
+    """
+    from scipy.spatial import cKDTree
+
+    _, first = np.unique(table, axis=0, return_index=True)
+    first = np.sort(first)
+    tree = cKDTree(table[first])
+    return lambda points: first[tree.query(points)[1]].astype(np.int64)
+
+
 def chromophore_multipliers_from_albedo(
     albedo_linear: np.ndarray,
     mask: np.ndarray,
@@ -167,7 +182,7 @@ def chromophore_multipliers_from_albedo(
         base: scalar ``(c_m, beta_m, c_h_in, c_h_out)`` around which the multipliers act.
         log_range: bound on the natural-log multipliers.
         lut_steps: table resolution per axis.
-        chunk: texels per nearest-neighbour block (memory bound).
+        chunk: texels per block of the least-squares step (memory bound).
 
     Returns:
         ``(a, b)``: ``(H, W)`` float32 natural-log multipliers of ``c_m`` and ``c_h_out``.
@@ -188,14 +203,14 @@ def chromophore_multipliers_from_albedo(
     # Finite-difference Jacobian of the table along a and b (central inside, one-sided at the rim).
     jac_a = torch.gradient(table, spacing=step, dim=0)[0]
     jac_b = torch.gradient(table, spacing=step, dim=1)[0]
-    flat_table = table.reshape(-1, 3)
+    nearest_entry = _nearest_table_entry(table.reshape(-1, 3).numpy())
 
     rgb_texels = np.clip(albedo_linear[mask].astype(np.float64), 1e-4, None)
     target = torch.from_numpy(np.log(rgb_texels) - np.log(np.median(rgb_texels, axis=0)))
     params = torch.empty(target.shape[0], 2, dtype=torch.float64)
     for start in range(0, target.shape[0], chunk):
         block = target[start : start + chunk]
-        nearest = torch.cdist(block, flat_table).argmin(dim=1)
+        nearest = torch.from_numpy(nearest_entry(block.numpy()))
         ia, ib = nearest // lut_steps, nearest % lut_steps
         jac = torch.stack([jac_a[ia, ib], jac_b[ia, ib]], dim=-1)  # (n, 3, 2)
         residual = (block - table[ia, ib]).unsqueeze(-1)

@@ -35,7 +35,7 @@ from typing import NamedTuple
 
 import torch
 
-from polarface._validation import array_api, broadcast_named, check_range
+from polarface._validation import array_api, broadcast_named, broadcast_shape, check_range
 from polarface.skin.chromophores import (
     sigma_a_baseline,
     sigma_a_deoxy_haemoglobin,
@@ -218,8 +218,36 @@ def layer_totals(
     return _layer_totals(sigma_a_out, sigma_a_in, sigma_s_prime_out, sigma_s_prime_in, constants)
 
 
+#: Elements per block of :func:`_layer_totals` (a multiple of every SIMD width): each of the multipole's
+#: ~150 elementwise steps then runs on a block that stays in the core's cache (0.5 MB in float64)
+#: instead of streaming the whole array through memory once per step.
+_TOTALS_BLOCK = 65536
+
+
 def _layer_totals(sigma_a_out, sigma_a_in, sigma_s_prime_out, sigma_s_prime_in, constants) -> LayerTotals:
-    """Unchecked core of :func:`layer_totals` (broadcasting tensors)."""
+    """Unchecked core of :func:`layer_totals` (broadcasting tensors).
+
+    Large inputs go through in blocks of :data:`_TOTALS_BLOCK` elements of their broadcast shape: every
+    step is elementwise, so the values are the same (test), and 240 k texels x 15 wavelengths take
+    about half the time (measured, 1 and 2 threads).
+    """
+    inputs = (sigma_a_out, sigma_a_in, sigma_s_prime_out, sigma_s_prime_in)
+    shape = broadcast_shape(*(t.shape for t in inputs))
+    count = math.prod(shape)
+    if count <= 2 * _TOTALS_BLOCK:
+        return _layer_totals_block(*inputs, constants)
+    flat = [t.expand(shape).reshape(-1) for t in inputs]
+    blocks = [
+        _layer_totals_block(*(f[start : start + _TOTALS_BLOCK] for f in flat), constants)
+        for start in range(0, count, _TOTALS_BLOCK)
+    ]
+    return LayerTotals(*(torch.cat(parts).reshape(shape) for parts in zip(*blocks, strict=True)))
+
+
+def _layer_totals_block(
+    sigma_a_out, sigma_a_in, sigma_s_prime_out, sigma_s_prime_in, constants
+) -> LayerTotals:
+    """:func:`_layer_totals` of one block (the multipole and dipole totals, elementwise)."""
 
     def scalar(value: float) -> torch.Tensor:
         return torch.tensor(value, dtype=sigma_a_out.dtype, device=sigma_a_out.device)
