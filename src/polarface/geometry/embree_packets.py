@@ -3,8 +3,11 @@
 embreex (the Embree binding :mod:`polarface.geometry.raycast` uses) answers one ray per call
 (``rtcOccluded1``). A renderer's shadow rays come in runs that leave neighbouring pixels for one light,
 and Embree traces such runs faster as packets flagged coherent (``rtcOccluded8`` with
-``RTC_RAY_QUERY_FLAG_COHERENT``): a demo frame's 15.5 M shadow rays took 0.95 s instead of 2.17 s here
-(docs/performance.md), with the same answer for every ray.
+``RTC_RAY_QUERY_FLAG_COHERENT``): a demo frame's 15.5 M shadow rays took 1.5-1.6 s instead of 2.2-2.4 s
+(docs/geometry.md, "Shadow rays in packets"), with the same answer for every ray. The scene is robust
+(``RTC_SCENE_FLAG_ROBUST``: Embree without its optimisations that reduce arithmetic accuracy): without
+it, packets let rays through at edges and vertices where embreex's single rays are blocked (the sphere
+test of ``tests/geometry/test_raycast.py``: 24 rays).
 
 :class:`PacketScene` builds an Embree scene of the float32 triangles that embreex was given (the same
 vertices, shifted and scaled as trimesh's wrapper does) in the same library (the one embreex loaded,
@@ -108,7 +111,7 @@ def _call_occluded8(typingctx, function, valid, scene, ray, arguments):
     signature = types.void(types.uintp, types.uintp, types.uintp, types.uintp, types.uintp)
 
     def codegen(context, builder, sig, args):
-        word = ir.IntType(64)
+        word = context.get_value_type(types.uintp)
         function_type = ir.FunctionType(ir.VoidType(), [word] * 4)
         builder.call(builder.inttoptr(args[0], function_type.as_pointer()), args[1:])
         return context.get_dummy_value()
@@ -167,7 +170,7 @@ class PacketScene:
         for kind, fmt, array in ((_RTC_BUFFER_TYPE_VERTEX, _RTC_FORMAT_FLOAT3, vertices32),
                                  (_RTC_BUFFER_TYPE_INDEX, _RTC_FORMAT_UINT3, faces32)):
             target = lib.rtcSetNewGeometryBuffer(geometry, kind, 0, fmt, 12, len(array))
-            if target:
+            if target:  # else Embree's error is reported below
                 ctypes.memmove(target, array.ctypes.data, array.nbytes)
         lib.rtcCommitGeometry(geometry)
         lib.rtcAttachGeometry(scene, geometry)

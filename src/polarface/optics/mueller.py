@@ -53,7 +53,7 @@ __all__ = [
 def _matrix4(rows: list[list[torch.Tensor | float]], like: torch.Tensor) -> torch.Tensor:
     """Stack a nested 4x4 list of broadcastable tensors / floats into a ``(..., 4, 4)`` tensor."""
     shape = broadcast_shape(like.shape, *(e.shape for row in rows for e in row
-                                                 if isinstance(e, torch.Tensor)))
+                                          if isinstance(e, torch.Tensor)))
     zero = torch.zeros(shape, dtype=like.dtype, device=like.device)
     entries = [[zero + e for e in row] for row in rows]
     return torch.stack([torch.stack(row, dim=-1) for row in entries], dim=-2)

@@ -23,6 +23,7 @@ seeded numpy Generator: the same seed gives the same maps.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -143,12 +144,14 @@ def _srgb_linear_of_chromophores(
     return spectral.spectrum_to_srgb(r_bar, wavelengths)[0]
 
 
-def _nearest_table_entry(table: np.ndarray):
+def _nearest_table_entry(table: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """A function mapping points ``(n, 3)`` float64 to the index ``(n,)`` int64 of their nearest row of
     ``table`` ``(T, 3)`` (Euclidean), the first of equal rows: a k-d tree over the distinct rows.
 
     The table repeats rows where its chromophores are clamped; among those the first index is the one
-    an ``argmin`` over all rows gives, so the multipliers do not depend on how ties are broken.
+    an ``argmin`` over all rows gives, so the multipliers do not depend on how ties are broken. (It
+    replaced ``torch.cdist`` + ``argmin``, whose distances go through a matrix product: on the demo's
+    240 k and the tiny preset's 60 k texels both pick the same entries, 2.4 s -> 0.26 s, measured.)
     """
     from scipy.spatial import cKDTree
 
