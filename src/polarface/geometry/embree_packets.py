@@ -128,6 +128,9 @@ def _occluded(function, scene, arguments, origins32, directions32, lengths32, bl
     valid = buffer[skip : skip + 8].view(np.int32)
     ray = buffer[skip + 8 : skip + 104]
     words = ray.view(np.uint32)
+    for k in range(8):  # the fields every ray shares (Embree writes only tfar)
+        ray[24 + k], ray[56 + k] = 0.0, 0.0  # tnear, time
+        words[72 + k], words[80 + k], words[88 + k] = 0xFFFFFFFF, 0, 0  # mask, id, flags
     count = origins32.shape[0]
     for start in range(0, count, 8):
         size = min(8, count - start)
@@ -142,8 +145,6 @@ def _occluded(function, scene, arguments, origins32, directions32, lengths32, bl
             else:
                 ray[64 + k] = 0.0
                 valid[k] = 0
-            ray[24 + k], ray[56 + k] = 0.0, 0.0  # tnear, time
-            words[72 + k], words[80 + k], words[88 + k] = 0xFFFFFFFF, 0, 0  # mask, id, flags
         _call_occluded8(function, valid.ctypes.data, scene, ray.ctypes.data, arguments)
         for k in range(size):
             blocked[start + k] = ray[64 + k] == -np.inf
