@@ -31,9 +31,9 @@ from polarface.inverse.polarimetric.step import (
     _JIT,
     FusedObjective,
     _channels_of,
-    _laplacian_term,
-    _normal_to_heights,
-    _sigmoid,
+    _height_gradient,
+    _laplacian,
+    _normal_slopes,
     pack_raw,
     rmsprop_steps,
     unpack_raw,
@@ -44,28 +44,28 @@ __all__ = ["FusedDynamicObjective", "optimise_dynamic_patch_fused"]
 
 @numba.njit(**_JIT)
 def _backward_dynamic(
-    raw, grad_out, params, data_grad, data_loss, height, unit, mask, lap_valid, reference, reg_weights,
-    ranges, inv_texels, stencil_u, stencil_v, per_dh_dv, per_dh_du,
+    raw, grad_out, params, sigmoids, data_grad, data_loss, height, unit, mask, lap_valid, reference,
+    reg_weights, ranges, inv_texels, stencil_u, stencil_v, per_dh_dv, per_dh_du,
 ):  # fmt: skip
     """Temporal regularisers and the gradient of the per-frame loss w.r.t. ``raw`` (into ``grad_out``;
-    the fixed channels eta, alpha_s, alpha_ss get 0); returns the total loss. ``reference``
-    ``(h, w, 9)``: the static ``rho_s, rho_ss, rho_sss_bar (6), H`` (mm)."""
+    the fixed channels eta, alpha_s, alpha_ss get 0); returns the total loss. ``sigmoids``: those of
+    ``step._forward``; ``reference`` ``(h, w, 9)``: the static ``rho_s, rho_ss, rho_sss_bar (6), H`` (mm)."""
     rho_max, h_scale = ranges[4], ranges[5]
     w_ht, w_hl, w_rs, w_rss, w_sss = reg_weights
     rows, cols = raw.shape[0], raw.shape[1]
-    g_h = np.zeros((rows, cols))
     g_rho = np.zeros((rows, cols, 8))  # rho_s, rho_ss, rho_sss_bar (6)
     change = np.empty((rows, cols))
     for i in range(rows):
         for j in range(cols):
             change[i, j] = height[i, j] - reference[i, j, 8]
+    lap_g = np.zeros((rows, cols))
+    slopes = np.zeros((rows, cols, 2))
     total = data_loss
     for i in range(rows):
         for j in range(cols):
             t = i * cols + j
             if mask[i, j]:
                 total += w_ht * change[i, j] * change[i, j]
-                g_h[i, j] += 2.0 * w_ht * change[i, j]
                 for q, w in ((0, w_rs), (1, w_rss)):
                     delta = params[t, 6 + q] - reference[i, j, q]
                     total += w * delta * delta
@@ -79,20 +79,24 @@ def _backward_dynamic(
                     total += w_sss * w_t * delta * delta
                     g_rho[i, j, 2 + c] = 2.0 * w_sss * w_t * delta
             if lap_valid[i, j]:
-                total += _laplacian_term(change, i, j, w_hl, g_h)
-            _normal_to_heights(i, j, unit, data_grad, stencil_u, stencil_v, per_dh_dv, per_dh_du, g_h)
+                lap = _laplacian(change, i, j)
+                lap_g[i, j] = 2.0 * w_hl * lap
+                total += w_hl * lap * lap
+            _normal_slopes(i, j, unit, data_grad, per_dh_dv, per_dh_du, slopes)
+    g_h = _height_gradient(change, mask, w_ht, lap_valid, lap_g, unit, slopes, stencil_u, stencil_v)
     # chain rule to the raw variables (every term carries the loss's 1 / texel_count)
     for i in range(rows):
         for j in range(cols):
             t = i * cols + j
+            s = sigmoids[t]
             grad = grad_out[i, j]
             grad[0], grad[1], grad[2] = 0.0, 0.0, 0.0
             for q in range(2):
-                s = _sigmoid(raw[i, j, 3 + q])
-                grad[3 + q] = (data_grad[t, 6 + q] + g_rho[i, j, q]) * inv_texels * rho_max * s * (1.0 - s)
+                g = (data_grad[t, 6 + q] + g_rho[i, j, q]) * inv_texels
+                grad[3 + q] = g * rho_max * s[3 + q] * (1.0 - s[3 + q])
             for c in range(6):
-                s = _sigmoid(raw[i, j, 5 + c])
-                grad[5 + c] = (data_grad[t, 8 + c] + g_rho[i, j, 2 + c]) * inv_texels * s * (1.0 - s)
+                g = (data_grad[t, 8 + c] + g_rho[i, j, 2 + c]) * inv_texels
+                grad[5 + c] = g * s[5 + c] * (1.0 - s[5 + c])
             grad[11] = g_h[i, j] * inv_texels * h_scale
     return total * inv_texels
 
@@ -129,7 +133,8 @@ class FusedDynamicObjective(FusedObjective):
         stencil_u, stencil_v = self.stencils
         per_dh_dv, per_dh_du = self.per_dh
         return _backward_dynamic(
-            packed, grad_out, self.params, data_grad, data_loss, height, unit, self.mask, self.lap_valid,
+            packed, grad_out, self.params, self.sigmoids, data_grad, data_loss, height, unit, self.mask,
+            self.lap_valid,
             self.reference, self.reg_weights, self.ranges, self.inv_texels, stencil_u, stencil_v, per_dh_dv,
             per_dh_du,
         )  # fmt: skip

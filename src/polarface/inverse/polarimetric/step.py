@@ -62,11 +62,13 @@ def _unnormalised_normal(height, i, j, stencil_u, stencil_v, constant, per_dh_dv
 
 @numba.njit(**_JIT)
 def _forward(
-    raw, ranges, stencil_u, stencil_v, constant, per_dh_dv, per_dh_du, base_normal, keep_base, params
+    raw, ranges, stencil_u, stencil_v, constant, per_dh_dv, per_dh_du, base_normal, keep_base, params,
+    sigmoids,
 ):
-    """Fill ``params (h w, 14)`` (kernel layout) from ``raw (h, w, 12)``; returns the heights ``(h, w)`` and
-    ``(h, w, 4)`` float64 unit normals with ``1 / |n~|`` (0 where the base normal is kept) for the
-    backward pass."""
+    """Fill ``params (h w, 14)`` (kernel layout) from ``raw (h, w, 12)`` and ``sigmoids (h w, 11)`` (float64)
+    with the logistic of each of the first 11 raw channels, which the backward pass reads instead of
+    evaluating them again; returns the heights ``(h, w)`` and ``(h, w, 4)`` float64 unit normals with
+    ``1 / |n~|`` (0 where the base normal is kept) for the backward pass."""
     e_lo, e_hi, a_lo, a_hi, rho_max, h_scale = ranges
     rows, cols = raw.shape[0], raw.shape[1]
     height = np.empty((rows, cols))
@@ -88,15 +90,18 @@ def _forward(
                 inv = 1.0 / math.sqrt(squared)
                 nx, ny, nz = nx * inv, ny * inv, nz * inv
                 unit[i, j, 0], unit[i, j, 1], unit[i, j, 2], unit[i, j, 3] = nx, ny, nz, inv
-            alpha_s = a_lo + (a_hi - a_lo) * _sigmoid(raw[i, j, 1])
+            s = sigmoids[t]
+            for c in range(11):
+                s[c] = _sigmoid(raw[i, j, c])
+            alpha_s = a_lo + (a_hi - a_lo) * s[1]
             params[t, 0], params[t, 1], params[t, 2] = nx, ny, nz
-            params[t, 3] = e_lo + (e_hi - e_lo) * _sigmoid(raw[i, j, 0])
+            params[t, 3] = e_lo + (e_hi - e_lo) * s[0]
             params[t, 4] = alpha_s
-            params[t, 5] = alpha_s + (a_hi - alpha_s) * _sigmoid(raw[i, j, 2])
-            params[t, 6] = rho_max * _sigmoid(raw[i, j, 3])
-            params[t, 7] = rho_max * _sigmoid(raw[i, j, 4])
+            params[t, 5] = alpha_s + (a_hi - alpha_s) * s[2]
+            params[t, 6] = rho_max * s[3]
+            params[t, 7] = rho_max * s[4]
             for c in range(6):
-                params[t, 8 + c] = _sigmoid(raw[i, j, 5 + c])
+                params[t, 8 + c] = s[5 + c]
     return height, unit
 
 
@@ -132,58 +137,85 @@ def _smoothness(values, mask, count, weight, grad):
 
 
 @numba.njit(inline="always", **_JIT)
-def _laplacian_term(values, i, j, weight, grad):
-    """``weight (Laplacian values)^2`` at interior texel ``(i, j)`` (4-neighbour); adds its gradient to
-    ``grad``."""
-    lap = values[i - 1, j] + values[i + 1, j] + values[i, j - 1] + values[i, j + 1] - 4.0 * values[i, j]
-    g = 2.0 * weight * lap
-    grad[i - 1, j] += g
-    grad[i + 1, j] += g
-    grad[i, j - 1] += g
-    grad[i, j + 1] += g
-    grad[i, j] -= 4.0 * g
-    return weight * lap * lap
+def _laplacian(values, i, j):
+    """4-neighbour Laplacian of ``values`` at interior texel ``(i, j)``."""
+    return values[i - 1, j] + values[i + 1, j] + values[i, j - 1] + values[i, j + 1] - 4.0 * values[i, j]
 
 
 @numba.njit(inline="always", **_JIT)
-def _normal_to_heights(i, j, unit, data_grad, stencil_u, stencil_v, per_dh_dv, per_dh_du, g_h):
-    """Add to ``g_h`` the data gradient of texel ``(i, j)``'s unit normal carried back to the heights:
-    unit normal -> ``n~`` -> ``(dH/du, dH/dv)`` -> H (the transposed stencils); nothing where the base
-    normal is kept (``unit[i, j, 3] == 0``)."""
+def _normal_slopes(i, j, unit, data_grad, per_dh_dv, per_dh_du, slopes):
+    """Texel ``(i, j)``'s data gradient of its unit normal carried back to its height slopes: unit normal
+    -> ``n~`` -> ``(dH/du, dH/dv)``, into ``slopes[i, j]``; nothing where the base normal is kept
+    (``unit[i, j, 3] == 0``)."""
     inv = unit[i, j, 3]
     if inv == 0.0:
         return
-    rows, cols = g_h.shape
-    t = i * cols + j
+    t = i * slopes.shape[1] + j
     nx, ny, nz = unit[i, j, 0], unit[i, j, 1], unit[i, j, 2]
     gx, gy, gz = data_grad[t, 0], data_grad[t, 1], data_grad[t, 2]
     along = nx * gx + ny * gy + nz * gz
     gx, gy, gz = (gx - along * nx) * inv, (gy - along * ny) * inv, (gz - along * nz) * inv  # d/dn~
-    g_du = gx * per_dh_du[i, j, 0] + gy * per_dh_du[i, j, 1] + gz * per_dh_du[i, j, 2]
-    g_dv = gx * per_dh_dv[i, j, 0] + gy * per_dh_dv[i, j, 1] + gz * per_dh_dv[i, j, 2]
-    g_h[i, j] += stencil_u[1, i, j] * g_du + stencil_v[1, i, j] * g_dv
-    if j < cols - 1:
-        g_h[i, j + 1] += stencil_u[0, i, j] * g_du
-    if j > 0:
-        g_h[i, j - 1] += stencil_u[2, i, j] * g_du
-    if i < rows - 1:
-        g_h[i + 1, j] += stencil_v[0, i, j] * g_dv
-    if i > 0:
-        g_h[i - 1, j] += stencil_v[2, i, j] * g_dv
+    slopes[i, j, 0] = gx * per_dh_du[i, j, 0] + gy * per_dh_du[i, j, 1] + gz * per_dh_du[i, j, 2]
+    slopes[i, j, 1] = gx * per_dh_dv[i, j, 0] + gy * per_dh_dv[i, j, 1] + gz * per_dh_dv[i, j, 2]
+
+
+@numba.njit(**_JIT)
+def _height_gradient(values, mask, w_ht, lap_valid, lap_g, unit, slopes, stencil_u, stencil_v):
+    """``(h, w)`` gradient with respect to the heights of ``w_ht sum_mask values^2``, the Laplacian term
+    (``lap_g = 2 w_hl Laplacian(values)`` at its valid texels, 0 elsewhere) and the data terms through the
+    normals (``slopes``, :func:`_normal_slopes`; the transposed stencils carry them to the heights).
+
+    Each texel gathers what its neighbours and itself contribute, in the order in which a pass over the
+    texels that scatters each texel's terms to its neighbours would add them (so the sums are the same
+    to the last bit): scattering made each texel wait on the stores of the one before (the backward
+    pass of a per-frame patch spent two thirds of its time there).
+    """
+    rows, cols = values.shape
+    g_h = np.empty((rows, cols))
+    for i in range(rows):
+        for j in range(cols):
+            acc = 0.0
+            if i > 0:
+                if lap_valid[i - 1, j]:
+                    acc += lap_g[i - 1, j]
+                if unit[i - 1, j, 3] != 0.0:
+                    acc += stencil_v[0, i - 1, j] * slopes[i - 1, j, 1]
+            if j > 0:
+                if lap_valid[i, j - 1]:
+                    acc += lap_g[i, j - 1]
+                if unit[i, j - 1, 3] != 0.0:
+                    acc += stencil_u[0, i, j - 1] * slopes[i, j - 1, 0]
+            if mask[i, j]:
+                acc += 2.0 * w_ht * values[i, j]
+            if lap_valid[i, j]:
+                acc -= 4.0 * lap_g[i, j]
+            if unit[i, j, 3] != 0.0:
+                acc += stencil_u[1, i, j] * slopes[i, j, 0] + stencil_v[1, i, j] * slopes[i, j, 1]
+            if j < cols - 1:
+                if lap_valid[i, j + 1]:
+                    acc += lap_g[i, j + 1]
+                if unit[i, j + 1, 3] != 0.0:
+                    acc += stencil_u[2, i, j + 1] * slopes[i, j + 1, 0]
+            if i < rows - 1:
+                if lap_valid[i + 1, j]:
+                    acc += lap_g[i + 1, j]
+                if unit[i + 1, j, 3] != 0.0:
+                    acc += stencil_v[2, i + 1, j] * slopes[i + 1, j, 1]
+            g_h[i, j] = acc
+    return g_h
 
 
 @numba.njit(**_JIT)
 def _backward(
-    raw, grad_out, params, data_grad, data_loss, height, unit, mask, count, lap_valid, reg_weights,
+    raw, grad_out, params, sigmoids, data_grad, data_loss, height, unit, mask, count, lap_valid, reg_weights,
     ranges, inv_texels, stencil_u, stencil_v, per_dh_dv, per_dh_du,
 ):  # fmt: skip
     """Regularisers and the gradient of the total loss w.r.t. ``raw`` (written into ``grad_out``, the
-    shape of ``raw``); returns the total loss."""
+    shape of ``raw``); returns the total loss. ``sigmoids``: :func:`_forward`'s."""
     e_lo, e_hi, a_lo, a_hi, rho_max, h_scale = ranges
     w_ht, w_hl, w_eta, w_as, w_ass = reg_weights
     rows, cols = raw.shape[0], raw.shape[1]
     g_maps = np.zeros((3, rows, cols))  # regulariser gradients of eta, alpha_s, alpha_ss
-    g_h = np.zeros((rows, cols))
     maps = np.empty((3, rows, cols))
     for i in range(rows):
         for j in range(cols):
@@ -193,21 +225,24 @@ def _backward(
     total += _smoothness(maps[0], mask, count, w_eta, g_maps[0])
     total += _smoothness(maps[1], mask, count, w_as, g_maps[1])
     total += _smoothness(maps[2], mask, count, w_ass, g_maps[2])
+    lap_g = np.zeros((rows, cols))
+    slopes = np.zeros((rows, cols, 2))
     for i in range(rows):
         for j in range(cols):
             if mask[i, j]:
                 total += w_ht * height[i, j] * height[i, j]
-                g_h[i, j] += 2.0 * w_ht * height[i, j]
             if lap_valid[i, j]:
-                total += _laplacian_term(height, i, j, w_hl, g_h)
-            _normal_to_heights(i, j, unit, data_grad, stencil_u, stencil_v, per_dh_dv, per_dh_du, g_h)
+                lap = _laplacian(height, i, j)
+                lap_g[i, j] = 2.0 * w_hl * lap
+                total += w_hl * lap * lap
+            _normal_slopes(i, j, unit, data_grad, per_dh_dv, per_dh_du, slopes)
+    g_h = _height_gradient(height, mask, w_ht, lap_valid, lap_g, unit, slopes, stencil_u, stencil_v)
     # chain rule to the raw variables (every term carries the loss's 1 / texel_count)
     for i in range(rows):
         for j in range(cols):
             t = i * cols + j
-            s_eta = _sigmoid(raw[i, j, 0])
-            s_as = _sigmoid(raw[i, j, 1])
-            s_ass = _sigmoid(raw[i, j, 2])
+            s = sigmoids[t]
+            s_eta, s_as, s_ass = s[0], s[1], s[2]
             alpha_s = params[t, 4]
             g_eta = data_grad[t, 3] * inv_texels + g_maps[0, i, j] * inv_texels
             g_alpha_ss = data_grad[t, 5] * inv_texels + g_maps[2, i, j] * inv_texels
@@ -219,11 +254,9 @@ def _backward(
             grad[1] = g_alpha_s * (a_hi - a_lo) * s_as * (1.0 - s_as)
             grad[2] = g_alpha_ss * (a_hi - alpha_s) * s_ass * (1.0 - s_ass)
             for q in range(2):
-                s = _sigmoid(raw[i, j, 3 + q])
-                grad[3 + q] = data_grad[t, 6 + q] * inv_texels * rho_max * s * (1.0 - s)
+                grad[3 + q] = data_grad[t, 6 + q] * inv_texels * rho_max * s[3 + q] * (1.0 - s[3 + q])
             for c in range(6):
-                s = _sigmoid(raw[i, j, 5 + c])
-                grad[5 + c] = data_grad[t, 8 + c] * inv_texels * s * (1.0 - s)
+                grad[5 + c] = data_grad[t, 8 + c] * inv_texels * s[5 + c] * (1.0 - s[5 + c])
             grad[11] = g_h[i, j] * inv_texels * h_scale
     return total * inv_texels
 
@@ -277,6 +310,7 @@ class FusedObjective:
         self.inv_texels = 1.0 / max(problem.texel_count, 1)
         self.scale = problem.scale
         self.params = np.empty((rows * cols, 14), dtype=dtype)
+        self.sigmoids = np.empty((rows * cols, 11))  # _forward's logistics, read by the backward pass
         self.frozen_channels = _channels_of(config.frozen_variables)
 
     def __call__(self, packed: np.ndarray, grad_out: np.ndarray) -> float:
@@ -286,7 +320,7 @@ class FusedObjective:
         per_dh_dv, per_dh_du = self.per_dh
         height, unit = _forward(
             packed, self.ranges, stencil_u, stencil_v, self.constant, per_dh_dv, per_dh_du,
-            self.base_normal, self.keep_base, self.params,
+            self.base_normal, self.keep_base, self.params, self.sigmoids,
         )  # fmt: skip
         loss, data_grad, _ = fused_loss_and_grad(self.samples, self.params, self.data_weights, self.scale)
         total = self._backward(packed, grad_out, data_grad, float(loss.sum(dtype=np.float64)), height, unit)
@@ -299,9 +333,9 @@ class FusedObjective:
         stencil_u, stencil_v = self.stencils
         per_dh_dv, per_dh_du = self.per_dh
         return _backward(
-            packed, grad_out, self.params, data_grad, data_loss, height, unit, self.mask, self.count,
-            self.lap_valid, self.reg_weights, self.ranges, self.inv_texels, stencil_u, stencil_v, per_dh_dv,
-            per_dh_du,
+            packed, grad_out, self.params, self.sigmoids, data_grad, data_loss, height, unit, self.mask,
+            self.count, self.lap_valid, self.reg_weights, self.ranges, self.inv_texels, stencil_u, stencil_v,
+            per_dh_dv, per_dh_du,
         )  # fmt: skip
 
 
