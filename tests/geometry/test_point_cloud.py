@@ -51,6 +51,32 @@ def test_accumulated_clouds_merge_as_if_downsampled_at_once():
         assert np.allclose(getattr(merged, name)[order_merged], getattr(once, name)[order_once], atol=1e-12)
 
 
+def test_voxel_sums_are_numpy_bincounts_bit_for_bit():
+    """The one-pass per-voxel sums equal ``np.bincount``'s (points' products with their weights added in
+    point order) and ``np.maximum.at``'s best confidences, to the last bit; confidence 0 weighs 1e-6."""
+    from polarface.geometry.point_cloud import _voxel_keys
+
+    cloud = PointCloud.concatenate([_cloud(3000, 4), _cloud(500, 5)])
+    confidence = cloud.confidence.copy()
+    confidence[::7] = 0.0
+    cloud = PointCloud(cloud.points, cloud.normals, confidence, cloud.colours)
+    grid = VoxelAccumulator(2.5)  # ~55 points a voxel: sums that depend on the order of addition
+    keys, total, sums, best = grid._reduce(cloud)
+    unique, inverse = np.unique(_voxel_keys(cloud.points, 2.5), return_inverse=True)
+    weight = np.maximum(confidence.astype(np.float64), 1e-6)
+    values = np.concatenate([cloud.points, cloud.normals, cloud.colours.astype(np.float64)], axis=1)
+    values *= weight[:, None]
+    expected_best = np.zeros(len(unique), np.float32)
+    np.maximum.at(expected_best, inverse, confidence)
+    assert len(unique) < len(cloud)  # voxels shared by several points
+    np.testing.assert_array_equal(keys, unique)
+    np.testing.assert_array_equal(total, np.bincount(inverse, weights=weight))
+    for c in range(9):
+        np.testing.assert_array_equal(sums[:, c], np.bincount(inverse, weights=values[:, c]))
+    assert best.dtype == np.float32 and total.dtype == sums.dtype == np.float64
+    np.testing.assert_array_equal(best, expected_best)
+
+
 def test_transformed_and_concatenate():
     cloud = _cloud()
     motion = rigid_transform(yaw=0.3, pitch=-0.1, translation=(1.0, 2.0, 3.0))
