@@ -211,3 +211,38 @@ def test_dilate_texture():
         dilate_texture(texture, mask[:3])
     with pytest.raises(ValueError, match="texels"):
         dilate_texture(texture, mask, texels=-1)
+
+
+def _shifted_sums_dilation(texture: np.ndarray, mask: np.ndarray, texels: int) -> np.ndarray:
+    """Growth steps as sums of the eight shifted images of the whole map (what ``dilate_texture``
+    computed before it grew only the texels next to the charts)."""
+    values = np.where(mask[..., None], texture[..., None] if texture.ndim == 2 else texture, 0.0)
+    filled = mask.copy()
+    height, width = mask.shape
+    for _ in range(texels):
+        padded_v = np.pad(values * filled[..., None], ((1, 1), (1, 1), (0, 0)))
+        padded_m = np.pad(filled.astype(np.float64), 1)
+        total, count = np.zeros_like(values), np.zeros(mask.shape)
+        for dy in (0, 1, 2):
+            for dx in (0, 1, 2):
+                if (dy, dx) != (1, 1):
+                    total += padded_v[dy : dy + height, dx : dx + width]
+                    count += padded_m[dy : dy + height, dx : dx + width]
+        grow = ~filled & (count > 0)
+        values[grow] = total[grow] / count[grow, None]
+        filled |= grow
+    out = np.where(filled[..., None], values, texture[..., None] if texture.ndim == 2 else texture)
+    return out if texture.ndim == 3 else out[..., 0]
+
+
+@pytest.mark.parametrize("channels, texels", [(None, 1), (3, 4), (6, 7)])
+def test_dilate_texture_equals_the_shifted_image_sums_bit_for_bit(channels, texels):
+    rng = np.random.default_rng(texels)
+    mask = np.zeros((40, 33), dtype=bool)
+    mask[3:20, 5:30] = rng.random((17, 25)) < 0.9  # a chart with holes, near the image's top border
+    mask[28:38, 0:9] = True  # a chart touching the left border
+    shape = mask.shape if channels is None else (*mask.shape, channels)
+    texture = rng.normal(size=shape) * 1e3
+    texture[rng.random(mask.shape) < 0.05] = np.nan  # outside the charts: kept where no growth reaches
+    expected = _shifted_sums_dilation(texture, mask, texels)
+    np.testing.assert_array_equal(dilate_texture(texture, mask, texels), expected)

@@ -31,6 +31,7 @@ import hashlib
 import threading
 from collections import OrderedDict
 
+import numba
 import numpy as np
 import torch
 
@@ -379,23 +380,48 @@ def dilate_texture(texture: np.ndarray, mask: np.ndarray, texels: int = 2) -> np
     if int(texels) < 0:
         raise ValueError(f"argument 'texels' must be >= 0; got {texels}")
     values = (texture if texture.ndim == 3 else texture[..., None]).astype(np.float64)
-    values = np.where(mask[..., None], values, 0.0)
+    values = np.ascontiguousarray(np.where(mask[..., None], values, 0.0))
     filled = mask.copy()
-    for _ in range(int(texels)):
-        padded_v = np.pad(values * filled[..., None], ((1, 1), (1, 1), (0, 0)))
-        padded_m = np.pad(filled.astype(np.float64), 1)
-        total = np.zeros_like(values)
-        count = np.zeros(filled.shape)
-        height, width = filled.shape
-        for dy in (0, 1, 2):
-            for dx in (0, 1, 2):
-                if dy == 1 and dx == 1:
-                    continue
-                total += padded_v[dy : dy + height, dx : dx + width]
-                count += padded_m[dy : dy + height, dx : dx + width]
-        grow = ~filled & (count > 0)
-        values[grow] = total[grow] / count[grow, None]
-        filled = filled | grow
+    _grow(values, filled, int(texels))
     out = np.where(filled[..., None], values, texture if texture.ndim == 3 else texture[..., None])
     out = out.astype(texture.dtype, copy=False)
     return out if texture.ndim == 3 else out[..., 0]
+
+
+@numba.njit(cache=True, nogil=True)
+def _grow(values, filled, steps):
+    """``steps`` growth steps of :func:`dilate_texture` on ``values`` ``(H, W, C)`` float64 and ``filled``
+    ``(H, W)`` bool, in place. Each step gives every unfilled texel with a filled 8-neighbour the mean of
+    those neighbours as they were before the step; the neighbours are added in row order, as the sum
+    of the eight shifted images did (the same values bit for bit), but only around the charts' borders
+    instead of eight passes over the whole image per step."""
+    height, width, channels = values.shape
+    rows = np.empty(height * width, np.int64)
+    columns = np.empty(height * width, np.int64)
+    grown = np.empty((height * width, channels))
+    for _ in range(steps):
+        count = 0
+        for y in range(height):
+            for x in range(width):
+                if filled[y, x]:
+                    continue
+                neighbours = 0.0
+                for yy in range(max(y - 1, 0), min(y + 2, height)):
+                    for xx in range(max(x - 1, 0), min(x + 2, width)):
+                        if filled[yy, xx]:
+                            neighbours += 1.0
+                if neighbours == 0.0:
+                    continue
+                for c in range(channels):
+                    total = 0.0
+                    for yy in range(max(y - 1, 0), min(y + 2, height)):
+                        for xx in range(max(x - 1, 0), min(x + 2, width)):
+                            if filled[yy, xx]:
+                                total += values[yy, xx, c]
+                    grown[count, c] = total / neighbours
+                rows[count], columns[count] = y, x
+                count += 1
+        for k in range(count):
+            filled[rows[k], columns[k]] = True
+            for c in range(channels):
+                values[rows[k], columns[k], c] = grown[k, c]
