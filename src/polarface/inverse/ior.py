@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy import ndimage, stats
+from scipy import ndimage
 
 from polarface.inverse.ior_refine import (
     LightCheck,
@@ -397,6 +397,8 @@ def estimate_ior(
     spread = float(np.var(estimates)) / len(estimates) if len(estimates) > 1 else 0.0
     eta_std = math.sqrt(float(np.median(stds)) ** 2 + spread)
     widest = max(fits, key=lambda fit: fit.pixels)
+    from scipy import stats  # here, not at the top: it adds ~1 s to the start of every process
+
     eta_u95 = float(stats.t.ppf(0.975, max(min(fit.groups for fit in fits) - 1, 1))) * eta_std
     _, position, normal, _, _ = geometry
     shading = 2.0 * images[2].sum(axis=-1)[widest.rows, widest.cols]
