@@ -134,9 +134,8 @@ class FusedDynamicObjective(FusedObjective):
         per_dh_dv, per_dh_du = self.per_dh
         return _backward_dynamic(
             packed, grad_out, self.params, self.sigmoids, data_grad, data_loss, height, unit, self.mask,
-            self.lap_valid,
-            self.reference, self.reg_weights, self.ranges, self.inv_texels, stencil_u, stencil_v, per_dh_dv,
-            per_dh_du,
+            self.lap_valid, self.reference, self.reg_weights, self.ranges, self.inv_texels, stencil_u,
+            stencil_v, per_dh_dv, per_dh_du,
         )  # fmt: skip
 
 

@@ -167,8 +167,8 @@ def _height_gradient(values, mask, w_ht, lap_valid, lap_g, unit, slopes, stencil
 
     Each texel gathers what its neighbours and itself contribute, in the order in which a pass over the
     texels that scatters each texel's terms to its neighbours would add them (so the sums are the same
-    to the last bit): scattering made each texel wait on the stores of the one before (the backward
-    pass of a per-frame patch spent two thirds of its time there).
+    to the last bit). The scattering pass chained read-modify-writes from one texel to the next: two
+    thirds of a per-frame patch's backward pass (docs/performance.md).
     """
     rows, cols = values.shape
     g_h = np.empty((rows, cols))
