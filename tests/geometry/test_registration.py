@@ -20,6 +20,7 @@ from polarface.geometry.registration import (
     RegistrationConfig,
     SequenceRegistration,
     register_pair,
+    register_pair_starts,
     register_sequence,
 )
 
@@ -267,6 +268,31 @@ def test_register_pair_names_a_cloud_without_points(head_surface):
         register_pair(cloud, PointCloud.empty())
     with pytest.raises(ValueError, match="'init'"):
         register_pair(cloud, cloud, np.full((4, 4), np.nan))
+
+
+def test_register_pair_starts_is_register_pair_from_each_start(head_surface):
+    """The levels built once and the starts' ICPs in threads: each start's result is register_pair's, in
+    the starts' order (up to Open3D's run-to-run differences, ~1e-13 mm)."""
+    points, normals = head_surface
+    whole = PointCloud.from_arrays(points[::16], normals[::16])
+    view = partial_view(head_surface, rigid_transform(math.radians(2.0), 0.0, 0.0, (3.0, -2.0, 1.0)), seed=3)
+    starts = [np.eye(4), rigid_transform(0.0, math.radians(4.0), 0.0, (0.0, 5.0, 0.0)),
+              rigid_transform(0.0, math.radians(50.0), 0.0, (0.0, 0.0, 0.0))]  # far: another minimum
+    expected = [register_pair(whole, view, start) for start in starts]
+    for threads in (1, 2, 3):
+        results = register_pair_starts(whole, view, starts, threads=threads)
+        assert len(results) == len(starts)
+        for got, want in zip(results, expected, strict=True):
+            np.testing.assert_allclose(got.transform, want.transform, rtol=0, atol=1e-9)
+            assert got.fitness == pytest.approx(want.fitness, abs=1e-12)
+            assert got.target_fitness == pytest.approx(want.target_fitness, abs=1e-12)
+            assert got.rmse_mm == pytest.approx(want.rmse_mm, abs=1e-9)
+    assert np.abs(expected[2].transform - expected[0].transform).max() > 1e-3  # the order is the starts'
+    assert register_pair_starts(whole, view, []) == []
+    with pytest.raises(ValueError, match=r"'starts\[1\]'"):
+        register_pair_starts(whole, view, [np.eye(4), np.full((4, 4), np.nan)])
+    with pytest.raises(ValueError, match="'threads' must be >= 1"):
+        register_pair_starts(whole, view, starts, threads=0)
 
 
 def test_icp_scores_and_information_are_those_of_its_transform(head_surface):

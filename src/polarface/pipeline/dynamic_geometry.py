@@ -24,7 +24,7 @@ from polarface.capture.store import CaptureStore
 from polarface.executors import Executor, LocalExecutor, UnitOutcome
 from polarface.geometry.mesh import TriangleMesh, load_mesh, sample_surface
 from polarface.geometry.point_cloud import PointCloud
-from polarface.geometry.registration import RegistrationConfig, register_pair
+from polarface.geometry.registration import RegistrationConfig, register_pair_starts
 from polarface.geometry.tracked_file import load_tracked, save_tracked
 from polarface.geometry.tracking import (
     TrackedSequence,
@@ -141,7 +141,7 @@ def align_reference(folder: ResultFolder, reference: TriangleMesh, tracking: Tra
             "be placed in the dynamic capture"
         )
     source, target = _surface_cloud(reference), _surface_cloud(load_mesh(path))
-    trials = [register_pair(source, target, start, config) for start in _start_poses(folder)]
+    trials = register_pair_starts(source, target, _start_poses(folder), config)
     aligned = max(trials, key=lambda trial: (round(trial.target_fitness, 3), -trial.rmse_mm))
     if aligned.target_fitness < min_fitness:
         raise ValueError(
