@@ -76,6 +76,11 @@ def test_demo_pipeline_tiny_end_to_end(tmp_path):
     exports = json.loads((out / "result" / "exports" / "export.json").read_text(encoding="utf-8"))
     assert {"mitsuba", "gltf", "viewer", "usd", "kernels"} <= set(exports["formats"])
     assert "result/exports/viewer/index.html" in page
+    # the report, written on a worker after the export, links the viewer and is recorded as a stage
+    assert record["stages"]["report"]["complete"] and record["stages"]["report"]["timings"]["report_s"] > 0
+    assert "exports/viewer/index.html" in (out / "result" / "report.html").read_text(encoding="utf-8")
+    # the comparison figures, written on a worker, are on the landing page
+    assert 'src="comparison/eta.png"' in page and (out / "comparison" / "eta.png").is_file()
 
 
 def test_sphere_demo_never_deletes_user_data(tmp_path, capsys):

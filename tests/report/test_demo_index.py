@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from polarface.io import colormap_png, read_png
-from polarface.report.demo_index import METRIC_TARGETS, demo_index_page, metric_rows
+from polarface.report.demo_index import METRIC_TARGETS, demo_index_page, metric_rows, write_comparisons
 
 
 def _sources(html: str) -> list[str]:
@@ -44,6 +44,18 @@ def test_index_page(demo_dir, metrics):
     assert sources and all((demo_dir / src).is_file() for src in sources)
     # every thumbnail links to its full-size image
     assert all(f'<a href="{src}" title="open full size"><img src="{src}"' in html for src in sources)
+
+
+def test_index_page_shows_comparisons_written_before(demo_dir, metrics, tmp_path, monkeypatch):
+    """The demo writes the comparison figures on a worker and gives the page what that call returned."""
+    import polarface.report.demo_index as demo_index
+
+    items = write_comparisons(demo_dir, demo_dir / "result", demo_dir / "sim" / "ground_truth")
+    assert [item.path for item in items][:2] == ["comparison/eta.png", "comparison/alpha_s.png"]
+    monkeypatch.setattr(demo_index, "write_comparisons", lambda *args: pytest.fail("written again"))
+    html = demo_index_page(demo_dir, "preset tiny", metrics, comparisons=items).write(
+        tmp_path / "index.html").read_text(encoding="utf-8")
+    assert all(f'src="{item.path}"' in html for item in items)
 
 
 def test_report_scale_bars_and_links(demo_dir):

@@ -11,7 +11,8 @@
   3. evaluation: errors against the simulator's ground truth -> DIR/metrics.json, figures (the
      geometry error heat map) -> DIR/figures/; beside it (on the workers, when there are two cores or
      more), every export format (``polarface export``) -> DIR/result/exports (the Mitsuba scene, the
-     glTF and its offline 3D viewer page, USD, kernels)
+     glTF and its offline 3D viewer page, USD, kernels), then the reconstruction's report (it links
+     the viewer), and the landing page's comparison figures
   4. DIR/index.html: a landing page linking the report, the metrics and the simulated frames, with the
      metrics as a table of value, target and pass, and per parameter the ground truth, the
      reconstruction and the error side by side (DIR/comparison/*.png; frame previews in DIR/frames/).
@@ -56,11 +57,14 @@ _CAPTIONS = {
 
 
 # ---- the pipeline demo ---------------------------------------------------------------------------
-def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], None]) -> dict[str, Any]:
-    """Simulate, reconstruct and evaluate; each step announced as the equivalent command line."""
+def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], None]
+                ) -> tuple[dict[str, Any], list]:
+    """Simulate, reconstruct, evaluate and export; each step announced as the equivalent command line.
+    Returns the metrics and the landing page's comparison figures."""
     from polarface.executors import LocalExecutor, ProcessExecutor
     from polarface.pipeline.reconstruct import reconstruct
     from polarface.pipeline.reconstruct_inputs import resolve_reconstruct_inputs
+    from polarface.results import ResultFolder
     from polarface.simulate.pipeline import SimulationConfig, simulate
 
     sim, result = out / "sim", out / "result"
@@ -82,42 +86,59 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
         resume = result.exists()
         say(f"polarface demo: polarface reconstruct {sim} --dynamic {sim} --out {result}"
             f"{' --resume' if resume else ''}{on_workers}")
-        record = reconstruct(resolve_reconstruct_inputs(sim), result, resume=resume, dynamic=sim,
-                             executor=executor)
-        say(reconstruct_summary_line(result, record))
-        # the evaluation and the export read the finished RESULT and write apart: side by side on the
-        # workers (each is mostly one core's work; in this process, one after the other, on one core)
+        reconstruct(resolve_reconstruct_inputs(sim), result, resume=resume, dynamic=sim, executor=executor,
+                    report=False)
+        # the export, the evaluation, the report and the landing page's comparison figures read the
+        # finished RESULT and write apart: units on the workers (each mostly one core's work), the report
+        # after the export, whose viewer it links (in this process: one after the other, on one core)
         say(f"polarface demo: polarface evaluate {result} --gt {sim} --out {out / 'metrics.json'} "
             f"--figures {out / 'figures'}")
         say(f"polarface demo: polarface export {result} --out {result / 'exports'} --force")
-        metrics, exported = (outcome.value for outcome in executor.map_units(
-            _run_demo_tail, [_DemoTail("evaluate", out), _DemoTail("export", out)], failures=()))
+        steps: tuple[_TailStep, ...] = ("export", "evaluate", "report", "comparisons")
+        outcomes = executor.map_dependent(_run_demo_tail, len(steps), lambda k: _DemoTail(steps[k], out),
+                                          after=[[], [], [steps.index("export")], []], failures=())
+        exported, metrics, report, comparisons = (outcome.value for outcome in outcomes)
+    folder = ResultFolder(result)
+    folder.record_stage("report", report)
+    say(reconstruct_summary_line(result, folder.read_result()))
     say(json.dumps(metrics, indent=2))
     say(json.dumps(exported))
-    return metrics
+    return metrics, comparisons
+
+
+_TailStep = Literal["export", "evaluate", "report", "comparisons"]
 
 
 @dataclasses.dataclass(frozen=True)
 class _DemoTail:
-    """The evaluation or the export of a finished demo folder ``out``, as an executor unit."""
+    """One step after the reconstruction of the demo folder ``out``, as an executor unit."""
 
-    step: Literal["evaluate", "export"]
+    step: _TailStep
     out: Path
 
 
-def _run_demo_tail(unit: _DemoTail) -> dict[str, Any]:
-    """``polarface evaluate`` (returns the metrics, written to ``out/metrics.json``) or ``polarface
-    export`` (returns its seconds per format) of the demo folder ``unit.out``."""
+def _run_demo_tail(unit: _DemoTail) -> Any:
+    """Of the demo folder ``unit.out``: ``polarface evaluate`` (returns the metrics, written to
+    ``out/metrics.json``), ``polarface export`` (returns its seconds per format), the reconstruction's
+    ``report.html`` (returns the report stage's record) or the landing page's comparison figures (returns
+    their :class:`polarface.report.html.ImageItem` list)."""
     from polarface.io import write_json_atomic
     from polarface.io.output_folder import output_folder
     from polarface.pipeline.evaluate import evaluate
     from polarface.pipeline.export import export_result
+    from polarface.pipeline.reconstruct import write_result_report
+    from polarface.report.demo_index import write_comparisons
+    from polarface.results import ResultFolder
 
     sim, result = unit.out / "sim", unit.out / "result"
     if unit.step == "evaluate":
         metrics = evaluate(result, sim, figures_dir=unit.out / "figures")
         write_json_atomic(unit.out / "metrics.json", metrics)
         return metrics
+    if unit.step == "report":
+        return write_result_report(ResultFolder(result))
+    if unit.step == "comparisons":
+        return write_comparisons(unit.out, result, sim / "ground_truth")
     exports = result / "exports"
     with output_folder(exports, "export", force=True) as folder:
         record = export_result(result, Path(folder))
@@ -142,13 +163,15 @@ def reconstruct_summary_line(out: str | Path, result: dict[str, Any]) -> str:
     )
 
 
-def _demo_page(out: Path, preset: str, skin_type: str, elapsed: float, metrics: dict[str, Any]):
+def _demo_page(out: Path, preset: str, skin_type: str, elapsed: float, metrics: dict[str, Any],
+               comparisons: list):
     """The landing page (:func:`polarface.report.demo_index.demo_index_page`): links, metrics table with
-    targets, ground truth / reconstruction / error per parameter, simulated frames."""
+    targets, ground truth / reconstruction / error per parameter (``comparisons``, written), simulated
+    frames."""
     from polarface.report.demo_index import demo_index_page
 
     subtitle = f"preset {preset}, skin type {skin_type}, {elapsed / 60:.1f} min on this machine"
-    return demo_index_page(out, subtitle, metrics)
+    return demo_index_page(out, subtitle, metrics, comparisons=comparisons)
 
 
 def _print_now(line: str) -> None:
@@ -173,10 +196,10 @@ def run_demo_pipeline(
 
     out = Path(out)
     started = time.perf_counter()
-    metrics = _demo_steps(out, preset, skin_type, say)
+    metrics, comparisons = _demo_steps(out, preset, skin_type, say)
     elapsed = time.perf_counter() - started
     write_json_atomic(out / "demo.json", {"preset": preset, "skin_type": skin_type, "seconds": elapsed})
-    path = _demo_page(out, preset, skin_type, elapsed, metrics).write(out / "index.html")
+    path = _demo_page(out, preset, skin_type, elapsed, metrics, comparisons).write(out / "index.html")
     say(f"polarface demo: wrote {out}/index.html ({elapsed / 60:.1f} min)")
     return path
 

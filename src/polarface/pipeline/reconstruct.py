@@ -373,6 +373,7 @@ def reconstruct(
     frames: str | None = None,
     executor: Any = None,
     view_check: bool = False,
+    report: bool = True,
 ) -> dict[str, Any]:
     """Validate the inputs, then run :data:`STAGES` into ``out``; returns ``result.json``'s content.
 
@@ -392,6 +393,9 @@ def reconstruct(
             process, in order).
         view_check: after the polarimetric stage, re-render every view to flag a miscalibrated camera or
             a wrongly posed frame and write ``maps/eta_std.exr`` (:mod:`polarface.pipeline.view_residuals`).
+        report: write ``report.html`` as the last stage; False leaves it to the caller
+            (:func:`write_result_report`, recorded with ``ResultFolder.record_stage("report", ...)``; the
+            demo writes it on a worker after its export).
 
     Raises:
         ValueError, FileNotFoundError: bad input; a RESULT folder this call created is removed.
@@ -442,7 +446,7 @@ def reconstruct(
         if executor is not None:  # an unreachable cluster is refused here
             executor.start()
         out.mkdir(parents=True, exist_ok=True)
-        return run_stages(ctx)
+        return run_stages(ctx, STAGES if report else [stage for stage in STAGES if stage[0] != "report"])
     except (ValueError, FileNotFoundError):
         if created and out.exists():
             shutil.rmtree(out, ignore_errors=True)

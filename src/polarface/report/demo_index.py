@@ -13,7 +13,7 @@ the geometry error heat map ``DIR/figures/geometry_error_mm.png`` is shown when 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -294,11 +294,13 @@ def write_frame_previews(out: str | Path, capture: str | Path, frame_index: int 
     return items
 
 
-def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any]) -> HtmlPage:
+def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any],
+                    comparisons: Sequence[ImageItem] | None = None) -> HtmlPage:
     """The landing page of a demo folder ``out`` holding ``sim/``, ``result/`` and ``metrics.json``.
 
-    Writes the comparison and frame images it shows (:func:`write_comparisons`,
-    :func:`write_frame_previews`); the caller writes the page (``page.write(out / "index.html")``).
+    Writes the comparison and frame images it shows (:func:`write_comparisons`, unless ``comparisons``
+    gives what an earlier call of it returned; :func:`write_frame_previews`); the caller writes the page
+    (``page.write(out / "index.html")``).
     """
     out = Path(out)
     page = HtmlPage("polarface demo: simulate -> reconstruct -> evaluate", subtitle=subtitle)
@@ -338,7 +340,8 @@ def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any]) 
         derived = {**metrics, "dynamic_scalars": dynamic_scalars(dynamic)}
         checks.table(metric_rows(derived, DYNAMIC_TARGETS), header=("dynamic sequence", "value", "target",
                      "pass"), column_classes=("", "num", "num", ""))
-    comparisons = write_comparisons(out, out / "result", out / "sim" / "ground_truth")
+    if comparisons is None:
+        comparisons = write_comparisons(out, out / "result", out / "sim" / "ground_truth")
     if comparisons:
         page.section(
             "Ground truth, reconstruction and error per parameter",
