@@ -1,4 +1,4 @@
-"""The patch grid a reconstruction takes (pipeline.reconstruct._patch_grid, _units_per_gpu)."""
+"""The patch grid a reconstruction takes (pipeline.reconstruct_options._patch_grid, _units_per_gpu)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 
 import polarface.inverse.polarimetric as polarimetric
 from polarface.executors import LocalExecutor, ProcessExecutor
-from polarface.pipeline.reconstruct import _patch_grid, _units_per_gpu
+from polarface.pipeline.reconstruct_options import _patch_grid, _units_per_gpu
 
 
 class _Ray:  # the attributes of RayExecutor that matter here

@@ -42,6 +42,7 @@ from polarface.pipeline.reconstruct_inputs import (
     check_capture_manifest,
     check_derived_store,
 )
+from polarface.pipeline.reconstruct_options import resolve_fit_options
 from polarface.results import ResultFolder, default_channel_names
 
 __all__ = [
@@ -59,12 +60,6 @@ __all__ = [
 ]
 
 LOGGER = logging.getLogger(__name__)
-
-#: Fit options used with geometry reconstructed from the stereo pairs unless given: the paper's RMSprop
-#: for 150 iterations. A converged L-BFGS fit moves eta and rho_s to the stereo geometry's biased minimum
-#: (demo: eta 0.043 -> 0.055, rho_s 42 % -> 61 %); docs/reconstruct.md, "Optimiser and geometry".
-_STEREO_FIT_DEFAULTS = {"optimizer": "rmsprop", "iterations": 150}
-
 
 @dataclasses.dataclass
 class ReconstructContext:
@@ -331,34 +326,6 @@ def run_stages(ctx: ReconstructContext, stages=None) -> dict[str, Any]:
     return folder.read_result()
 
 
-_PATCH_GRID = ("patch", "sample_budget")  # the fit options that a device chooses (device_fit_options)
-
-
-def _units_per_gpu(executor: Any) -> int:
-    """How many patches may share one GPU at a time: a process executor's workers, Ray's
-    ``1 / gpus_per_unit`` for a fraction of a GPU per task (1 for whole GPUs); 1 in this process."""
-    gpus = getattr(executor, "gpus_per_unit", None)
-    if gpus:
-        return max(1, int(1.0 / gpus)) if gpus < 1 else 1
-    return max(1, int(getattr(executor, "workers", None) or 1))
-
-
-def _patch_grid(device: str, executor: Any, out: Path, resume: bool) -> dict[str, int]:
-    """``patch`` and ``sample_budget`` where the user gave none: on a resume those the RESULT recorded
-    (its fingerprint), so that it goes on with the grid it started with on any device; otherwise
-    :func:`polarface.inverse.polarimetric.device_fit_options` of the device resolved here (``"auto"``:
-    this machine's), its GPU memory shared by the patches that :func:`_units_per_gpu` may run at once."""
-    from polarface.device import resolve_device
-    from polarface.inverse.polarimetric import device_fit_options
-
-    if resume:
-        recorded = ResultFolder(out).read_result().get("fingerprint")
-        options = recorded.get("options") if isinstance(recorded, dict) else None
-        if isinstance(options, dict) and all(isinstance(options.get(k), int) for k in _PATCH_GRID):
-            return {k: options[k] for k in _PATCH_GRID}
-    return device_fit_options(resolve_device(device), units_per_gpu=_units_per_gpu(executor))
-
-
 def reconstruct(
     inputs: ReconstructInputs,
     out: str | Path,
@@ -382,9 +349,9 @@ def reconstruct(
         out: the RESULT folder (must be empty or absent unless ``resume``).
         fit_options: :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides; with stereo
             geometry (no mesh in ``inputs``) ``optimizer`` and ``iterations`` default to the paper's
-            RMSprop for 150 iterations (``_STEREO_FIT_DEFAULTS``; neither applies when ``optimizer``
-            is given); ``patch`` and ``sample_budget`` default to larger patches on a CUDA device
-            and, on a resume, to the RESULT's own (:func:`_patch_grid`).
+            RMSprop for 150 iterations (neither applies when ``optimizer`` is given); ``patch`` and
+            ``sample_budget`` default to larger patches on a CUDA device and, on a resume, to the
+            RESULT's own (:func:`polarface.pipeline.reconstruct_options.resolve_fit_options`).
         holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
         dynamic: a dynamic capture of the same rig (or a simulation folder) reconstructed frame by frame
             after the static stages; frames: its frames to fit (``"0-4,7"``; None: all).
@@ -407,11 +374,8 @@ def reconstruct(
         )
     if holdout_every < 0 or holdout_every == 1:
         raise ValueError(f"argument '--holdout-every' must be 0 or >= 2; got {holdout_every}")
-    options = dict(fit_options or {})
     stereo = inputs.mesh_path is None
-    if stereo and "optimizer" not in options:
-        options = {**_STEREO_FIT_DEFAULTS, **options}
-    options = {**_patch_grid(device, executor, out, resume), **options}
+    options = resolve_fit_options(fit_options, stereo, device, executor, out, resume)
     geometry_dir = ResultFolder(out).geometry_dir if stereo else inputs.geometry_dir
     ctx = ReconstructContext(
         inputs.capture, out,

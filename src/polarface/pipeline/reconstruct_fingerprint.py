@@ -19,8 +19,8 @@ def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
 
     The device and the thread count are left out (they change float rounding only, not what is
     fitted), but not the patch grid a device chooses (``patch``, ``sample_budget``: a resume keeps the
-    recorded one, :func:`polarface.pipeline.reconstruct._patch_grid`); progress bars and the memory-only
-    ``unwrap_cache_mb`` are left out too. Keys: ``docs/result_folder.md``,
+    recorded one, :func:`polarface.pipeline.reconstruct_options.resolve_fit_options`); progress bars and
+    the memory-only ``unwrap_cache_mb`` are left out too. Keys: ``docs/result_folder.md``,
     "Resume fingerprint".
     """
     from polarface.inverse.polarimetric import PolarimetricConfig
