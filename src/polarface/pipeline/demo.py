@@ -122,23 +122,26 @@ def _run_demo_tail(unit: _DemoTail) -> Any:
     ``out/metrics.json``), ``polarface export`` (returns its seconds per format), the reconstruction's
     ``report.html`` (returns the report stage's record) or the landing page's comparison figures (returns
     their :class:`polarface.report.html.ImageItem` list)."""
-    from polarface.io import write_json_atomic
-    from polarface.io.output_folder import output_folder
-    from polarface.pipeline.evaluate import evaluate
-    from polarface.pipeline.export import export_result
-    from polarface.pipeline.reconstruct import write_result_report
-    from polarface.report.demo_index import write_comparisons
-    from polarface.results import ResultFolder
-
-    sim, result = unit.out / "sim", unit.out / "result"
+    sim, result = unit.out / "sim", unit.out / "result"  # each step imports only what it runs
     if unit.step == "evaluate":
+        from polarface.io import write_json_atomic
+        from polarface.pipeline.evaluate import evaluate
+
         metrics = evaluate(result, sim, figures_dir=unit.out / "figures")
         write_json_atomic(unit.out / "metrics.json", metrics)
         return metrics
     if unit.step == "report":
+        from polarface.pipeline.reconstruct import write_result_report
+        from polarface.results import ResultFolder
+
         return write_result_report(ResultFolder(result))
     if unit.step == "comparisons":
+        from polarface.report.demo_index import write_comparisons
+
         return write_comparisons(unit.out, result, sim / "ground_truth")
+    from polarface.io.output_folder import output_folder
+    from polarface.pipeline.export import export_result
+
     exports = result / "exports"
     with output_folder(exports, "export", force=True) as folder:
         record = export_result(result, Path(folder))
