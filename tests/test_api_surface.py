@@ -92,7 +92,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
     "polarface.io": (
         "UrlPath", "agg_figure", "atomic_directory", "atomic_path", "colormap_png", "encode_png",
         "image_header", "is_url", "json_values", "local_copy", "read_exr", "read_gray", "read_json_object",
-        "read_png", "storage_path", "write_exr", "write_figure_png", "write_json_atomic", "write_png",
+        "read_png", "record_path", "recorded_input", "resolve_recorded_path", "storage_path", "write_exr",
+        "write_figure_png", "write_json_atomic", "write_png",
     ),
     "polarface.optics": (
         "ANALYZER_ANGLES", "AnalyzerModel", "DEFAULT_LIGHT_STOKES", "FresnelTerms",

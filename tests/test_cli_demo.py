@@ -1,6 +1,12 @@
 """`polarface demo`: files exist, values finite, the cross-polarized image carries no specular."""
 
+import html.parser
 import json
+import os
+import subprocess
+import sys
+import urllib.parse
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -56,14 +62,46 @@ def test_demo_command_bad_arguments(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
+def _polarface(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """The ``polarface`` entry point of this environment run as a user types it, in ``cwd``."""
+    command = Path(sys.executable).with_name("polarface")
+    return subprocess.run([str(command), *args], cwd=cwd, capture_output=True, text=True, check=False)
+
+
+class _Links(html.parser.HTMLParser):
+    """The ``href`` and ``src`` attributes of a page."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.targets: list[str] = []
+
+    def handle_starttag(self, tag, attrs):
+        self.targets += [value for name, value in attrs if name in ("href", "src") and value]
+
+
+def _broken_links(page: Path) -> list[str]:
+    """The page's links to local files that do not exist (URLs, anchors and data URIs are not files)."""
+    parser = _Links()
+    parser.feed(page.read_text(encoding="utf-8"))
+    local = [t for t in parser.targets if not t.startswith(("http:", "https:", "mailto:", "data:", "#"))]
+    files = {t: urllib.parse.unquote(t.split("#")[0].split("?")[0]) for t in local}
+    return [t for t, name in files.items() if not (page.parent / name).exists()]
+
+
 @pytest.mark.slow
-def test_demo_pipeline_tiny_end_to_end(tmp_path):
-    """The README's main job in miniature: simulate -> reconstruct -> evaluate -> index.html."""
-    out = tmp_path / "demo"
-    assert main(["demo", "--preset", "tiny", "--out", str(out)]) == 0
+def test_the_readme_main_job_as_a_user_types_it(tmp_path):
+    """`polarface demo --preset tiny` as a subprocess in a scratch directory with the default relative
+    --out: the landing page, the report, the metrics and the exports, every link resolving; rerun on its
+    finished folder it redoes nothing; moved elsewhere, its folders work from another directory through
+    relative paths (evaluate, export, render, info, dynamic and reconstruct --resume)."""
+    user = tmp_path / "user"
+    user.mkdir()
+    run = _polarface(["demo", "--preset", "tiny"], user)
+    assert run.returncode == 0, run.stderr[-3000:]
+    out = user / "demo_out"
     page = (out / "index.html").read_text(encoding="utf-8")
-    assert "result/report.html" in page
-    assert (out / "result" / "report.html").is_file()
+    assert "result/report.html" in page and "result/exports/viewer/index.html" in page
+    assert _broken_links(out / "index.html") == [] and _broken_links(out / "result" / "report.html") == []
     metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
     assert {"polarimetric", "rerender", "biophysical"} <= set(metrics)
     assert metrics["polarimetric"]["eta"]["median_abs_error"] < 0.1
@@ -72,15 +110,45 @@ def test_demo_pipeline_tiny_end_to_end(tmp_path):
     record = json.loads((out / "result" / "result.json").read_text(encoding="utf-8"))
     options = record["fingerprint"]["options"]
     assert (options["optimizer"], options["iterations"]) == ("rmsprop", 150)
-    # every export format, and the 3D viewer linked from the landing page
+    # paths inside the RESULT are recorded relative to it, inputs outside it absolute
+    prepare = record["stages"]["prepare"]
+    assert (prepare["poses"], prepare["mesh"], prepare["geometry"]) == (
+        "geometry/poses.json", "geometry/mesh.obj", "geometry")
+    assert prepare["capture"] == (out / "sim" / "static").as_posix()
+    # every export format, and the report (written on a worker after the export) recorded as a stage
     exports = json.loads((out / "result" / "exports" / "export.json").read_text(encoding="utf-8"))
     assert {"mitsuba", "gltf", "viewer", "usd", "kernels"} <= set(exports["formats"])
-    assert "result/exports/viewer/index.html" in page
-    # the report, written on a worker after the export, links the viewer and is recorded as a stage
     assert record["stages"]["report"]["complete"] and record["stages"]["report"]["timings"]["report_s"] > 0
-    assert "exports/viewer/index.html" in (out / "result" / "report.html").read_text(encoding="utf-8")
-    # the comparison figures, written on a worker, are on the landing page
-    assert 'src="comparison/eta.png"' in page and (out / "comparison" / "eta.png").is_file()
+
+    # the same command on its finished folder: nothing is redone
+    written = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
+    again = _polarface(["demo", "--preset", "tiny"], user)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "up to date" in again.stdout
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()} == written
+
+    # moved (the old place gone), then used from another directory by relative paths
+    moved = tmp_path / "elsewhere" / "runs" / "moved"
+    moved.parent.mkdir(parents=True)
+    out.rename(moved)
+    other = tmp_path / "other"
+    other.mkdir()
+    rel = os.path.relpath(moved, other)
+    for args in (
+        ["demo", "--preset", "tiny", "--out", rel],
+        ["info", f"{rel}/result"],
+        ["info", f"{rel}/sim"],
+        ["evaluate", f"{rel}/result", "--gt", f"{rel}/sim", "--out", "metrics.json"],
+        ["export", f"{rel}/result", "--format", "mitsuba", "--out", "exports"],
+        ["render", f"{rel}/result", "--out", "render"],
+        ["dynamic", f"{rel}/result", f"{rel}/sim"],
+        ["reconstruct", f"{rel}/sim", "--dynamic", f"{rel}/sim", "--out", f"{rel}/result", "--resume"],
+    ):
+        run = _polarface(args, other)
+        assert run.returncode == 0, (args, run.stderr[-3000:])
+    assert json.loads((other / "metrics.json").read_text(encoding="utf-8"))["polarimetric"] == \
+        metrics["polarimetric"]
+    assert (other / "exports" / "mitsuba").is_dir() and (other / "render").is_dir()
 
 
 def test_sphere_demo_never_deletes_user_data(tmp_path, capsys):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 import shutil
 
@@ -240,15 +241,16 @@ def test_resume_refuses_other_options_or_capture(sim, tmp_path, capsys):
     # all stages done: a different --iterations used to be ignored silently
     assert main(_args(sim, out, "--iterations", "20", "--resume")) == 2
     err = capsys.readouterr().err
-    assert "option 'iterations' was 3, now 20" in err and "without --resume" in err
-    assert len(err.strip().splitlines()) == 1
+    assert "options.iterations: recorded 3, now 20" in err and "without --resume" in err
+    # the message, then one line per differing key path (not the whole configurations)
+    assert err.strip().splitlines()[1:] == ["  options.iterations: recorded 3, now 20"]
     # the patch grid (--patch, --sample-budget; larger by default on a GPU) cannot change mid-run
     assert main(_args(sim, out, "--iterations", "3", "--resume", "--patch", "32",
                       "--sample-budget", "5000")) == 2
     err = capsys.readouterr().err
     grid = recorded["options"]["patch"], recorded["options"]["sample_budget"]
-    assert f"option 'patch' was {grid[0]}, now 32" in err
-    assert f"option 'sample_budget' was {grid[1]}, now 5000" in err
+    assert f"options.patch: recorded {grid[0]}, now 32" in err
+    assert f"options.sample_budget: recorded {grid[1]}, now 5000" in err
     # another capture (one frame's raw content changed) is refused, naming the capture
     other = tmp_path / "other_sim"
     shutil.copytree(sim, other)
@@ -257,16 +259,53 @@ def test_resume_refuses_other_options_or_capture(sim, tmp_path, capsys):
     payload["timestamp"] = 99.0
     marker.write_text(json.dumps(payload))
     args = _args(other, out, "--iterations", "3", "--resume")
-    assert main(args) == 2 and "the capture differs" in capsys.readouterr().err
+    assert main(args) == 2 and "  capture: recorded '" in capsys.readouterr().err
     # another texture resolution
     assert main([*_args(sim, out, "--iterations", "3", "--resume")[:-3], "--iterations", "3", "--resume",
                  "--texture-resolution", "8"]) == 2
-    assert "'texture_resolution' was 16, now 8" in capsys.readouterr().err
+    assert "texture_resolution: recorded 16, now 8" in capsys.readouterr().err
     assert (out / "result.json").read_bytes() == before
     # the same options (threads, device and the chunk cache's size do not count) resume fine
     assert "unwrap_cache_mb" not in recorded["options"]
     assert main(_args(sim, out, "--iterations", "3", "--resume", "--threads", "2",
                       "--unwrap-cache-mb", "0")) == 0
+
+
+@pytest.mark.parametrize("stage", ["geometry", "prepare"])
+def test_a_run_stopped_by_ctrl_c_in_an_early_stage_resumes(sim, tmp_path, capsys, monkeypatch, stage):
+    """Ctrl-C in the geometry or the prepare stage says 'rerun with --resume', and the resume is taken:
+    the folder is already a RESULT (its format keys are written with the fingerprint, before any stage)."""
+    module = importlib.import_module("polarface.pipeline.reconstruct")
+
+    def interrupted(ctx):
+        raise KeyboardInterrupt
+
+    stages = [(name, interrupted if name == stage else function) for name, function in module.STAGES]
+    monkeypatch.setattr(module, "STAGES", stages)
+    out = tmp_path / "stopped"
+    assert main(_args(sim, out, "--iterations", "2")) == 130
+    assert "--resume" in capsys.readouterr().err
+    assert json.loads((out / "result.json").read_text())["format"] == "polarface-result"
+    monkeypatch.undo()
+    assert main(_args(sim, out, "--iterations", "2", "--resume")) == 0
+    assert (out / "maps" / "eta.exr").is_file()
+
+
+def test_a_failed_write_leaves_no_new_result_folder(sim, tmp_path, capsys, monkeypatch):
+    """A full disk in the prepare stage of a new RESULT: one line naming the file, nothing left behind (no
+    stage worth resuming was complete)."""
+    import errno
+
+    import polarface.texture as texture
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "full" / "unwrap.zarr"))
+
+    monkeypatch.setattr(texture, "unwrap_capture", full_disk)
+    assert main(_args(sim, tmp_path / "full", "--iterations", "2")) == 2
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "full").exists()
 
 
 def test_resume_mid_fit_with_other_iterations_is_refused(sim, tmp_path):
@@ -281,7 +320,7 @@ def test_resume_mid_fit_with_other_iterations_is_refused(sim, tmp_path):
     out.mkdir()
     with pytest.raises(InterruptedError):
         run_stages(context(15, stop=1))
-    with pytest.raises(ValueError, match="option 'iterations' was 15, now 20"):
+    with pytest.raises(ValueError, match=r"options\.iterations: recorded 15, now 20"):
         run_stages(context(20))
     assert not (out / "maps" / "eta.exr").exists()
 

@@ -141,17 +141,21 @@ def test_an_unreachable_ray_address_is_refused_within_seconds_and_nothing_is_wri
 
 
 def test_a_result_at_a_url_gets_the_local_runs_frames(tiny, memory_url, tmp_path):
-    """``polarface dynamic memory://RESULT SIM``: the static result read from fsspec's in-memory file
-    system, frame 0 unwrapped, fitted and rendered into it (local executor): the maps are those of the
-    same run on a local folder in this process (``memory://`` lives in this process only), bit for bit,
-    and the report is written there too."""
+    """The dynamic stage on a RESULT at a URL: the static result read from fsspec's in-memory file system,
+    frame 0 unwrapped, fitted and rendered into it (local executor): the maps are those of the same run on
+    a local folder in this process, bit for bit, and the report is written there too. ``memory://`` lives
+    in this process only, so the CLI refuses it (no later command could read the RESULT): the library
+    runs what ``polarface dynamic URL SIM --frames 0`` runs on a shared file system's URL."""
     from polarface.io import storage_path
+    from polarface.pipeline.reconstruct import write_result_report
+    from polarface.results import ResultFolder
     from storage_fixtures import upload_tree
 
     sim, static, local = tiny
     upload_tree(static, memory_url)
     upload_tree(local / "tracking", f"{memory_url}/tracking")
-    assert main(["dynamic", memory_url, str(sim), "--frames", "0", "--quiet"]) == 0
+    assert reconstruct_dynamic(memory_url, sim, frames="0", progress=False)["completed"] == [0]
+    write_result_report(ResultFolder(memory_url))
     reference = _copy_with_tracking(tiny, tmp_path / "reference")
     assert main(["dynamic", str(reference), str(sim), "--frames", "0", "--quiet"]) == 0
     frame = storage_path(memory_url) / "frames" / "0000"

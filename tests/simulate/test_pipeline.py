@@ -15,6 +15,7 @@ from polarface.capture.rig import paper_rig
 from polarface.capture.store import CaptureStore
 from polarface.geometry.poses import check_rigid, load_poses
 from polarface.io import read_exr
+from polarface.results.fingerprint import RecordMismatchError
 from polarface.simulate.frames import _raw_frames
 from polarface.simulate.pipeline import SimulationConfig, SimulationScene, simulate
 from polarface.simulate.presets import SKIN_TYPES, get_preset, get_skin_type
@@ -142,11 +143,20 @@ def test_tiny_raw_demosaic_reproduces_ground_truth(tiny_run):
 
 
 @pytest.mark.slow
-def test_tiny_resume_keeps_bytes(tiny_run):
+def test_tiny_resume_keeps_bytes(tiny_run, monkeypatch):
     out, summary = tiny_run
     before = _digest(out)
-    again = simulate(out, SimulationConfig(preset="tiny", noise=False), progress=False)
-    assert _digest(out) == before
-    with pytest.raises(ValueError, match="another configuration"):
+    # a finished simulation is returned at once: its scene is not even built
+    with monkeypatch.context() as patched:
+        patched.setattr(SimulationScene, "build", classmethod(lambda cls, config: pytest.fail("scene built")))
+        again = simulate(out, SimulationConfig(preset="tiny", noise=False), progress=False)
+    assert _digest(out) == before and again == json.loads(json.dumps(summary))  # as recorded
+    # another configuration is refused with one line per differing key
+    with pytest.raises(RecordMismatchError) as refused:
         simulate(out, SimulationConfig(preset="tiny", noise=True), progress=False)
+    assert refused.value.details == ["config.noise: recorded false, now true"]
+    # a frame gone (its completion marker removed): not finished, the frame is rendered again, same bytes
+    (out / "static" / "frames" / "000001.json").unlink()
+    again = simulate(out, SimulationConfig(preset="tiny", noise=False), progress=False)
+    assert _digest(out) == before and (out / "static" / "frames" / "000001.json").is_file()
     assert again["exposure"] == pytest.approx(summary["exposure"])

@@ -18,6 +18,7 @@ from polarface.io.images import (
     write_png,
 )
 from polarface.io.json_files import json_values, read_json_object
+from polarface.io.recorded_paths import record_path, recorded_input, resolve_recorded_path
 from polarface.io.storage import UrlPath, is_url, local_copy, storage_path
 
 __all__ = [
@@ -35,6 +36,9 @@ __all__ = [
     "read_gray",
     "read_json_object",
     "read_png",
+    "record_path",
+    "recorded_input",
+    "resolve_recorded_path",
     "storage_path",
     "write_exr",
     "write_figure_png",

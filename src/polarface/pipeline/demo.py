@@ -31,6 +31,7 @@ polarized LED modules (:func:`polarface.render.demo.render_demo`), written as:
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 import time
@@ -57,11 +58,37 @@ _CAPTIONS = {
 
 
 # ---- the pipeline demo ---------------------------------------------------------------------------
+#: What the demo's last steps write under DIR (beside ``index.html`` and ``demo.json``): when they all exist
+#: and ``demo.json`` records the ``result.json`` they were made from, a rerun does not redo them.
+_TAIL_OUTPUTS = ("metrics.json", "result/report.html", "result/exports/export.json", "comparison")
+
+
+def _result_digest(out: Path) -> str:
+    """SHA-256 of ``DIR/result/result.json``: it changes whenever a stage of the RESULT reruns."""
+    return hashlib.sha256((out / "result" / "result.json").read_bytes()).hexdigest()
+
+
+def _tail_up_to_date(out: Path) -> bool:
+    """Whether the evaluation, export, report and landing page of ``out`` were made from the RESULT as it
+    is now (``demo.json``'s ``result_sha256``) and are all present."""
+    from polarface.io import read_json_object
+
+    try:
+        record = read_json_object(out / "demo.json")
+        current = _result_digest(out)
+    except (OSError, ValueError):
+        return False
+    present = all((out / name).exists() for name in (*_TAIL_OUTPUTS, "index.html"))
+    return present and record.get("complete") is True and record.get("result_sha256") == current
+
+
 def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], None]
-                ) -> tuple[dict[str, Any], list]:
+                ) -> tuple[dict[str, Any], list | None]:
     """Simulate, reconstruct, evaluate and export; each step announced as the equivalent command line.
-    Returns the metrics and the landing page's comparison figures."""
+    Returns the metrics and the landing page's comparison figures (None: the landing page and everything
+    after the reconstruction are up to date, :func:`_tail_up_to_date`, and were not redone)."""
     from polarface.executors import LocalExecutor, ProcessExecutor
+    from polarface.io import read_json_object
     from polarface.pipeline.reconstruct import reconstruct
     from polarface.pipeline.reconstruct_inputs import resolve_reconstruct_inputs
     from polarface.results import ResultFolder
@@ -88,6 +115,9 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
             f"{' --resume' if resume else ''}{on_workers}")
         reconstruct(resolve_reconstruct_inputs(sim), result, resume=resume, dynamic=sim, executor=executor,
                     report=False)
+        if _tail_up_to_date(out):
+            say(f"polarface demo: {out}/index.html is up to date with {result} (nothing to redo)")
+            return read_json_object(out / "metrics.json"), None
         # the export, the evaluation, the report and the landing page's comparison figures read the
         # finished RESULT and write apart: units on the workers (each mostly one core's work), the report
         # after the export, whose viewer it links (in this process: one after the other, on one core)
@@ -187,7 +217,8 @@ def run_demo_pipeline(
     """Simulate -> reconstruct -> evaluate into ``out`` and write ``out/index.html`` (module docstring).
 
     Args:
-        out: output folder (``sim/``, ``result/``, ``metrics.json``, ``demo.json``, ``index.html``).
+        out: output folder (``sim/``, ``result/``, ``metrics.json``, ``demo.json``, ``index.html``); a
+            finished one is checked and left as it is in seconds (nothing redone).
         preset: simulator preset (``demo`` or ``tiny``).
         skin_type: Fitzpatrick skin type I..VI of the simulated subject.
         say: receives the progress lines (default: printed and flushed).
@@ -200,9 +231,12 @@ def run_demo_pipeline(
     out = Path(out)
     started = time.perf_counter()
     metrics, comparisons = _demo_steps(out, preset, skin_type, say)
+    if comparisons is None:  # nothing was redone
+        return out / "index.html"
     elapsed = time.perf_counter() - started
-    write_json_atomic(out / "demo.json", {"preset": preset, "skin_type": skin_type, "seconds": elapsed})
     path = _demo_page(out, preset, skin_type, elapsed, metrics, comparisons).write(out / "index.html")
+    write_json_atomic(out / "demo.json", {"preset": preset, "skin_type": skin_type, "seconds": elapsed,
+                                          "complete": True, "result_sha256": _result_digest(out)})
     say(f"polarface demo: wrote {out}/index.html ({elapsed / 60:.1f} min)")
     return path
 

@@ -56,13 +56,16 @@ from polarface.geometry.registration import RegistrationConfig
 from polarface.geometry.tracked_file import load_tracked
 from polarface.geometry.tracking import TrackingConfig
 from polarface.inverse.polarimetric.dynamic import DynamicConfig
-from polarface.io import json_values
+from polarface.io import json_values, record_path, storage_path
+from polarface.io.storage import remove_tree
 from polarface.pipeline.dynamic_geometry import TrackingFolder, align_reference, stereo_pass, track_sequence
 from polarface.pipeline.dynamic_inputs import (
     check_static_result,
+    check_thread_count,
     open_dynamic_capture,
     parse_frame_selection,
     resolve_dynamic_capture,
+    selection_note,
 )
 from polarface.pipeline.geometry import GeometryConfig
 from polarface.results import ResultFolder, layout
@@ -281,8 +284,10 @@ def reconstruct_dynamic(
 
     Args:
         capture: the dynamic capture store (or a simulation folder: ``SIM/dynamic``).
-        frames: the frames whose maps are fitted (``"0-4,7"`` or indices; None: all). Stereo and tracking
-            always cover the whole sequence (a frame is tracked through the ones before it).
+        frames: the frames whose maps are fitted (``"0-4,7"`` or indices, in any order; ascending
+            ranges; None: all), fitted in the sequence's order. Stereo and tracking always cover the whole
+            sequence, forward (a frame is tracked through the ones before it).
+        threads: torch threads of the per-frame fits (>= 1; None: unchanged).
         executor: runs the frames' stereo (step 1,
             :class:`polarface.pipeline.geometry_frames.StereoFrameUnit`) and step 4 (:class:`FrameUnit`,
             :func:`run_frame_unit`); None: in this process, in order
@@ -290,39 +295,56 @@ def reconstruct_dynamic(
             written, and left open. A frame that fails is recorded with its reason.
 
     Raises:
-        ValueError: RESULT holds no static result, the capture's rig differs from the static one, the
-            selection names unknown frames, the first frame cannot be aligned, or RESULT/tracking was
-            written with another capture or configuration (nothing is written in the first three cases).
+        ValueError: RESULT holds no static result; ``threads`` < 1; the capture is the static one or
+            records a static sequence, its rig differs from the static one, a raw image it reads is
+            truncated; the selection is malformed, descending or names unknown frames (nothing is written
+            in these cases: :mod:`polarface.pipeline.dynamic_inputs`); the first frame cannot be aligned
+            (the tracking folder this run created is removed); RESULT/tracking was written with another
+            capture or configuration; an image that cannot be decoded (naming the file; the tracking
+            folder keeps its complete steps and the next run resumes).
     """
     from polarface.device import resolve_device
     from polarface.results.fingerprint import capture_identity
 
-    if (Path(str(capture)) / "imported.json").is_file():  # an authors' session: its tracked maps
+    check_thread_count(threads)
+    if (storage_path(capture) / "imported.json").is_file():  # an authors' session: its tracked maps
         from polarface.pipeline.dynamic_imported import reconstruct_dynamic_imported
 
-        return reconstruct_dynamic_imported(result_dir, Path(str(capture)), config, frames=frames,
+        return reconstruct_dynamic_imported(result_dir, storage_path(capture), config, frames=frames,
                                             device=device, threads=threads, progress=progress)
     started = time.perf_counter()
     executor = executor or LocalExecutor()
     folder = ResultFolder(result_dir)
     check_static_result(folder)
-    store = open_dynamic_capture(resolve_dynamic_capture(capture), folder.read_rig(), folder.rig_path, frames)
+    store = open_dynamic_capture(resolve_dynamic_capture(capture), folder.read_rig(), folder.rig_path, frames,
+                                 result=folder)
     records = {record.index: record for record in store.frames}
     all_frames = sorted(records)
     if not all_frames:
         raise ValueError(f"dynamic capture '{store.root}' has no complete frame")
     selected = parse_frame_selection(frames, all_frames)
+    note = selection_note(frames, selected)
+    if note:
+        LOGGER.info("%s", note)
     resolve_device(device)  # a bad device is refused before anything is written
     executor.start()
     header = {"format": "polarface-tracking", "version": 1, "capture": capture_identity(store.root),
               "config": config.to_json()}
     tracking = TrackingFolder(folder.tracking_dir, header)
-    tracking.root.mkdir(parents=True, exist_ok=True)
-    tracking.save()
-    geometry_s = stereo_pass(store, tracking, all_frames, config.geometry, progress, executor)
-    reference = folder.read_mesh()
-    alignment = align_reference(folder, reference, tracking, all_frames[0], config.alignment,
-                                config.min_alignment_fitness)
+    created = not tracking.root.exists()
+    try:
+        tracking.root.mkdir(parents=True, exist_ok=True)
+        tracking.save()
+        geometry_s = stereo_pass(store, tracking, all_frames, config.geometry, progress, executor)
+        reference = folder.read_mesh()
+        alignment = align_reference(folder, reference, tracking, all_frames[0], config.alignment,
+                                    config.min_alignment_fitness)
+    except (ValueError, OSError):
+        # the capture is not accepted until the reference mesh is placed in its first frame: a failing
+        # first run leaves no tracking folder that would refuse the next run's capture (docs/dynamic.md)
+        if created:
+            remove_tree(tracking.root)
+        raise
     tracked, tracking_s = track_sequence(store, tracking, reference.transformed(alignment), all_frames,
                                          config.tracking, progress)
     failed: dict[int, str] = {int(f): str(r) for f, r in tracked.failed.items()}
@@ -355,7 +377,7 @@ def reconstruct_dynamic(
     shared_s = (geometry_s + tracking_s) / len(all_frames)
     totals = [v.get("total_s", 0.0) for k, v in per_frame.items() if int(k) in completed]
     record = {
-        "capture": str(store.root),
+        "capture": record_path(folder.root, store.root),
         "frames": all_frames,
         "selected": selected,
         "completed": completed,

@@ -33,9 +33,11 @@ from polarface.geometry.tracking import (
     track_mesh,
 )
 from polarface.io import read_json_object, write_json_atomic
+from polarface.io.recorded_paths import resolve_recorded_path
 from polarface.pipeline.geometry import GeometryConfig
 from polarface.pipeline.geometry_frames import StereoFrameUnit, run_stereo_units
 from polarface.results import ResultFolder, layout
+from polarface.results.fingerprint import same_input
 
 __all__ = ["TrackingFolder", "align_reference", "stereo_pass", "track_sequence"]
 
@@ -52,11 +54,14 @@ class TrackingFolder:
         if path.is_file():
             previous = read_json_object(path)
             for key in ("capture", "config"):
-                if previous.get(key) != header[key]:
+                same = same_input(previous.get(key), header[key]) if key == "capture" else \
+                    previous.get(key) == header[key]
+                if not same:
                     raise ValueError(
                         f"'{path}' was written for another dynamic {key} (recorded "
-                        f"{_short(previous.get(key))}); rerun into a new RESULT folder or with the same "
-                        "capture and options"
+                        f"{_short(previous.get(key))}); rerun with the same capture and options, or into a "
+                        f"new copy of the static RESULT (or delete '{root}' and '{root.parent / 'frames'}' "
+                        "to start the dynamic stage again)"
                     )
             self.summary = {**previous, **header}
 
@@ -117,8 +122,8 @@ def _start_poses(folder: ResultFolder, count: int = 12) -> list[np.ndarray]:
     (a given mesh has its own model frame; the subject sits in the dynamic capture as in one of them)."""
     from polarface.geometry.poses import load_poses
 
-    path = Path(str(folder.stage_record("prepare").get("poses") or ""))
-    if not path.is_file():
+    path = resolve_recorded_path(folder.root, folder.stage_record("prepare").get("poses"))
+    if path is None or not path.is_file():
         return [np.eye(4)]
     poses = load_poses(path)
     rows = np.unique(np.linspace(0, len(poses) - 1, min(count, len(poses))).round().astype(int))
@@ -164,7 +169,12 @@ def _tracking_images(store: CaptureStore, frame: int) -> dict[str, np.ndarray]:
     images = {}
     for camera in store.rig.cameras:
         if camera.role == "polarimetric":
-            image = store.observation("i_sss", frame, camera.id)
+            try:
+                image = store.observation("i_sss", frame, camera.id)
+            except RuntimeError as exc:  # a corrupt chunk of derived.zarr (e.g. blosc decompression)
+                reason = " ".join(str(exc).split()) or type(exc).__name__
+                raise ValueError(f"capture store '{store.root}': frame {frame} of camera '{camera.id}' "
+                                 f"cannot be read from derived.zarr ({reason})") from exc
         else:
             image = store.read_raw(frame, camera.id).astype(np.float32) - camera.black_level
         image = image.mean(axis=-1) if image.ndim == 3 else image

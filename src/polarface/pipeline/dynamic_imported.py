@@ -21,8 +21,9 @@ import numpy as np
 from tqdm import tqdm
 
 from polarface.geometry.mesh import load_mesh
+from polarface.io import record_path
 from polarface.pipeline.dynamic import DynamicStageConfig, _frame_done, _process_frame, _static_inputs
-from polarface.pipeline.dynamic_inputs import check_static_result, parse_frame_selection
+from polarface.pipeline.dynamic_inputs import check_static_result, check_thread_count, parse_frame_selection
 from polarface.pipeline.import_authors import copy_unwrap_store, read_imported
 from polarface.results import ResultFolder
 
@@ -47,13 +48,14 @@ def reconstruct_dynamic_imported(
     :func:`polarface.pipeline.dynamic.reconstruct_dynamic`).
 
     Raises:
-        ValueError: no static result, not a finished dynamic import, a texture size other than the
-            static maps', or a selection naming unknown frames.
+        ValueError: ``threads`` < 1, no static result, not a finished dynamic import, a texture size other
+            than the static maps', or a bad selection (``parse_frame_selection``).
     """
     from polarface.device import resolve_device
 
     started = time.perf_counter()
     config = config or DynamicStageConfig()
+    check_thread_count(threads)
     folder = ResultFolder(result_dir)
     check_static_result(folder)
     record = read_imported(imported, "dynamic")
@@ -91,7 +93,7 @@ def reconstruct_dynamic_imported(
     completed = [f for f in selected if str(f) not in failed and _frame_done(folder.frame(f), config)]
     totals = [v["total_s"] for v in per_frame.values()]
     summary = {
-        "capture": str(imported),
+        "capture": record_path(folder.root, imported),
         "imported": record["session"],
         "frames": all_frames,
         "selected": selected,

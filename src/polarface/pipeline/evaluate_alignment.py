@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from polarface.geometry import load_mesh, load_poses
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.poses import invert_rigid
+from polarface.io.recorded_paths import resolve_recorded_path
 from polarface.results import ResultFolder
 
 __all__ = [
@@ -34,7 +34,6 @@ __all__ = [
     "load_truth_mesh",
     "load_truth_poses",
     "model_alignment",
-    "record_path",
     "reference_frame",
     "result_poses_path",
     "same_file",
@@ -49,17 +48,9 @@ def truth_root(gt_dir: str | Path) -> Path:
     return gt / "ground_truth" if (gt / "ground_truth").is_dir() else gt
 
 
-def record_path(result: ResultFolder, value: Any) -> Path | None:
-    """A path of a stage record, relative paths taken from the RESULT root; None when absent."""
-    if value in (None, ""):
-        return None
-    path = Path(str(value))
-    return path if path.is_absolute() else result.root / path
-
-
 def geometry_dir(result: ResultFolder) -> Path | None:
     """``stages.prepare.geometry`` of ``result.json`` (the GEOM folder), or None in known-geometry mode."""
-    return record_path(result, result.stage_record("prepare").get("geometry"))
+    return resolve_recorded_path(result.root, result.stage_record("prepare").get("geometry"))
 
 
 def reference_frame(result: ResultFolder) -> int:
@@ -75,7 +66,7 @@ def reference_frame(result: ResultFolder) -> int:
 def result_poses_path(result: ResultFolder) -> Path:
     """The RESULT's pose file: ``stages.prepare.poses``, else ``GEOM/poses.json``; ValueError when neither
     is recorded."""
-    path = record_path(result, result.stage_record("prepare").get("poses"))
+    path = resolve_recorded_path(result.root, result.stage_record("prepare").get("poses"))
     if path is None:
         geometry = geometry_dir(result)
         if geometry is None:

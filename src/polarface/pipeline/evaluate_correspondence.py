@@ -37,11 +37,11 @@ import numpy as np
 from polarface.geometry import rasterize_uv, sample_texture
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.raycast import closest_surface_points
+from polarface.io.recorded_paths import resolve_recorded_path
 from polarface.pipeline.evaluate_alignment import (
     geometry_dir,
     load_truth_mesh,
     model_alignment,
-    record_path,
     same_file,
     truth_poses_path,
     truth_root,
@@ -251,7 +251,7 @@ def _cached_correspondence(result_dir: str, gt_root: str, resolution: tuple[int,
     if not has_geometry and (not result.mesh_path.is_file() or not records_poses):
         return texel
     transform = model_alignment(result.root, root)
-    record_mesh = record_path(result, result.stage_record("prepare").get("mesh"))
+    record_mesh = resolve_recorded_path(result.root, result.stage_record("prepare").get("mesh"))
     identity = _is_identity(transform, config)
     if identity and not has_geometry and same_file(record_mesh, root / "mesh_rest.obj"):
         return dataclasses.replace(texel, transform=transform)

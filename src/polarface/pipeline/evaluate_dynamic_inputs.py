@@ -15,6 +15,7 @@ import numpy as np
 
 from polarface.geometry import load_mesh
 from polarface.io import read_json_object
+from polarface.io.recorded_paths import resolve_recorded_path
 from polarface.results import RHO_SSS_BAR, ResultFolder
 
 __all__ = [
@@ -59,8 +60,7 @@ def truth_dynamic_root(gt_dir: str | Path) -> Path:
 def _timestamps(result: ResultFolder, record: dict[str, Any], frames: list[int]) -> np.ndarray:
     stamps = {int(k): float(v) for k, v in dict(record.get("timestamps_s") or {}).items()}
     if any(t not in stamps for t in frames) and record.get("capture"):
-        manifest = Path(str(record["capture"]))
-        manifest = (manifest if manifest.is_absolute() else result.root / manifest) / "manifest.json"
+        manifest = resolve_recorded_path(result.root, record["capture"]) / "manifest.json"
         if manifest.is_file():
             for entry in read_json_object(manifest).get("frames", []):
                 stamps.setdefault(int(entry["index"]), float(entry["timestamp"]))

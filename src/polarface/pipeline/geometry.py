@@ -69,6 +69,7 @@ from polarface.pipeline.geometry_frames import (
     run_stereo_units,
     write_frame_geometry,
 )
+from polarface.results.fingerprint import RecordMismatchError, fingerprint_differences, same_input
 
 __all__ = ["GEOMETRY_JSON", "GeometryConfig", "reconstruct_geometry"]
 
@@ -144,16 +145,18 @@ def _check_resume(out: Path, header: dict[str, Any]) -> dict[str, Any]:
     if not path.exists():
         return {}
     previous = read_json_object(path)
-    if previous.get("capture") != header["capture"]:
+    if not same_input(previous.get("capture"), header["capture"]):
         raise ValueError(
             f"'{out}' holds a geometry stage run of another capture; choose another output folder"
         )
     old, new = previous.get("config") or {}, header["config"]
-    changed = [key for key in _FRAME_KEYS if old.get(key) != new.get(key)]
+    changed = fingerprint_differences({key: old.get(key) for key in _FRAME_KEYS},
+                                      {key: new.get(key) for key in _FRAME_KEYS}, "config.")
     if changed:
-        raise ValueError(
-            f"'{out}' holds a geometry stage run whose frames were made with another config "
-            f"({', '.join(changed)}); choose another output folder"
+        raise RecordMismatchError(
+            f"'{out}' holds a geometry stage run whose frames were made with another configuration; "
+            "choose another output folder",
+            changed,
         )
     return previous
 

@@ -9,7 +9,8 @@ run starts; a resumed run whose inputs or options differ is refused
 
 * ``geometry``: ``geometry/`` (mesh, poses, per-frame stereo meshes) from the capture's stereo pairs
   (:mod:`polarface.pipeline.geometry`), unless the geometry is given;
-* ``prepare``: ``rig.json``, ``mesh.obj``, ``result.json`` header, ``unwrap.zarr`` (texture space);
+* ``prepare``: ``rig.json``, ``mesh.obj``, ``poses.json`` (given geometry: a copy of the poses, so that
+  the RESULT needs no file outside it), ``result.json`` header, ``unwrap.zarr`` (texture space);
 * ``polarimetric``: ``maps/*.exr`` + ``maps/mask.png``, ``previews/*.png``, ``checkpoints/``; its texture
   patches run on ``ReconstructContext.executor``, front by front
   (:mod:`polarface.inverse.polarimetric.patch_units`);
@@ -35,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from polarface.io import json_values
+from polarface.io import json_values, record_path
 from polarface.pipeline.reconstruct_fingerprint import check_fingerprint
 from polarface.pipeline.reconstruct_inputs import (
     ReconstructInputs,
@@ -135,7 +136,7 @@ def stage_geometry(ctx: ReconstructContext) -> dict[str, Any]:
         progress=ctx.progress, executor=ctx.executor,
     )
     return {
-        "geometry": str(ctx.geometry_dir),
+        "geometry": record_path(ctx.out, ctx.geometry_dir),
         "reference_frame": summary["reference_frame"],
         "rejected_frames": summary["rejected_frames"],
         "texel_size_mm": summary["atlas"].get("texel_size_mm"),
@@ -171,6 +172,11 @@ def stage_prepare(ctx: ReconstructContext) -> dict[str, Any]:
     unwrap = unwrap_capture(store, mesh, poses, folder.unwrap_path, config, progress=ctx.progress)
     store.rig.save(folder.rig_path)
     folder.write_mesh(mesh)
+    poses_path = ctx.poses_path
+    if not ctx.stereo:  # given poses are copied in: the RESULT does not depend on a file outside it
+        from polarface.geometry.poses import save_poses
+
+        poses_path = save_poses(folder.poses_path, poses)
     geometry = unwrap.geometry()
     valid = geometry.mask
     texel_size = float(np.median(0.5 * (geometry.texel_size_u[valid] + geometry.texel_size_v[valid])))
@@ -181,10 +187,11 @@ def stage_prepare(ctx: ReconstructContext) -> dict[str, Any]:
     return {
         "views": len(views),
         "held_out_views": [i for i, v in enumerate(views) if v.held_out],
-        "capture": str(ctx.capture),
-        "mesh": str(ctx.mesh_path),
-        "poses": str(ctx.poses_path),
-        "geometry": str(ctx.geometry_dir) if ctx.geometry_dir is not None else None,
+        "capture": record_path(ctx.out, ctx.capture),
+        "mesh": record_path(ctx.out, ctx.mesh_path),
+        "poses": record_path(ctx.out, poses_path),
+        "poses_source": record_path(ctx.out, ctx.poses_path),
+        "geometry": record_path(ctx.out, ctx.geometry_dir),
         "reference_frame": int(geometry_summary.get("reference_frame", 0)),
         "excluded_frames": list(excluded),
         "timings": {"prepare_s": time.perf_counter() - started},
@@ -297,8 +304,24 @@ STAGES: list[tuple[str, Callable[[ReconstructContext], dict]]] = [
     ("dynamic", stage_dynamic),
     ("report", stage_report),
 ]
-#: Stages a resumed run enters even when recorded complete (they skip their finished work themselves).
+#: Stages a resumed run enters even when recorded complete, unless the dynamic stage fitted every selected
+#: frame already (they skip their finished work themselves).
 RERUN_ON_RESUME = ("dynamic", "report")
+
+
+def _dynamic_finished(ctx: ReconstructContext, folder: ResultFolder) -> bool:
+    """Whether the recorded dynamic stage already fitted every frame ``ctx.frames`` selects, none failed
+    (the dynamic capture itself is the fingerprint's): a resume then skips it, and the report, at once."""
+    from polarface.pipeline.dynamic_inputs import parse_frame_selection
+
+    record = folder.stage_record("dynamic")
+    if not record.get("complete") or record.get("failed_frames") or "frames" not in record:
+        return False
+    try:
+        selected = parse_frame_selection(ctx.frames, record["frames"])
+    except (ValueError, TypeError):
+        return False
+    return set(selected) <= set(record.get("completed") or [])
 
 
 def run_stages(ctx: ReconstructContext, stages=None) -> dict[str, Any]:
@@ -316,8 +339,9 @@ def run_stages(ctx: ReconstructContext, stages=None) -> dict[str, Any]:
     stages = STAGES if stages is None else stages
     folder = ctx.folder
     check_fingerprint(ctx)
+    dynamic_pending = ctx.dynamic is not None and not _dynamic_finished(ctx, folder)
     for name, function in stages:
-        rerun = name in RERUN_ON_RESUME and ctx.dynamic is not None
+        rerun = name in RERUN_ON_RESUME and dynamic_pending
         if ctx.resume and folder.stage_complete(name) and not rerun:
             LOGGER.info("stage %s already complete; skipped", name)
             continue
@@ -366,6 +390,8 @@ def reconstruct(
 
     Raises:
         ValueError, FileNotFoundError: bad input; a RESULT folder this call created is removed.
+        OSError: a failed write (a full disk): a RESULT folder this call created is removed unless a stage
+            completed (then it is kept for ``--resume``, and the message says so).
     """
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not resume:
@@ -374,6 +400,9 @@ def reconstruct(
         )
     if holdout_every < 0 or holdout_every == 1:
         raise ValueError(f"argument '--holdout-every' must be 0 or >= 2; got {holdout_every}")
+    from polarface.pipeline.dynamic_inputs import check_thread_count
+
+    check_thread_count(threads)  # '--threads' >= 1, refused before anything is written
     stereo = inputs.mesh_path is None
     options = resolve_fit_options(fit_options, stereo, device, executor, out, resume)
     geometry_dir = ResultFolder(out).geometry_dir if stereo else inputs.geometry_dir
@@ -406,12 +435,29 @@ def reconstruct(
         if ctx.dynamic is not None and not is_imported_session(ctx.dynamic):  # finished, same rig, frames
             from polarface.pipeline.dynamic_inputs import open_dynamic_capture
 
-            open_dynamic_capture(ctx.dynamic, store.rig, store.root / "rig.json", ctx.frames)
+            open_dynamic_capture(ctx.dynamic, store.rig, store.root / "rig.json", ctx.frames,
+                                 static_capture=store.root)
         if executor is not None:  # an unreachable cluster is refused here
             executor.start()
         out.mkdir(parents=True, exist_ok=True)
         return run_stages(ctx, STAGES if report else [stage for stage in STAGES if stage[0] != "report"])
-    except (ValueError, FileNotFoundError):
-        if created and out.exists():
+    except (ValueError, OSError) as exc:  # bad input, or a failed write (a full disk)
+        if not created or not out.exists():
+            raise
+        failed_write = isinstance(exc, OSError) and not isinstance(exc, FileNotFoundError)
+        kept = _complete_stages(ResultFolder(out)) if failed_write else []
+        if not kept:  # nothing worth resuming: leave nothing behind
             shutil.rmtree(out, ignore_errors=True)
-        raise
+            raise
+        raise OSError(exc.errno, f"{exc.strerror or exc}; the complete stages ({', '.join(kept)}) are kept "
+                      f"in '{out}': rerun with --resume once the cause is fixed", exc.filename) from exc
+
+
+def _complete_stages(folder: ResultFolder) -> list[str]:
+    """The stages ``folder``'s ``result.json`` records complete, skipped ones left out (none when it cannot
+    be read)."""
+    try:
+        records = {name: folder.stage_record(name) for name, _ in STAGES}
+    except (ValueError, OSError):
+        return []
+    return [name for name, record in records.items() if record.get("complete") and "skipped" not in record]

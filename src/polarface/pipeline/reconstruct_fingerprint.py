@@ -7,6 +7,7 @@ import dataclasses
 from typing import TYPE_CHECKING, Any
 
 from polarface.io import json_values
+from polarface.results import layout
 
 if TYPE_CHECKING:
     from polarface.pipeline.reconstruct import ReconstructContext
@@ -56,9 +57,10 @@ def check_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
     A folder without a recorded fingerprint (new, or written before fingerprints) gets this one.
 
     Raises:
-        ValueError: resuming a folder whose recorded fingerprint differs, naming every difference.
+        RecordMismatchError: resuming a folder whose recorded fingerprint differs, one detail line per
+            differing key path.
     """
-    from polarface.results.fingerprint import fingerprint_differences
+    from polarface.results.fingerprint import RecordMismatchError, fingerprint_differences
 
     folder = ctx.folder
     current = input_fingerprint(ctx)
@@ -66,10 +68,14 @@ def check_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
     if ctx.resume and isinstance(recorded, dict):
         differences = fingerprint_differences(recorded, current)
         if differences:
-            raise ValueError(
-                f"resume of '{ctx.out}': {'; '.join(differences)}; rerun without --resume into a new "
-                "folder or with the same inputs and options"
+            raise RecordMismatchError(
+                f"resume of '{ctx.out}' refused: {len(differences)} recorded input(s) or option(s) differ "
+                "(rerun without --resume into a new folder, or with the same inputs and options)",
+                differences,
             )
         return recorded
-    folder.update_result({"fingerprint": current})
+    # the format keys first, so that a run stopped before its prepare stage (Ctrl-C in the geometry stage)
+    # is already a RESULT folder that `--resume` recognises as its own
+    folder.update_result({"fingerprint": current},
+                         defaults={"format": layout.RESULT_FORMAT, "version": layout.RESULT_VERSION})
     return current

@@ -8,11 +8,58 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import os
 from pathlib import Path
 
 from polarface.io.storage import StoragePath, open_zarr_group, storage_path
 
-__all__ = ["ReconstructInputs", "check_capture_manifest", "check_derived_store", "resolve_reconstruct_inputs"]
+__all__ = [
+    "MIN_TEXTURE_RESOLUTION",
+    "ReconstructInputs",
+    "check_capture_manifest",
+    "check_derived_store",
+    "check_texture_resolution",
+    "max_texture_resolution",
+    "resolve_reconstruct_inputs",
+]
+
+#: The smallest texture side the cylindrical atlas accepts, texels.
+MIN_TEXTURE_RESOLUTION = 8
+#: Working memory per texel of the whole-texture stages, bytes: the atlas rasterisation and the texel
+#: geometry of the prepare stage (positions, normals, tangent frames, texel sizes in float64), the RESULT's
+#: ~25 float32 maps and their previews, with room for the copies a stage makes. An estimate with a
+#: margin, used only to refuse a texture that cannot fit at once instead of after minutes of work.
+_BYTES_PER_TEXEL = 400
+#: The largest side ever accepted (8x the paper's 2048), whatever the memory.
+_MAX_TEXTURE_RESOLUTION = 16384
+
+
+def max_texture_resolution(memory_bytes: int | None = None) -> int:
+    """The largest texture side whose whole-texture stages fit in ``memory_bytes`` (default: this machine's
+    physical memory), at most 16384."""
+    if memory_bytes is None:
+        try:
+            memory_bytes = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):  # not a POSIX system: no bound but the fixed one
+            return _MAX_TEXTURE_RESOLUTION
+    return int(min(_MAX_TEXTURE_RESOLUTION, math.isqrt(max(int(memory_bytes) // _BYTES_PER_TEXEL, 0))))
+
+
+def check_texture_resolution(value: object, option: str = "--texture-resolution") -> int:
+    """``value`` as a texture side in texels; ValueError naming ``option`` unless it is an integer in
+    [:data:`MIN_TEXTURE_RESOLUTION`, :func:`max_texture_resolution`] (a texture that cannot fit in this
+    machine's memory is refused at once)."""
+    upper = max_texture_resolution()
+    integer = isinstance(value, int) and not isinstance(value, bool)
+    if not integer or not MIN_TEXTURE_RESOLUTION <= value <= upper:
+        gigabytes = value * value * _BYTES_PER_TEXEL / 1e9 if integer and value > upper else None
+        needed = f" ({value}x{value} texels would need about {gigabytes:.3g} GB)" if gigabytes else ""
+        raise ValueError(
+            f"argument '{option}' must be an integer in [{MIN_TEXTURE_RESOLUTION}, {upper}] on this machine"
+            f"{needed}; got {value!r}"
+        )
+    return value
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,6 +119,8 @@ def resolve_reconstruct_inputs(
         FileNotFoundError: the capture or mesh does not exist. ValueError: not a capture store, no
         geometry, ``mesh`` without ``poses`` (or the reverse), or the poses file does not exist.
     """
+    if texture_resolution is not None:
+        check_texture_resolution(texture_resolution)
     capture = storage_path(capture)
     if not capture.exists():
         raise FileNotFoundError(f"capture '{capture}' does not exist")

@@ -12,12 +12,30 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Mapping
 from typing import Any
 
-from polarface.io.storage import PathOrUrl, StoragePath, storage_path
+from polarface.io.storage import PathOrUrl, StoragePath, UrlPath, storage_path
 
-__all__ = ["capture_identity", "file_identity", "fingerprint_differences"]
+__all__ = [
+    "RecordMismatchError",
+    "capture_identity",
+    "file_identity",
+    "fingerprint_differences",
+    "same_input",
+]
+
+
+class RecordMismatchError(ValueError):
+    """A folder's record differs from what a rerun or a resume would record: ``message`` says which folder
+    and what to do, ``details`` holds one line per differing key path (:func:`fingerprint_differences`);
+    the CLI prints the message, then each detail on a line of its own."""
+
+    def __init__(self, message: str, details: list[str]) -> None:
+        super().__init__(f"{message}: {'; '.join(details)}")
+        self.message = message
+        self.details = list(details)
 
 
 def _sha256_files(paths: list[StoragePath]) -> str:
@@ -30,10 +48,16 @@ def _sha256_files(paths: list[StoragePath]) -> str:
     return digest.hexdigest()
 
 
+def _absolute(path: StoragePath) -> str:
+    """The informative ``path`` of an identity: absolute (or the URL), so that it means the same from any
+    working directory (:func:`polarface.io.recorded_paths.record_path` of a path outside the folder)."""
+    return str(path) if isinstance(path, UrlPath) else os.path.abspath(path)
+
+
 def file_identity(path: PathOrUrl) -> dict[str, str]:
     """``{"path", "sha256"}`` of one file (the path is informative; only the hash is compared)."""
     path = storage_path(path)
-    return {"path": str(path), "sha256": _sha256_files([path])}
+    return {"path": _absolute(path), "sha256": _sha256_files([path])}
 
 
 def capture_identity(capture: PathOrUrl) -> dict[str, Any]:
@@ -42,45 +66,57 @@ def capture_identity(capture: PathOrUrl) -> dict[str, Any]:
     root = storage_path(capture)
     markers = sorted((root / "frames").glob("[0-9]*.json"))
     files = [p for p in (root / "rig.json", root / "manifest.json") if p.is_file()] + markers
-    return {"path": str(root), "frames": len(markers), "sha256": _sha256_files(files)}
+    return {"path": _absolute(root), "frames": len(markers), "sha256": _sha256_files(files)}
 
 
-def _flatten(value: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(value, Mapping):
-        out: dict[str, Any] = {}
-        for key, item in value.items():
-            out.update(_flatten(item, f"{prefix}{key}."))
-        return out
-    return {prefix[:-1]: value}
+def same_input(recorded: Any, current: Mapping[str, Any]) -> bool:
+    """Whether a recorded identity (:func:`file_identity`, :func:`capture_identity`) names the same content
+    as ``current``: the hash (and frame count) only, so a moved, copied or renamed input still matches."""
+    if not isinstance(recorded, Mapping):
+        return False
+    return all(recorded.get(key) == current.get(key) for key in ("sha256", "frames"))
 
 
-def _describe(entry: Any) -> str:
+#: Longest value shown in a difference line (longer ones are cut with "...").
+_SHOWN_CHARS = 120
+#: A key present on one side only.
+_ABSENT = object()
+
+
+def _shown(entry: Any) -> str:
+    """One value of a difference line: an input identity as its path, frames and hash, else its JSON."""
+    if entry is _ABSENT:
+        return "(absent)"
     if isinstance(entry, Mapping) and "sha256" in entry:
         frames = f", {entry['frames']} frames" if "frames" in entry else ""
         return f"'{entry.get('path')}'{frames}, sha256 {str(entry['sha256'])[:12]}"
-    return json.dumps(entry)
+    text = json.dumps(entry, sort_keys=True)
+    return text if len(text) <= _SHOWN_CHARS else text[:_SHOWN_CHARS - 3] + "..."
 
 
-def fingerprint_differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
-    """What differs between a recorded and a recomputed fingerprint, one phrase per item.
+def fingerprint_differences(old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """What differs between a recorded and a recomputed record, one line per differing key path.
 
-    Files (``capture``, ``mesh``, ``poses``) compare by hash only (a moved capture still matches);
-    ``options`` compare field by field (nested fields as ``weights.sss``); other keys by value.
+    Nested objects are compared key by key (``options.weights.sss: recorded 1.0, now 2.0``); an input
+    identity (an object with ``sha256``: :func:`file_identity`, :func:`capture_identity`) compares by
+    hash only (:func:`same_input`: a moved capture still matches) and is one line; a key present on one
+    side only reads ``(absent)`` on the other.
+
+    Args:
+        old: the recorded record (e.g. ``result.json``'s ``fingerprint``).
+        new: the recomputed one.
+        prefix: the key path of ``old`` and ``new`` within a larger record (``"config."``).
     """
-    problems: list[str] = []
-    for key in sorted(set(old) | set(new)):
-        was, now = old.get(key), new.get(key)
-        if key == "options":
-            flat_old, flat_new = _flatten(was or {}), _flatten(now or {})
-            for name in sorted(set(flat_old) | set(flat_new)):
-                if flat_old.get(name) != flat_new.get(name):
-                    problems.append(
-                        f"option '{name}' was {json.dumps(flat_old.get(name))}, "
-                        f"now {json.dumps(flat_new.get(name))}"
-                    )
-        elif isinstance(was, Mapping) and isinstance(now, Mapping) and "sha256" in was:
-            if was.get("sha256") != now.get("sha256"):
-                problems.append(f"the {key} differs: was {_describe(was)}, now {_describe(now)}")
-        elif was != now:
-            problems.append(f"'{key}' was {_describe(was)}, now {_describe(now)}")
-    return problems
+    lines: list[str] = []
+    for key in sorted(set(old) | set(new), key=str):
+        was, now = old.get(key, _ABSENT), new.get(key, _ABSENT)
+        if any(isinstance(v, Mapping) and "sha256" in v for v in (was, now)):
+            differs = not same_input(was, now if isinstance(now, Mapping) else {})
+        elif isinstance(was, Mapping) and isinstance(now, Mapping):
+            lines.extend(fingerprint_differences(was, now, f"{prefix}{key}."))
+            continue
+        else:
+            differs = was != now
+        if differs:
+            lines.append(f"{prefix}{key}: recorded {_shown(was)}, now {_shown(now)}")
+    return lines

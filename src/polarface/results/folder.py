@@ -80,6 +80,8 @@ class ResultFolder:
     result_json_path = _under_root(layout.RESULT_JSON)
     unwrap_path = _under_root(layout.UNWRAP_STORE)
     report_path = _under_root(layout.REPORT_HTML)
+    #: ``poses.json``: the copy of given poses (a RESULT of stereo geometry has ``geometry/poses.json``).
+    poses_path = _under_root(layout.POSES_JSON)
 
     @property
     def rig_path(self) -> StoragePath:

@@ -51,6 +51,7 @@ from polarface.geometry.head_asset import HeadAsset, head_placement, load_head_a
 from polarface.geometry.uv_raster import UVRaster, rasterize_uv
 from polarface.io import read_json_object, write_json_atomic
 from polarface.render.subsurface import SubsurfaceModel
+from polarface.results.fingerprint import RecordMismatchError, fingerprint_differences
 from polarface.simulate.analyzers import SimulatedAnalyzers
 from polarface.simulate.frames import (
     SimulationFrameUnit,
@@ -214,9 +215,13 @@ def _check_resumable(summary_path: Path, config_dict: dict) -> None:
     if not summary_path.exists():
         return
     previous = read_json_object(summary_path)
-    if previous.get("config") != config_dict:
-        raise ValueError(
-            f"'{summary_path.parent}' holds a simulation with another configuration {previous.get('config')}"
+    recorded = previous.get("config") if isinstance(previous.get("config"), dict) else {}
+    differences = fingerprint_differences(recorded, config_dict, "config.")
+    if differences:
+        raise RecordMismatchError(
+            f"'{summary_path.parent}' holds a simulation with another configuration (choose another --out, "
+            "or rerun with the recorded options)",
+            differences,
         )
 
 
@@ -226,7 +231,8 @@ def simulate(
 ) -> dict:
     """Render the configured sequences into ``out_dir`` (see the module docstring); returns the summary.
 
-    Resumable (``resume``): rerunning with the same configuration skips complete frames; a run killed
+    Resumable (``resume``): rerunning with the same configuration skips complete frames, and returns the
+    recorded summary at once when the whole simulation is complete (no scene is built); a run killed
     at any point and resumed writes the same files as an uninterrupted one. ``simulation.json`` is
     written with ``complete: false`` and the configuration when the run starts, so an interrupted
     folder is refused to another configuration too.
@@ -244,11 +250,14 @@ def simulate(
     out = Path(out_dir).absolute()
     summary_path = out / "simulation.json"
     executor = executor or LocalExecutor()
-    executor.start()
     config_dict = _check_resume(out, config, resume)
+    previous = read_json_object(summary_path) if summary_path.exists() else {}
+    if _finished(out, previous, config.sequences):  # nothing to render: the scene is not even built
+        LOGGER.info("simulation '%s' is complete; nothing to do", out)
+        return previous
+    executor.start()
     out.mkdir(parents=True, exist_ok=True)
     scene = SimulationScene.build(config)
-    previous = read_json_object(summary_path) if summary_path.exists() else {}
     if not summary_path.exists():
         write_json_atomic(summary_path, _summary_head(config_dict, scene, complete=False))
     setup_s = time.perf_counter() - started
@@ -344,6 +353,26 @@ def _simulate_frames(scene: SimulationScene, out: Path, sequences: tuple[str, ..
                             for (sequence, index), reason in sorted(failed.items()))
         raise ValueError(f"simulate '{out}': {len(failed)} frame(s) failed: {reasons}; the other frames are "
                          "kept, rerun to continue")
+
+
+def _finished(out: Path, summary: dict, sequences: tuple[str, ...]) -> bool:
+    """Whether the folder ``out`` holds a finished simulation of ``sequences``: ``simulation.json``
+    (``summary``, already checked to record this configuration) says ``complete`` and every sequence's
+    capture store lists all of the preset's frames with their completion markers. Cheap (no scene is
+    built, no image read): a rerun on a finished folder returns at once."""
+    if summary.get("complete") is not True:
+        return False
+    preset = summary.get("preset") or {}
+    counts = {"static": preset.get("static_frames"), "dynamic": preset.get("dynamic_frames")}
+    for sequence in sequences:
+        try:
+            store = CaptureStore.open(out / sequence, validate=False)
+            indices = [record.index for record in store.frames]
+        except (OSError, ValueError):
+            return False
+        if indices != list(range(counts[sequence] or 0)) or not all(store.has_frame(i) for i in indices):
+            return False
+    return (out / "ground_truth" / "observations.zarr").is_dir()
 
 
 def _frame_done(out: Path, store: CaptureStore | None, writer: ObservationWriter, sequence: str,
