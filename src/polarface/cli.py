@@ -2,22 +2,33 @@
 
 Every module in :mod:`polarface.commands` that defines ``NAME``, ``HELP``, ``add_arguments(parser)``
 and ``run(args) -> int`` becomes a subcommand; stages add a module, never edit this file. A module may
-define ``INTERRUPTED``: what Ctrl-C keeps and how to continue (``{out}`` is the output folder).
+define ``INTERRUPTED``: what Ctrl-C keeps and how to continue (``{out}`` is the output folder), or
+``STAGED = True``: its output is written whole or not at all (``polarface.io.output_folder``, ``staged``).
 
 Errors end in one line on stderr, never a traceback: ``polarface CMD: error: ...`` and exit code 2 for
-bad input and failed reads/writes (ValueError, OSError: the path and the reason), ``polarface CMD:
-interrupted ...`` and exit code 130 for Ctrl-C.
+bad input and failed reads/writes (ValueError, OSError: the path and the reason; an error that carries
+``details``, such as a refused resume's differing keys
+(:class:`polarface.results.fingerprint.RecordMismatchError`), prints them below it, one indented line
+each), ``polarface CMD:
+interrupted ...`` and exit code 130 for Ctrl-C, also while the commands are being loaded (``polarface:
+interrupted ...``). Once the command has finished, the process's own exit (the interpreter tearing
+down torch, numba, Embree: seconds on a busy machine) ignores Ctrl-C: Python restores the default
+SIGINT action before that teardown, so a Ctrl-C there killed the process silently with status 130 after
+a complete run (``polarface render``'s long teardown showed it). Only :func:`main` called as the
+program (``argv`` None: the console script, ``python -m polarface.cli``) does so; a caller's process
+keeps its handlers.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import pkgutil
+import signal
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 
 import polarface
 from polarface import commands
@@ -67,14 +78,32 @@ def build_parser() -> argparse.ArgumentParser:
             module.NAME, help=module.HELP, description=module.__doc__, formatter_class=_HelpFormatter
         )
         module.add_arguments(command)
-        command.set_defaults(_run=module.run, _interrupted=getattr(module, "INTERRUPTED", None))
+        command.set_defaults(_run=module.run, _interrupted=getattr(module, "INTERRUPTED", None),
+                             _staged=bool(getattr(module, "STAGED", False)))
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``polarface`` console script; returns the process exit code."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Entry point of the ``polarface`` console script; returns the process exit code.
+
+    Args:
+        argv: the arguments; None: ``sys.argv[1:]``, and this call is the program (module docstring).
+    """
+    try:
+        return _main(argv)
+    finally:
+        if argv is None:  # the command is over: the interpreter's teardown is not interruptible
+            with contextlib.suppress(ValueError):  # (not the main thread)
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _main(argv: Sequence[str] | None) -> int:
+    try:
+        parser = build_parser()  # imports every command module (torch, numba, ...): seconds
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt:
+        print("polarface: interrupted while loading the commands; nothing was run", file=sys.stderr)
+        return 130
     logging.basicConfig(
         level=logging.WARNING - 10 * min(args.verbose + 1, 2),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
@@ -85,7 +114,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args._run(args) or 0)
     except (ValueError, OSError) as exc:
-        print(f"polarface {args.command}: error: {_one_line(exc)}", file=sys.stderr)
+        details = list(getattr(exc, "details", None) or [])
+        message = getattr(exc, "message", None) if details else None
+        headline = " ".join(str(message).split()) if message else _one_line(exc)
+        print(f"polarface {args.command}: error: {headline}", file=sys.stderr)
+        for line in details:
+            print(f"  {' '.join(str(line).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"polarface {args.command}: {_interrupted_line(args)}", file=sys.stderr)
@@ -102,13 +136,26 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(text.split())
 
 
+def _exists(path: object) -> bool:
+    """Whether a local path or URL exists (False when it cannot be told)."""
+    from polarface.io.storage import storage_path
+
+    try:
+        return storage_path(path).exists()  # type: ignore[arg-type]
+    except Exception:  # a message on Ctrl-C must not fail
+        return False
+
+
 def _interrupted_line(args: argparse.Namespace) -> str:
     """What Ctrl-C kept: the command's ``INTERRUPTED`` text with its output folder, if it has one."""
     out = getattr(args, "out", None) or getattr(args, "result", None)
     hint = getattr(args, "_interrupted", None)
-    if out is not None and getattr(args, "force", False) and Path(out).exists():
+    if getattr(args, "_staged", False):
+        return "interrupted; nothing was written (the output is written whole or not at all; an existing " \
+               "one is left as it was)"  # fmt: skip
+    if out is not None and getattr(args, "force", False) and _exists(out):
         return f"interrupted; {out} left as it was (--force replaces it only after a complete run)"
-    if hint and out is not None and Path(out).exists():
+    if hint and out is not None and _exists(out):
         return f"interrupted; {hint.format(out=out)}"
     return "interrupted"
 

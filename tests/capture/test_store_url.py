@@ -86,7 +86,11 @@ def test_bad_urls_are_refused_naming_the_url(memory_url):
         CaptureStore.open(f"{memory_url}/nothing")
 
 
-def test_ingest_and_info_commands_take_urls(tmp_path, memory_url, capsys):
+def test_ingest_and_info_commands_take_urls_but_not_process_private_ones(tmp_path, memory_url, capsys):
+    """The CLI takes a URL that a later process can read (``file://`` here; ``s3://`` on a cluster) and
+    refuses ``memory://`` (issue 47: exit 0 and nothing persisted); the library still writes a store at any
+    URL, the same store as a local one."""
+    from polarface.capture.ingest import ingest_directory
     from polarface.cli import main
     from polarface.io import write_png
 
@@ -96,19 +100,21 @@ def test_ingest_and_info_commands_take_urls(tmp_path, memory_url, capsys):
             write_png(tmp_path / "raw" / cam / f"{frame}.png", raw, bit_depth=16)
     ingest = ["ingest", str(tmp_path / "raw"), "--rig", str(tmp_path / "rig.json"), "--no-progress", "--out"]
     url = f"{memory_url}/cap"
-    assert main([*ingest, url]) == 0 and main([*ingest, f"file://{tmp_path}/cap"]) == 0
-    assert main([*ingest, url]) == 0  # its own store: resumed, every frame skipped
-    remote, local = CaptureStore.open(url), CaptureStore.open(tmp_path / "cap")
-    assert remote.manifest == local.manifest
-    np.testing.assert_array_equal(remote.spectral_stack(1), local.spectral_stack(1))
+    with pytest.raises(SystemExit) as info:
+        main([*ingest, url])
+    assert info.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error.startswith("polarface ingest: error: argument --out:") and url in error
+    assert not memory_keys(memory_url)  # nothing written
+    local = f"file://{tmp_path}/cap"
+    assert main([*ingest, local]) == 0 and main([*ingest, local]) == 0  # its own store: resumed
     capsys.readouterr()
-    assert main(["info", url, "--json"]) == 0
+    remote = ingest_directory(tmp_path / "raw", paper_rig(width=WIDTH, height=HEIGHT), url, progress=False)
+    stored = CaptureStore.open(tmp_path / "cap")
+    assert remote.manifest == stored.manifest
+    np.testing.assert_array_equal(remote.spectral_stack(1), stored.spectral_stack(1))
+    assert main(["info", local, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["kind"] == "capture"
-    storage_path(memory_url).joinpath("other", "notes.txt").write_text("not a capture")
-    assert main([*ingest, f"{memory_url}/other"]) == 2
-    assert "was not written by 'polarface ingest'" in capsys.readouterr().err
-    assert main([*ingest, f"{memory_url}/other", "--force"]) == 2
-    assert "argument '--force'" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["info", "nosuchfs://bucket/cap"])
     assert "argument PATH: storage URL 'nosuchfs://bucket/cap': unknown protocol" in capsys.readouterr().err

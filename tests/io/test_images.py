@@ -134,3 +134,27 @@ def test_map_previews_leave_pyplot_alone(tmp_path):
     )
     shown = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
     assert shown.stdout.strip() == "False" and (tmp_path / "p.png").is_file()
+
+
+def test_a_corrupt_png_gives_one_error_and_no_opencv_line(tmp_path):
+    """OpenCV's PNG decoder printed its own ``[ERROR:0@...] global grfmt_png.cpp ... readHeader`` line on
+    stderr (file descriptor 2, besides the error the CLI prints: two lines, issue 47) for a file cut
+    after its signature. In a fresh process, as a user's command runs."""
+    import subprocess
+    import sys
+
+    import cv2
+
+    from polarface.io import read_png
+
+    bad = tmp_path / "cut.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n")
+    code = ("import sys\nfrom polarface.io import read_png\ntry:\n    read_png(sys.argv[1])\n"
+            "except ValueError as exc:\n    print(exc, file=sys.stderr)\n")
+    run = subprocess.run([sys.executable, "-c", code, str(bad)], capture_output=True, text=True, timeout=120)
+    expected = f"cannot read image '{bad}' (truncated, corrupt or not an image)"
+    assert run.stderr.strip().splitlines() == [expected]
+    level = cv2.utils.logging.getLogLevel()
+    with pytest.raises(ValueError, match=r"cut\.png"):
+        read_png(bad)
+    assert cv2.utils.logging.getLogLevel() == level  # restored

@@ -118,3 +118,16 @@ def test_an_interrupted_upload_keeps_the_old_object(memory_url, monkeypatch):
     monkeypatch.undo()
     assert read_json_object(target) == {"version": 1}
     assert memory_keys(memory_url) == ["result.json"]  # no temporary key left behind
+
+
+def test_process_private_urls_are_recognised():
+    """``memory://`` lives inside one process (issue 47: outputs that vanish): the CLI refuses it."""
+    from polarface.io.storage import process_private, url_protocols
+
+    assert url_protocols("simplecache::s3://bucket/key") == ("simplecache", "s3")
+    assert url_protocols("relative/dir") == () and url_protocols(Path("/x")) == ()
+    assert process_private("memory://cap") == "memory"
+    assert process_private("simplecache::memory://cap") == "memory"
+    assert process_private(storage_path("memory://cap")) == "memory"
+    for value in ("s3://bucket/key", "file:///tmp/x", "/tmp/memory:", "memory:"):
+        assert process_private(value) is None

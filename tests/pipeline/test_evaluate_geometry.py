@@ -274,3 +274,29 @@ def test_cli_writes_the_heat_map(truth, tmp_path, capsys):
     assert printed["polarimetric"]["correspondence"] == "closest_point"
     assert printed["geometry"]["accuracy_mm"]["median"] == pytest.approx(0.5, abs=0.03)
     assert (figures / GEOMETRY_ERROR_PNG).is_file()
+
+
+def test_cli_figures_never_overwrite_a_users_file(truth, tmp_path, capsys):
+    """Issue 47 (data lost): ``--figures paper`` over a user's folder holding a ``geometry_error_mm.png`` of
+    its own replaced that file. A folder evaluate did not write is refused, one inside an input too; its
+    own folder is rewritten whole."""
+    result = _result(tmp_path / "r", truth, frame=_rig_frame(truth), mirror=True, shift_mm=0.5)
+    paper = tmp_path / "paper"
+    paper.mkdir()
+    (paper / GEOMETRY_ERROR_PNG).write_bytes(b"the user's figure")
+    argv = ["evaluate", str(result), "--gt", str(truth["root"]), "--groups", "polarimetric"]
+    for figures, needle in ((paper, "was not written by 'polarface evaluate'"),
+                            (result / "figures", "lies inside the input RESULT")):
+        capsys.readouterr()
+        assert main([*argv, "--figures", str(figures)]) == 2
+        lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(lines) == 1 and needle in lines[0] and "--figures" in lines[0], lines
+    assert (paper / GEOMETRY_ERROR_PNG).read_bytes() == b"the user's figure"
+    assert sorted(p.name for p in paper.iterdir()) == [GEOMETRY_ERROR_PNG]
+    assert not (result / "figures").exists()
+    figures = tmp_path / "figs"
+    for _ in range(2):  # a new folder, then evaluate's own
+        assert main([*argv, "--figures", str(figures)]) == 0
+        assert (figures / GEOMETRY_ERROR_PNG).is_file()
+    assert main([*argv, "--out", str(result / "metrics.json")]) == 2
+    assert "argument '--out'" in capsys.readouterr().err and not (result / "metrics.json").exists()

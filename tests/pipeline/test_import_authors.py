@@ -68,7 +68,9 @@ def test_rerun_resumes_and_keeps_the_store(imported, tmp_path) -> None:
     store.root.attrs["done"] = [0]  # as if interrupted after the first view
     store.root.attrs["complete"] = False
     (target / "unwrap.zarr").rename(target / "unwrap.zarr.partial")
-    (target / "imported.json").unlink()
+    record = json.loads((target / "imported.json").read_text())  # as an interrupted import leaves it
+    (target / "imported.json").write_text(json.dumps({**record, "complete": False}))
+    (target / "mesh.obj").unlink()
     import_authors(session, target, progress=False)
     first = UnwrapStore.open(out / "unwrap.zarr").read(slice(None), slice(None))
     second = UnwrapStore.open(target / "unwrap.zarr").read(slice(None), slice(None))

@@ -10,6 +10,7 @@ Modules:
     observations     I_sss, I_zeta, I_s, DoP, AoLP; registration of the two Dolby cameras.
     stokes_images    one raw frame -> analyzer, DoP and AoLP images on disk (``polarface stokes``).
     store            the capture store directory (raw PNGs, manifest, zarr derived arrays); reading.
+    derived_chunks   which chunk of a derived array a read found damaged or missing (one-line errors).
     store_writer     writing a capture store: frames, derived arrays, markers, resume.
     manifest         the store's manifest and frame markers, and their checks against the files.
     ingest           RAW_DIR -> capture store.
@@ -19,6 +20,8 @@ Modules:
     synthetic        synthetic Stokes patterns and demosaicing error measurements.
     authors_layout   the authors' preprocessed face sessions: layout scan, COLMAP / pose / gain files.
     authors_rig      the rig of such a session (its cameras and the paper's LED ring).
+    authors_checks   a session's EXRs checked before an import writes (header, size, truncation), its
+                     fingerprint, and the chunk inventory of the imported unwrap stores.
 """
 
 from polarface.capture.analyzers import (

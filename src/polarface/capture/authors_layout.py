@@ -191,37 +191,61 @@ def _first_difference(expected: Sequence[str], got: Sequence[str]) -> str:
     return f"; frame {extra[0]} is extra" if extra else ""
 
 
-def _data_lines(path: Path) -> list[list[str]]:
+def _data_lines(path: Path) -> list[tuple[int, list[str]]]:
+    """``(line number, tokens)`` of every line of ``path`` that is neither empty nor a ``#`` comment."""
     if not path.is_file():
         raise FileNotFoundError(f"'{path}' does not exist")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"'{path}' is not a text file ({exc})") from None
     lines = []
-    for line in path.read_text().splitlines():
+    for number, line in enumerate(text.splitlines(), start=1):
         tokens = line.split()
         if tokens and not tokens[0].startswith("#"):
-            lines.append(tokens)
+            lines.append((number, tokens))
     return lines
+
+
+def _first_line(path: Path, lines: dict[int, int], ident: int, number: int, what: str) -> None:
+    """Refuse a second line for one ``ident`` (naming both lines); record the first."""
+    if ident in lines:
+        raise ValueError(f"'{path}' line {number}: {what} {ident} is listed again (line {lines[ident]})")
+    lines[ident] = number
 
 
 def read_colmap_cameras(path: str | Path) -> dict[int, ColmapCamera]:
     """``cameras.txt`` (COLMAP text: ``ID MODEL W H fx fy cx cy [k1 k2 p1 p2 ...]``): camera id -> camera.
 
     Raises:
-        FileNotFoundError: missing. ValueError: a line that is not a pinhole/OpenCV camera, naming it.
+        FileNotFoundError: missing. ValueError: naming the file and the line: a line that is not a
+            pinhole/OpenCV camera, a size that is not positive, focal lengths that are not positive and
+            finite, a principal point or distortion that is not finite, a camera listed twice.
     """
     path = Path(path)
-    cameras = {}
-    for tokens in _data_lines(path):
+    cameras: dict[int, ColmapCamera] = {}
+    lines: dict[int, int] = {}
+    for number, tokens in _data_lines(path):
+        where = f"'{path}' line {number}"
         try:
             ident, model, width, height = int(tokens[0]), tokens[1], int(tokens[2]), int(tokens[3])
             params = [float(v) for v in tokens[4:]]
         except (ValueError, IndexError):
-            raise ValueError(f"'{path}': malformed camera line {' '.join(tokens)!r}") from None
+            raise ValueError(f"{where}: malformed camera line {' '.join(tokens)!r}; expected "
+                             "'ID OPENCV WIDTH HEIGHT fx fy cx cy k1 k2 p1 p2'") from None
+        _first_line(path, lines, ident, number, "camera")
         if model == "PINHOLE" and len(params) == 4:
             params += [0.0] * 4
         if model not in ("OPENCV", "PINHOLE") or len(params) != 8:
-            raise ValueError(f"'{path}': camera {ident} model {model} with {len(params)} parameters; "
+            raise ValueError(f"{where}: camera {ident} model {model} with {len(params)} parameters; "
                              "expected OPENCV (fx fy cx cy k1 k2 p1 p2)")
+        if width <= 0 or height <= 0:
+            raise ValueError(f"{where}: camera {ident} size {width} x {height} px must be positive")
+        if not np.isfinite(params).all():
+            raise ValueError(f"{where}: camera {ident} parameters must be finite; got {params}")
         fx, fy, cx, cy = params[:4]
+        if fx <= 0 or fy <= 0:
+            raise ValueError(f"{where}: camera {ident} focal lengths fx {fx}, fy {fy} must be positive")
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         cameras[ident] = ColmapCamera(width, height, K, tuple(params[4:]))
     return cameras
@@ -263,21 +287,34 @@ def read_colmap_images(path: str | Path) -> dict[int, np.ndarray]:
     image id -> ``(4, 4)`` float64 world -> camera (OpenCV axes, mm).
 
     Raises:
-        FileNotFoundError: missing. ValueError: a malformed image line, naming the file.
+        FileNotFoundError: missing. ValueError: naming the file and the line: a malformed image line, a
+            quaternion or translation that is not finite, a zero quaternion, an image listed twice.
     """
     path = Path(path)
-    images = {}
-    for tokens in _data_lines(path):
-        if len(tokens) < 9 or not tokens[0].isdigit() or not tokens[8].isdigit():
+    images: dict[int, np.ndarray] = {}
+    lines: dict[int, int] = {}
+    for number, tokens in _data_lines(path):
+        image_like = len(tokens) >= 9 and tokens[0].isdigit() and tokens[8].isdigit()
+        if len(tokens) % 3 == 0 and not image_like:
             continue  # a POINTS2D line (x y point3d_id triples)
+        where = f"'{path}' line {number}"
         try:
-            values = [float(v) for v in tokens[1:8]]
-        except ValueError:
-            raise ValueError(f"'{path}': malformed image line {' '.join(tokens)!r}") from None
+            values = np.array([float(v) for v in tokens[1:8]])
+            int(tokens[0]), int(tokens[8])
+        except (ValueError, IndexError):
+            raise ValueError(f"{where}: malformed image line {' '.join(tokens)!r}; expected "
+                             "'ID QW QX QY QZ TX TY TZ CAMERA_ID NAME'") from None
+        ident = int(tokens[0])
+        _first_line(path, lines, ident, number, "image")
+        if not np.isfinite(values).all():
+            raise ValueError(f"{where}: image {ident} quaternion and translation must be finite; got "
+                             f"{values.tolist()}")
+        if np.linalg.norm(values[:4]) < 1e-12:
+            raise ValueError(f"{where}: image {ident} has the zero quaternion (QW QX QY QZ all 0)")
         pose = np.eye(4)
         pose[:3, :3] = _rotation_from_quaternion(*values[:4])
         pose[:3, 3] = values[4:7]
-        images[int(tokens[0])] = pose
+        images[ident] = pose
     return images
 
 

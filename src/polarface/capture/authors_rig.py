@@ -17,6 +17,7 @@ import math
 from collections.abc import Mapping
 
 import numpy as np
+from pydantic import ValidationError
 
 from polarface.capture.authors_layout import AUTHORS_CAMERAS, ColmapCamera
 from polarface.capture.rig import Camera, LightModule, Rig, SpectralModel
@@ -72,7 +73,7 @@ def authors_rig(cameras: Mapping[int, ColmapCamera], world_to_camera: Mapping[in
         source: the session (for error messages and the rig's name).
 
     Raises:
-        ValueError: camera 1 or 2 is missing from either file (naming it).
+        ValueError: camera 1 or 2 is missing from either file, or is not a valid camera (naming the files).
     """
     rig_cameras = []
     for index in AUTHORS_CAMERAS:
@@ -81,13 +82,19 @@ def authors_rig(cameras: Mapping[int, ColmapCamera], world_to_camera: Mapping[in
                 raise ValueError(f"'{source}/{name}' has no camera {index} (polarimetric camera {index})")
         camera = cameras[index]
         first = 3 * (index - 1)
-        rig_cameras.append(Camera(
-            id=f"cam{index}", role="polarimetric", sensor="color-polarization",
-            width=int(camera.width), height=int(camera.height), K=np.asarray(camera.K).tolist(),
-            distortion=[*camera.distortion[:4], 0.0],
-            world_to_camera=np.asarray(world_to_camera[index]).tolist(),
-            bit_depth=12, colour_channels={"R": first, "G": first + 1, "B": first + 2},
-        ))
+        try:
+            rig_cameras.append(Camera(
+                id=f"cam{index}", role="polarimetric", sensor="color-polarization",
+                width=int(camera.width), height=int(camera.height), K=np.asarray(camera.K).tolist(),
+                distortion=[*camera.distortion[:4], 0.0],
+                world_to_camera=np.asarray(world_to_camera[index]).tolist(),
+                bit_depth=12, colour_channels={"R": first, "G": first + 1, "B": first + 2},
+            ))
+        except ValidationError as exc:  # one line naming the files, not pydantic's multi-line dump
+            reasons = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {' '.join(str(e['msg']).split())}"
+                                for e in exc.errors()[:3])
+            raise ValueError(f"'{source}/cameras.txt' / 'images.txt': camera {index} is not a valid camera "
+                             f"({reasons})") from None
     positions = led_ring([world_to_camera[i] for i in AUTHORS_CAMERAS])
     lights = [
         LightModule(id=f"led{k}", position_mm=tuple(float(v) for v in p), polarizer_angle=0.0,

@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from polarface.capture.analyzers import applied_analyzers
 from polarface.capture.demosaic import DemosaicMethod
-from polarface.capture.manifest import raw_bit_depth_ok
+from polarface.capture.manifest import raw_bit_depth_ok, raw_digest, read_frame_marker, read_manifest
 from polarface.capture.rig import Rig
 from polarface.capture.store import CaptureStore
 from polarface.executors import Executor, LocalExecutor, UnitOutcome, map_units_with_progress
@@ -48,8 +48,8 @@ from polarface.io.images import read_png
 from polarface.io.storage import PathOrUrl, StoragePath, remove_tree, storage_path
 
 __all__ = [
-    "INGEST_JSON", "RAW_SUFFIXES", "IngestUnit", "check_raw_files", "ingest_directory", "run_ingest_unit",
-    "scan_raw_directory",
+    "INGEST_JSON", "RAW_SUFFIXES", "IngestUnit", "check_raw_files", "check_store_inputs", "ingest_directory",
+    "run_ingest_unit", "scan_raw_directory",
 ]
 
 #: File suffixes recognised as raw frames.
@@ -82,7 +82,8 @@ def scan_raw_directory(raw_dir: str | os.PathLike[str], rig: Rig) -> dict[int, d
                 raise ValueError(f"raw file '{path}' is not named by a frame number") from exc
             camera_files = frames.setdefault(number, {})
             if folder.name in camera_files:
-                raise ValueError(f"frame {number} appears twice for camera '{folder.name}'")
+                raise ValueError(f"frame {number} appears twice for camera '{folder.name}': "
+                                 f"'{camera_files[folder.name]}' and '{path}'")
             camera_files[folder.name] = path
     present = {p.name for p in cameras}
     missing = [c.id for c in rig.polarimetric_cameras() if c.id not in present]
@@ -97,28 +98,48 @@ def scan_raw_directory(raw_dir: str | os.PathLike[str], rig: Rig) -> dict[int, d
     return frames
 
 
-def check_raw_files(frames: dict[int, dict[str, Path]], rig: Rig, *, progress: bool = False) -> None:
+def check_raw_files(
+    frames: dict[int, dict[str, Path]], rig: Rig, *, progress: bool = False
+) -> dict[int, dict[str, str]]:
     """Decode every raw file of :func:`scan_raw_directory` and check it against its camera.
 
     One file is in memory at a time.
+
+    Returns:
+        frame number -> camera id -> digest of the raw counts (what a frame marker records:
+        :func:`polarface.capture.manifest.raw_digest`).
 
     Raises:
         ValueError: naming the first file that is unreadable (truncated, not an image) or does not fit
             its camera (not integer, wrong size, 8-bit for a deeper camera, values beyond the bit depth).
     """
-    files = [(cam_id, path) for number in sorted(frames) for cam_id, path in sorted(frames[number].items())]
-    for cam_id, path in tqdm(files, desc="check raw", unit="file", disable=not progress):
+    files = [(number, cam_id, path) for number in sorted(frames)
+             for cam_id, path in sorted(frames[number].items())]
+    digests: dict[int, dict[str, str]] = {}
+    for number, cam_id, path in tqdm(files, desc="check raw", unit="file", disable=not progress):
         try:
-            raw_bit_depth_ok(read_png(path), rig.camera(cam_id))
+            raw = read_png(path)
+            raw_bit_depth_ok(raw, rig.camera(cam_id))
         except (ValueError, FileNotFoundError) as exc:
-            raise ValueError(f"raw file '{path}': {exc}") from exc
+            reason = str(exc)
+            raise ValueError(reason if str(path) in reason else f"raw file '{path}': {reason}") from exc
+        digests.setdefault(number, {})[cam_id] = raw_digest(raw)
+    return digests
 
 
 def _timestamps(root: Path, numbers: list[int], fps: float) -> dict[int, float]:
+    """Frame number -> timestamp (s): ``timestamps.csv`` (one row per frame, strictly increasing with the
+    frame number) or ``frame / fps``.
+
+    Raises:
+        ValueError: naming the file and the line: a bad header or value, a frame listed twice, a frame
+            without a row, two frames with one timestamp or timestamps that decrease.
+    """
     path = root / "timestamps.csv"
     if not path.is_file():
         return {n: n / fps for n in numbers}
     out: dict[int, float] = {}
+    lines: dict[int, int] = {}
     with path.open(newline="", encoding="utf-8") as handle:
         reader = csv.DictReader(handle)
         if reader.fieldnames is None or not {"frame", "timestamp_s"} <= set(reader.fieldnames):
@@ -130,17 +151,84 @@ def _timestamps(root: Path, numbers: list[int], fps: float) -> dict[int, float]:
                 raise ValueError(f"'{path}' line {line}: bad frame or timestamp_s") from exc
             if not math.isfinite(seconds):
                 raise ValueError(f"'{path}' line {line}: timestamp_s must be finite; got {seconds}")
-            out[frame] = seconds
+            if frame in out:
+                raise ValueError(f"'{path}' line {line}: frame {frame} is listed again (line {lines[frame]})")
+            out[frame], lines[frame] = seconds, line
     missing = [n for n in numbers if n not in out]
     if missing:
         raise ValueError(f"'{path}' has no timestamp for frame(s) {missing[:10]}")
     for before, after in itertools.pairwise(numbers):
+        if out[after] == out[before]:
+            raise ValueError(
+                f"'{path}' line {lines[after]}: frame {after} has the timestamp of frame {before} (line "
+                f"{lines[before]}, {out[after]} s); every frame needs its own time"
+            )
         if out[after] < out[before]:
             raise ValueError(
                 f"'{path}': timestamps must not decrease with the frame number; frame {after} "
                 f"({out[after]} s) comes before frame {before} ({out[before]} s)"
             )
     return out
+
+
+def check_store_inputs(
+    out: PathOrUrl,
+    rig: Rig,
+    frames: dict[int, dict[str, Path]],
+    digests: dict[int, dict[str, str]],
+    times: dict[int, float],
+    *,
+    sequence: str,
+    method: DemosaicMethod,
+) -> None:
+    """Refuse to continue a capture store that holds frames of other inputs (nothing is written).
+
+    A rerun of ``ingest`` into its own store resumes: the frames whose markers record the same raw
+    content, timestamp and demosaicing method are skipped. Anything else would overwrite (or, for frames
+    RAW_DIR lacks, keep beside the new ones) what an earlier run stored from other inputs.
+
+    Raises:
+        ValueError: naming what differs (the rig, the sequence kind; per frame the raw file, timestamp or
+            method; the frames RAW_DIR lacks) and the way out (``--force`` or another ``--out``).
+    """
+    root = storage_path(out)
+    if not (root / "rig.json").exists():
+        return
+    problems = []
+    if Rig.load(root / "rig.json").model_dump(mode="json") != rig.model_dump(mode="json"):
+        problems.append("its rig.json differs from --rig")
+    manifest = root / "manifest.json"
+    if manifest.exists():
+        recorded = read_manifest(manifest)["sequence"]
+        if recorded != sequence:
+            problems.append(f"it holds a {recorded} sequence, not a {sequence} one")
+    lacking = []
+    for path in sorted((root / "frames").glob("[0-9]*.json")):
+        marker = read_frame_marker(path)
+        number = int(marker["frame_index"])
+        if number not in frames:
+            lacking.append(number)
+            continue
+        recorded = marker.get("digests", {})
+        for camera in sorted(set(recorded) | set(digests[number])):
+            if camera not in frames[number]:
+                problems.append(f"frame {number} has camera '{camera}', which RAW_DIR lacks")
+            elif recorded.get(camera) != digests[number][camera]:
+                problems.append(f"frame {number} of camera '{camera}' holds other raw data than "
+                                f"'{frames[number][camera]}'")
+        if float(marker["timestamp"]) != times[number]:
+            problems.append(f"frame {number} has timestamp {marker['timestamp']} s, not {times[number]} s")
+        if marker.get("derived") and marker.get("method") != method:
+            problems.append(f"frame {number} was demosaiced with '{marker.get('method')}', not '{method}'")
+    if lacking:
+        listed = f"{lacking[:10]}{' ...' if len(lacking) > 10 else ''}"
+        problems.append(f"it holds frame(s) {listed}, which RAW_DIR lacks")
+    if problems:
+        more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
+        raise ValueError(
+            f"capture store '{root}' was ingested from other inputs: {'; '.join(problems[:3])}{more}; pass "
+            "--force to replace it or choose another --out"
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,8 +281,8 @@ def ingest_directory(
     Args:
         raw_dir: the RAW_DIR (see the module docstring).
         rig: the rig.
-        out: capture store directory (created, or resumed when it holds the same rig): a local path or a
-            URL (:func:`polarface.io.storage.storage_path`).
+        out: capture store directory (created, or resumed when it was ingested from the same inputs:
+            :func:`check_store_inputs`): a local path or a URL (:func:`polarface.io.storage.storage_path`).
         sequence: ``static`` (revolving chair) or ``dynamic`` (expressions).
         method: demosaicing method.
         fps: frame rate used for timestamps when there is no ``timestamps.csv`` (paper: 20 fps).
@@ -206,7 +294,8 @@ def ingest_directory(
         The finalised, validated :class:`CaptureStore`.
 
     Raises:
-        ValueError: a bad RAW_DIR, raw file, timestamp or ``fps`` (nothing written), or frames that failed
+        ValueError: a bad RAW_DIR, raw file, timestamp or ``fps``, or a store ``out`` that holds frames of
+            other inputs (nothing written), or frames that failed
             in their units (named with their reasons, once the other units are done; as for any failure,
             a store this run created is removed, a resumed one keeps its complete frames).
     """
@@ -216,11 +305,12 @@ def ingest_directory(
     root = Path(raw_dir)
     frames = scan_raw_directory(root, rig)
     times = _timestamps(root, sorted(frames), fps)
-    check_raw_files(frames, rig, progress=progress)
+    digests = check_raw_files(frames, rig, progress=progress)
+    out = storage_path(out)
+    check_store_inputs(out, rig, frames, digests, times, sequence=sequence, method=method)
     executor = executor or LocalExecutor()
     executor.start()
     check_s = time.perf_counter() - started
-    out = storage_path(out)
     created = not out.exists()
     fresh = created or not (out / "rig.json").exists()
     try:

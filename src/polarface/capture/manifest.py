@@ -9,6 +9,7 @@ The manifest is rebuilt from the markers after every frame. Layout: ``docs/captu
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass
 
@@ -28,6 +29,8 @@ __all__ = [
     "frame_marker_path",
     "manifest_problems",
     "raw_bit_depth_ok",
+    "raw_digest",
+    "read_frame_marker",
     "read_manifest",
     "write_manifest",
 ]
@@ -78,6 +81,32 @@ def raw_bit_depth_ok(raw: np.ndarray, camera: Camera) -> None:
         )
 
 
+def raw_digest(raw: np.ndarray) -> str:
+    """SHA-1 of a raw frame's counts and shape: what a frame marker records per camera (``digests``)."""
+    return hashlib.sha1(np.ascontiguousarray(raw).tobytes() + str(raw.shape).encode()).hexdigest()
+
+
+def read_frame_marker(path: PathOrUrl) -> dict:
+    """A frame's completion marker ``frames/<frame:06d>.json`` (a JSON object with ``frame_index``,
+    ``timestamp``, ``raw``, ``derived``).
+
+    Raises:
+        FileNotFoundError: no marker. ValueError: not such an object (truncated, damaged), naming the file.
+    """
+    path = storage_path(path)
+    try:
+        marker = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"frame marker '{path}' is not valid JSON ({exc}): the capture store is damaged; "
+                         "remove the marker and rerun the ingest (or simulate) that wrote the store to "
+                         "rewrite the frame") from None
+    fields = ("frame_index", "timestamp", "raw", "derived")
+    if not isinstance(marker, dict) or not all(key in marker for key in fields):
+        raise ValueError(f"frame marker '{path}' must be an object with the fields {list(fields)}; remove it "
+                         "and rerun the ingest (or simulate) that wrote the store to rewrite the frame")
+    return marker
+
+
 def frame_marker_path(root: PathOrUrl, frame_index: int) -> StoragePath:
     """Path of the completion marker ``frames/<frame:06d>.json`` of a frame of the store at ``root``."""
     return storage_path(root) / "frames" / f"{frame_index:06d}.json"
@@ -88,7 +117,7 @@ def write_manifest(root: PathOrUrl, rig: Rig, sequence: str, *, complete: bool) 
     root = storage_path(root)
     frames = []
     for path in sorted((root / "frames").glob("[0-9]*.json")):
-        marker = json.loads(path.read_text(encoding="utf-8"))
+        marker = read_frame_marker(path)
         frames.append(
             {
                 "index": marker["frame_index"],

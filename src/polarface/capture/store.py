@@ -35,6 +35,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from polarface.capture.demosaic import PolarizationStack
+from polarface.capture.derived_chunks import damaged_chunk_message, missing_chunk_message
 from polarface.capture.manifest import FrameRecord, frame_marker_path, manifest_problems, read_manifest
 from polarface.capture.observations import OBSERVATION_NAMES, observations_from_stack
 from polarface.capture.rig import Rig
@@ -129,16 +130,19 @@ class CaptureStore(_CaptureStoreWriter):
     def stack(
         self, frame_index: int, camera_id: str, region: tuple[slice, slice] | None = None
     ) -> np.ndarray:
-        """Float32 ``(4, h, w[, 3])`` I0/I45/I90/I135 of a frame, read lazily (only ``region``)."""
-        array = self._derived_array(f"stacks/{camera_id}", frame_index)
+        """Float32 ``(4, h, w[, 3])`` I0/I45/I90/I135 of a frame, read lazily (only ``region``).
+
+        Raises:
+            ValueError: the frame is not complete, or a chunk of it is missing or cannot be decoded
+                (naming the chunk file, the array and the frame).
+        """
         rows, cols = region or (slice(None), slice(None))
-        return np.asarray(array[frame_index, :, rows, cols])
+        return self._read_derived(f"stacks/{camera_id}", frame_index, (slice(None), rows, cols))
 
     def mask(self, frame_index: int, camera_id: str, region: tuple[slice, slice] | None = None) -> np.ndarray:
-        """uint8 ``(h, w)`` mask bits (1 saturated, 2 repaired defect) of a frame."""
-        array = self._derived_array(f"masks/{camera_id}", frame_index)
+        """uint8 ``(h, w)`` mask bits (1 saturated, 2 repaired defect) of a frame (errors: :meth:`stack`)."""
         rows, cols = region or (slice(None), slice(None))
-        return np.asarray(array[frame_index, rows, cols])
+        return self._read_derived(f"masks/{camera_id}", frame_index, (rows, cols))
 
     def observation(
         self, name: str, frame_index: int, camera_id: str, region: tuple[slice, slice] | None = None
@@ -161,7 +165,11 @@ class CaptureStore(_CaptureStoreWriter):
 
     def _zarr(self, mode: str = "a"):
         if self._group is None or mode == "a":
-            self._group = open_zarr_group(self.root / "derived.zarr", mode)
+            try:
+                self._group = open_zarr_group(self.root / "derived.zarr", mode)
+            except ValueError as exc:  # a zarr.json that is not JSON (JSONDecodeError) or not zarr's
+                raise ValueError(f"capture store '{self.root}': the metadata of 'derived.zarr' cannot be "
+                                 f"read (derived.zarr/zarr.json: {exc})") from None
         return self._group
 
     def _derived_array(self, name: str, frame_index: int):
@@ -172,6 +180,27 @@ class CaptureStore(_CaptureStoreWriter):
             return self._zarr("r")[name]
         except (KeyError, FileNotFoundError) as exc:
             raise ValueError(f"derived array '{name}' is missing from '{self.root}/derived.zarr'") from exc
+        except ValueError as exc:  # the array's (or its parent group's) zarr.json is damaged
+            if str(exc).startswith(f"capture store '{self.root}'"):
+                raise
+            raise ValueError(f"capture store '{self.root}': the metadata of derived array '{name}' cannot be "
+                             f"read (derived.zarr/{name}/zarr.json: {exc})") from None
+
+    def _read_derived(self, name: str, frame_index: int, region: tuple) -> np.ndarray:
+        """``array[frame_index, *region]`` of derived array ``name``, refusing a chunk that cannot be decoded
+        or (float arrays, NaN-filled where never written) is missing, naming it (:mod:`.derived_chunks`)."""
+        array = self._derived_array(name, frame_index)
+        selection = (frame_index, *region)
+        try:
+            values = np.asarray(array[selection])
+        except Exception as exc:
+            raise ValueError(damaged_chunk_message(self.root, array, name, frame_index, selection, exc)) \
+                from None
+        if values.dtype.kind == "f" and np.isnan(values).any():
+            message = missing_chunk_message(self.root, array, name, frame_index, selection)
+            if message is not None:
+                raise ValueError(message)
+        return values
 
     @property
     def spectral_reference(self) -> str | None:
@@ -182,10 +211,10 @@ class CaptureStore(_CaptureStoreWriter):
         return cameras[0].id if channels == list(range(6)) else None
 
     def spectral_stack(self, frame_index: int, region: tuple[slice, slice] | None = None) -> np.ndarray:
-        """Float32 ``(4, h, w, 6)`` six-channel I0/I45/I90/I135 on the reference grid, read lazily."""
-        array = self._derived_array("spectral/stacks", frame_index)
+        """Float32 ``(4, h, w, 6)`` six-channel I0/I45/I90/I135 on the reference grid, read lazily (errors as
+        :meth:`stack`)."""
         rows, cols = region or (slice(None), slice(None))
-        return np.asarray(array[frame_index, :, rows, cols])
+        return self._read_derived("spectral/stacks", frame_index, (slice(None), rows, cols))
 
     def spectral_observation(
         self, name: str, frame_index: int, region: tuple[slice, slice] | None = None
@@ -197,6 +226,5 @@ class CaptureStore(_CaptureStoreWriter):
 
     def spectral_valid(self, frame_index: int, region: tuple[slice, slice] | None = None) -> np.ndarray:
         """bool ``(h, w)``: the merged pixel is seen unsaturated by both cameras."""
-        array = self._derived_array("spectral/valid", frame_index)
         rows, cols = region or (slice(None), slice(None))
-        return np.asarray(array[frame_index, rows, cols]).astype(bool)
+        return self._read_derived("spectral/valid", frame_index, (rows, cols)).astype(bool)

@@ -18,8 +18,6 @@ and the submitting process rebuilds the manifest (:meth:`CaptureStore.write_mani
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
@@ -28,7 +26,13 @@ import numpy as np
 
 from polarface.capture.analyzers import applied_analyzers
 from polarface.capture.demosaic import DemosaicMethod, PolarizationStack, demosaic_camera
-from polarface.capture.manifest import raw_bit_depth_ok, read_manifest, write_manifest
+from polarface.capture.manifest import (
+    raw_bit_depth_ok,
+    raw_digest,
+    read_frame_marker,
+    read_manifest,
+    write_manifest,
+)
 from polarface.capture.observations import merge_six_channels
 from polarface.capture.rig import Camera, Rig
 from polarface.io.atomic import write_json_atomic
@@ -39,10 +43,6 @@ if TYPE_CHECKING:
     from polarface.capture.store import CaptureStore
 
 _POLARIZATION = ("mono-polarization", "color-polarization")
-
-
-def _digest(raw: np.ndarray) -> str:
-    return hashlib.sha1(np.ascontiguousarray(raw).tobytes() + str(raw.shape).encode()).hexdigest()
 
 
 def _remove_stale_temporaries(root: StoragePath) -> None:
@@ -92,6 +92,11 @@ class _CaptureStoreWriter:
             existing = Rig.load(rig_path)
             if existing.model_dump(mode="json") != rig.model_dump(mode="json"):
                 raise ValueError(f"store '{root}' exists with a different rig.json; choose another output")
+            manifest_path = root / "manifest.json"
+            held = read_manifest(manifest_path)["sequence"] if manifest_path.exists() else sequence
+            if held != sequence:
+                raise ValueError(f"store '{root}' holds a {held} sequence, not a {sequence} one; choose "
+                                 "another output")
         else:
             if root.exists() and any(root.iterdir()):
                 raise ValueError(f"output '{root}' exists and is not a capture store")
@@ -183,11 +188,11 @@ class _CaptureStoreWriter:
         arrays = {cam_id: np.asarray(raw) for cam_id, raw in raws.items()}
         for cam_id, raw in arrays.items():
             raw_bit_depth_ok(raw, self.rig.camera(cam_id))
-        digests = {cam_id: _digest(raw) for cam_id, raw in arrays.items()}
+        digests = {cam_id: raw_digest(raw) for cam_id, raw in arrays.items()}
         analyzers = applied_analyzers(self.rig) if process else None
         marker_path = self._marker(frame_index)
         if marker_path.exists():
-            old = json.loads(marker_path.read_text(encoding="utf-8"))
+            old = read_frame_marker(marker_path)
             if (
                 old.get("digests") == digests
                 and old.get("derived", False) >= process

@@ -4,6 +4,12 @@ A command module defines ``NAME`` (str), ``HELP`` (one line), ``add_arguments(pa
 ``run(args) -> int``. It parses arguments, calls the library, and writes a documented artifact.
 A library job with several settings takes them as a frozen options dataclass, which the command
 builds with :func:`options_from_args` from the arguments of the same names (argparse ``dest``).
+
+Every path argument has one of three ``type`` s, never ``pathlib.Path`` (which turns ``foo://cap`` into a
+missing local path ``foo:/cap``): :func:`store_location` (a store, RESULT or output folder that may live at
+a URL of a shared file system), :func:`local_folder` (an output folder of this machine) and
+:func:`local_path` (a local input or output file or folder). All three refuse, naming the URL as typed, a
+URL that no later process can read (``memory://``) and a URL they cannot take, with the reason.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ __all__ = [
     "add_force_argument",
     "executor_from_args",
     "local_folder",
+    "local_path",
     "options_from_args",
     "store_location",
 ]
@@ -36,12 +43,28 @@ def options_from_args(options_type: type[_Options], args: argparse.Namespace, **
     return options_type(**{name: getattr(args, name) for name in fields}, **values)
 
 
-def store_location(value: str):
-    """argparse ``type`` of a capture store or RESULT argument: a local path or an fsspec URL
-    (``file://``, ``memory://``, ``s3://bucket/key``; :func:`polarface.io.storage.storage_path`). A URL of
-    an unknown protocol or a missing package is an argument error naming it."""
-    from polarface.io.storage import storage_path
+def _private_url_error(value: str, protocol: str, *, urls: bool = True) -> argparse.ArgumentTypeError:
+    """The error for a URL of a file system private to one process (``memory://``)."""
+    instead = "a local path or a URL of a shared file system (file://, s3://, gs://, ...)" if urls else \
+        "a local path"  # fmt: skip
+    return argparse.ArgumentTypeError(
+        f"'{value}' is a URL of {protocol}://, a file system that lives inside one process: no other "
+        f"process can read what a command writes there, nor a command what another wrote; give {instead}"
+    )
 
+
+def store_location(value: str):
+    """argparse ``type`` of a capture store, RESULT or output folder that may live at a URL: a local path or
+    an fsspec URL (``file://``, ``s3://bucket/key``; :func:`polarface.io.storage.storage_path`).
+
+    One rule for every command: a URL of an unknown protocol or a missing package, and a URL that a later
+    process cannot read (``memory://``: :func:`polarface.io.storage.process_private`), are argument errors
+    naming the URL as typed."""
+    from polarface.io.storage import process_private, storage_path
+
+    protocol = process_private(value)
+    if protocol is not None:
+        raise _private_url_error(value, protocol)
     try:
         return storage_path(value)
     except ValueError as exc:
@@ -64,6 +87,31 @@ def local_folder(value: str):
             "(docs/cluster.md, 'Storage')"
         )
     return storage_path(location)
+
+
+def local_path(value: str):
+    """argparse ``type`` of a local file or folder (an input such as ``rig.json``, or an output file): a
+    path, or a ``file://`` URL. Any other URL is an argument error naming the URL as typed and why
+    (``type=Path`` would turn ``foo://cap`` into a missing local path ``foo:/cap``)."""
+    from pathlib import Path
+
+    from fsspec.registry import known_implementations, registry
+
+    from polarface.io.storage import is_url, process_private, url_protocols
+
+    if not is_url(value):
+        return Path(value)
+    protocols = url_protocols(value)
+    if protocols in (("file",), ("local",)):
+        return store_location(value)
+    private = process_private(value)
+    if private is not None:
+        raise _private_url_error(value, private, urls=False)
+    unknown = [p for p in protocols if p not in known_implementations and p not in registry]
+    reason = f"a URL of an unknown protocol '{unknown[0]}'" if unknown else "a URL"
+    raise argparse.ArgumentTypeError(
+        f"'{value}' is {reason}; this argument takes a local path (a file or folder of this machine)"
+    )
 
 
 def add_force_argument(parser: argparse.ArgumentParser, target: str = "the output folder") -> None:

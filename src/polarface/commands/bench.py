@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 
 NAME = "bench"
 HELP = "throughput of the polarimetric inverse stage vs an eager per-texel baseline"
@@ -45,21 +46,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print JSON only")
 
 
+#: The range of each integer option: a larger patch than 512^2 texels needs tens of GB (8 GB at 256^2 on a
+#: GPU, docs/performance.md), more frames than the paper's 200 measure nothing new.
+LIMITS = {"side": (8, 512), "frames": (1, 200), "iterations": (1, 100_000), "baseline_texels": (1, 1_000),
+          "repeats": (1, 1_000)}
+#: The longest timed wall time per workload, seconds.
+MAX_SECONDS = 3600.0
+
+
+def _check_arguments(args: argparse.Namespace) -> None:
+    """Each option within its range, named as typed (ValueError)."""
+    for name, (low, high) in LIMITS.items():
+        value = getattr(args, name)
+        if not low <= value <= high:
+            option = "--" + name.replace("_", "-")
+            raise ValueError(f"argument '{option}' must lie in [{low}, {high}]; got {value}")
+    if not (math.isfinite(args.seconds) and 0 < args.seconds <= MAX_SECONDS):
+        raise ValueError(f"argument '--seconds' must be a number in (0, {MAX_SECONDS:g}]; got {args.seconds}")
+    cpus = os.cpu_count() or 1
+    if args.threads is not None and not 1 <= args.threads <= cpus:
+        raise ValueError(f"argument '--threads' must lie in [1, {cpus}] (this machine's CPUs); "
+                         f"got {args.threads}")
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
     from polarface.device import resolve_device
     from polarface.inverse.polarimetric import run_benchmark
 
-    for name in ("side", "frames", "iterations", "baseline_texels", "repeats"):
-        if getattr(args, name) < 1:
-            raise ValueError(f"argument '--{name.replace('_', '-')}' must be >= 1; got {getattr(args, name)}")
-    if args.side < 8:
-        raise ValueError(f"argument '--side' must be >= 8; got {args.side}")
-    if not (math.isfinite(args.seconds) and args.seconds > 0):
-        raise ValueError(f"argument '--seconds' must be a finite number > 0; got {args.seconds}")
-    if args.threads is not None and args.threads < 1:
-        raise ValueError(f"argument '--threads' must be >= 1; got {args.threads}")
+    _check_arguments(args)
     device = resolve_device(args.device)
     import numba
 

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
+import os
 
-from polarface.commands import store_location
+from polarface.commands import local_path, store_location
 from polarface.device import resolve_device
 from polarface.inverse.biophysical import BiophysicalConfig
 from polarface.io.output_folder import lock_output
@@ -24,6 +24,8 @@ from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
 
 NAME = "biophysical"
 HELP = "recover melanin/haemoglobin maps and diffusion profiles from a RESULT's rho_sss_bar"
+#: More rounds than this refit converged profiles for hours (each round re-renders every texel).
+MAX_SHAPE_ROUNDS = 20
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -31,8 +33,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("result", type=store_location,
                         help="RESULT folder or URL (maps/rho_sss_bar.exr, mesh.obj, rig.json)")
     parser.add_argument("--local", action="store_true", help="input is a blur-free local albedo")
-    parser.add_argument("--coarse-factor", type=int, default=BiophysicalConfig.coarse_factor)
-    parser.add_argument("--shape-rounds", type=int, default=BiophysicalConfig.shape_rounds)
+    parser.add_argument(
+        "--coarse-factor", type=int, default=BiophysicalConfig.coarse_factor,
+        help="downsampling factor of the coarse stage, 1 .. the largest factor whose coarse grid keeps a "
+        "texel covered by the mask (at most the texture side)",
+    )
+    parser.add_argument(
+        "--shape-rounds", type=int, default=BiophysicalConfig.shape_rounds,
+        help=f"rounds of diffusion-profile refits, 1 .. {MAX_SHAPE_ROUNDS}",
+    )
     parser.add_argument(
         "--use-stretch", action="store_true", help="per-texel UV stretch in the blurs (slower)"
     )
@@ -46,14 +55,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="texels whose best skin fit stays further than this from the input are marked out of the skin "
         "model's gamut and fitted to their closest skin albedo (default %(default)s; inf disables)",
     )
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    parser.add_argument("--gt", type=Path, default=None, help="simulator folder to evaluate against")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 .. the CPU count)")
+    parser.add_argument("--gt", type=local_path, default=None, help="simulator folder to evaluate against")
     parser.add_argument("--device", default=None, help="torch device (default cpu)")
     parser.add_argument("--no-progress", action="store_true")
 
 
+def _check_arguments(args: argparse.Namespace) -> None:
+    """Each numeric option within its range, named as typed (``--coarse-factor``'s upper bound depends on
+    the texture: :func:`polarface.pipeline.biophysical.check_coarse_factor`)."""
+    if args.coarse_factor < 1:
+        raise ValueError(f"argument '--coarse-factor' must be >= 1; got {args.coarse_factor}")
+    if not 1 <= args.shape_rounds <= MAX_SHAPE_ROUNDS:
+        raise ValueError(f"argument '--shape-rounds' must lie in [1, {MAX_SHAPE_ROUNDS}]; "
+                         f"got {args.shape_rounds}")
+    if not (args.gamut_tolerance > 0):  # NaN too; inf disables the screen
+        raise ValueError(f"argument '--gamut-tolerance' must be > 0 (inf: no screen); "
+                         f"got {args.gamut_tolerance}")
+    cpus = os.cpu_count() or 1
+    if not 1 <= args.threads <= cpus:
+        raise ValueError(f"argument '--threads' must lie in [1, {cpus}] (this machine's CPUs); "
+                         f"got {args.threads}")
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the stage; print the summary (and metrics with --gt) as JSON."""
+    _check_arguments(args)
     config = BiophysicalConfig(
         albedo_model="local" if args.local else "blurred",
         coarse_factor=args.coarse_factor,

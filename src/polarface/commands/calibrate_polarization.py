@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
+
+from polarface.commands import local_path
 
 NAME = "calibrate-polarization"
 HELP = "extinction ratio and analyzer angles of a polarization camera from frames of a polarized target"
@@ -34,8 +35,8 @@ def _colours(value: str) -> tuple[str, ...]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("frames", type=Path, help="folder of raw frames at known polarizer angles")
-    parser.add_argument("--rig", type=Path, required=True, help="rig.json holding the camera")
+    parser.add_argument("frames", type=local_path, help="folder of raw frames at known polarizer angles")
+    parser.add_argument("--rig", type=local_path, required=True, help="rig.json holding the camera")
     parser.add_argument("--camera", required=True, help="id of the polarization camera to calibrate")
     parser.add_argument(
         "--angles-deg", type=float, nargs="+", default=None, metavar="DEG",
@@ -58,7 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--normalise-frames", action="store_true",
         help="divide each frame by its mean over the analyzers (source intensity not stable)",
     )
-    parser.add_argument("--out", type=Path, default=None, help="rig.json to write (default: update --rig)")
+    parser.add_argument("--out", type=local_path, default=None,
+                        help="rig.json to write (default: update --rig)")
     parser.add_argument("--force", action="store_true", help="replace an existing --out other than --rig")
     parser.add_argument("--json", action="store_true", help="print the full report as JSON")
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from polarface.commands import add_force_argument
+from polarface.commands import add_force_argument, local_folder
 
 NAME = "demo"
 HELP = "run the pipeline on the embedded demo: simulate -> reconstruct -> evaluate -> report"
@@ -38,7 +38,7 @@ SPHERE_OUT = Path("demo_sphere")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out",
-        type=Path,
+        type=local_folder,
         default=None,
         help=f"output folder (default {PIPELINE_OUT}; --sphere: {SPHERE_OUT})",
     )

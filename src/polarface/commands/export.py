@@ -3,7 +3,10 @@
 Writes ``--out`` (default ``RESULT/exports``): one sub-folder per ``--format`` and ``export.json``
 (files and seconds per format). What each format maps onto what, and what it loses: ``docs/export.md``.
 An existing non-empty ``--out`` is never overwritten without ``--force``; a RESULT lacking a map that a
-format needs is refused before anything is written, naming the missing file.
+format needs is refused before anything is written, naming the missing file. ``--out`` must not be, contain
+or lie inside the RESULT, except in its own ``RESULT/exports`` (``polarface.io.output_folder``). The export
+is written into a temporary sibling of ``--out`` and renamed onto it once every format is written: a
+failed or interrupted export leaves no folder behind (and an existing one as it was).
 """
 
 from __future__ import annotations
@@ -15,6 +18,8 @@ from polarface.commands import add_force_argument, local_folder, store_location
 
 NAME = "export"
 HELP = "export a RESULT: Mitsuba 3 scene, glTF (.glb) + 3D viewer, USD (static + dynamic), diffusion kernels"
+#: The output is written whole or not at all (polarface.io.output_folder, staged).
+STAGED = True
 
 
 def _formats(value: str) -> tuple[str, ...]:
@@ -62,7 +67,9 @@ def run(args: argparse.Namespace) -> int:
     if not isinstance(out, Path):
         raise ValueError(f"argument '--out': the default RESULT/exports of a RESULT at a URL ('{out}') is "
                          "not local; give a local --out")
-    with output_folder(out, NAME, force=args.force, replace_own=False) as folder:
+    exports = args.result / "exports"
+    with output_folder(out, NAME, force=args.force, replace_own=False, staged=True,
+                       inputs={"RESULT": args.result}, reserved=(exports,)) as folder:
         summary = export_result(args.result, Path(folder), options)
     print(json.dumps(summary, indent=1))
     return 0

@@ -12,7 +12,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from polarface.commands import add_executor_arguments, add_force_argument, executor_from_args, local_folder
+from polarface.commands import (
+    add_executor_arguments,
+    add_force_argument,
+    executor_from_args,
+    local_folder,
+    local_path,
+)
 
 NAME = "geometry"
 HELP = "reference mesh with a cylindrical atlas, poses and per-frame clouds from the stereo pairs"
@@ -20,7 +26,7 @@ INTERRUPTED = "finished frames kept in {out}; rerun the same command to continue
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("capture", type=Path, help="static capture store, or a simulation folder (SIM)")
+    parser.add_argument("capture", type=local_path, help="static capture store, or a simulation folder (SIM)")
     parser.add_argument("--out", type=local_folder, required=True, help="GEOM folder")
     parser.add_argument(
         "--texture-resolution", type=int, default=None,
@@ -51,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
     )
     owned = json_manifest(GEOMETRY_JSON, format="polarface-geometry")
     with executor_from_args(args) as executor:
-        with output_folder(args.out, NAME, force=args.force, owned=owned, marker=False) as out:
+        with output_folder(args.out, NAME, force=args.force, owned=owned, marker=False,
+                           inputs={"CAPTURE": args.capture}) as out:
             executor.start()  # an unreachable --ray-address is refused before anything is written
             summary = reconstruct_geometry(inputs.capture, out, config, progress=not args.quiet,
                                            executor=executor)

@@ -1,4 +1,5 @@
-"""``polarface info PATH [--json]``: what a capture store, a simulation folder or a RESULT folder holds.
+"""``polarface info PATH [--json]``: what a capture store, a simulation folder, a RESULT folder or an
+imported authors' session holds.
 
 Frames, cameras and their resolution, stages done with their times, maps present, configuration and
 fingerprint (when recorded); human-readable by default, one JSON object with ``--json``
@@ -13,12 +14,12 @@ import json
 from polarface.commands import store_location
 
 NAME = "info"
-HELP = "describe a capture store, simulation folder or RESULT folder (--json for machines)"
+HELP = "describe a capture store, simulation folder, RESULT folder or imported session (--json for machines)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("path", type=store_location, metavar="PATH",
-                        help="capture store, simulation folder or RESULT (a path or a URL)")
+                        help="capture store, simulation folder, RESULT (a path or a URL) or imported session")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of text")
 
 

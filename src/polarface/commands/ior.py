@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
+
+from polarface.commands import local_path
 
 NAME = "ior"
 HELP = "refractive index of a sphere from one polarization capture (paper's IOR validation)"
@@ -29,7 +30,7 @@ HELP = "refractive index of a sphere from one polarization capture (paper's IOR 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "dir", type=Path, nargs="?", default=None, help="folder with I0/I45/I90/I135.exr and scene.json"
+        "dir", type=local_path, nargs="?", default=None, help="folder with I0/I45/I90/I135.exr and scene.json"
     )
     parser.add_argument("--json", action="store_true", help="print JSON")
     parser.add_argument(

@@ -36,6 +36,7 @@ from polarface.commands import (
     add_force_argument,
     executor_from_args,
     local_folder,
+    local_path,
     store_location,
 )
 
@@ -50,16 +51,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=local_folder, required=True, help="RESULT folder")
     parser.add_argument(
         "--geometry",
-        type=Path,
+        type=local_path,
         default=None,
         help="known geometry: a GEOM folder (polarface geometry) or SIM/ground_truth "
         "(default: reconstruct it from the stereo pairs)",
     )
     parser.add_argument(
-        "--mesh", type=Path, default=None, help="rest mesh with UVs (OBJ/PLY, model frame, mm)"
+        "--mesh", type=local_path, default=None, help="rest mesh with UVs (OBJ/PLY, model frame, mm)"
     )
     parser.add_argument(
-        "--poses", type=Path, default=None, help="model -> rig-world 4x4 per frame (.json/.npy)"
+        "--poses", type=local_path, default=None, help="model -> rig-world 4x4 per frame (.json/.npy)"
     )
     parser.add_argument(
         "--texture-resolution",
@@ -152,7 +153,10 @@ def run(args: argparse.Namespace) -> int:
     from polarface.results.layout import RESULT_FORMAT, RESULT_JSON
 
     owned = json_manifest(RESULT_JSON, format=RESULT_FORMAT)
-    folder = output_folder(args.out, NAME, resume=args.resume, force=args.force, owned=owned, marker=False)
+    inputs = {"CAPTURE": args.capture, "--dynamic": args.dynamic, "--geometry": args.geometry,
+              "--mesh": args.mesh, "--poses": args.poses}
+    folder = output_folder(args.out, NAME, resume=args.resume, force=args.force, owned=owned, marker=False,
+                           inputs=inputs)
     with executor_from_args(args) as executor, folder as out:
         result = _reconstruct(args, out, executor)
     print(reconstruct_summary_line(Path(args.out), result))

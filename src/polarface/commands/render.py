@@ -17,18 +17,31 @@ From the RESULT's maps (polarimetric parameters, displacement, chromophores, ``m
 
 The view: ``--camera`` (an id of the rig; default the first polarimetric camera) with the head at
 the rest placement facing the polarimetric module, or at ``--pose-frame N`` of ``--poses poses.json``.
+
+The subsurface light needs the RESULT's diffusion profiles, ``maps/sog.json``, which the biophysical stage
+writes with the chromophore maps: a RESULT whose biophysical stage ran but lacks it is refused (rerun
+``polarface biophysical RESULT``); a folder of maps without that stage's record (maps made by hand or by
+another tool) is rendered with profiles fitted at its median texel, which a warning line says
+(:func:`polarface.render.result_views.render_result_outputs`).
+
+``--out`` is a new or empty folder, or one render wrote (``--force`` replaces another); apart from the
+default, the RESULT's own ``RESULT/render``, it must not be, contain or lie inside the RESULT, nor hold
+``--poses``. The images are written into a temporary sibling renamed onto ``--out`` once all are written,
+so a failed or interrupted render leaves nothing behind.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
+import sys
 
-from polarface.commands import add_force_argument, options_from_args, store_location
+from polarface.commands import add_force_argument, local_path, options_from_args, store_location
 
 NAME = "render"
 HELP = "render a RESULT: polarizer/Stokes/Mueller/DoP/AoLP/sRGB images, strip light, chromophore edits"
+#: The output is written whole or not at all (polarface.io.output_folder, staged).
+STAGED = True
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--poses",
         dest="poses_path",
         metavar="POSES",
-        type=Path,
+        type=local_path,
         default=None,
         help="poses.json (model -> rig world per frame)",
     )
@@ -67,7 +80,15 @@ def run(args: argparse.Namespace) -> int:
     from polarface.render.result_views import RenderOptions, render_result_outputs
 
     options = options_from_args(RenderOptions, args)
-    with output_folder(args.out or args.result / "render", NAME, force=args.force) as out:
-        summary = render_result_outputs(args.result, out, options)
+    default = args.result / "render"
+    inputs = {"RESULT": args.result, "--poses": args.poses_path}
+    with output_folder(args.out or default, NAME, force=args.force, staged=True, inputs=inputs,
+                       reserved=(default,)) as out:
+        summary = render_result_outputs(args.result, out, options, warn=_warn)
     print(json.dumps(summary, indent=1))
     return 0
+
+
+def _warn(message: str) -> None:
+    """One ``polarface render: warning: ...`` line on stderr."""
+    print(f"polarface {NAME}: warning: {message}", file=sys.stderr)

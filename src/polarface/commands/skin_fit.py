@@ -13,15 +13,16 @@ from __future__ import annotations
 
 import argparse
 import logging
-from pathlib import Path
 
 import numpy as np
 
-from polarface.commands import add_force_argument, options_from_args
+from polarface.commands import add_force_argument, local_folder, local_path, options_from_args
 from polarface.skin.fitting import FitSettings
 
 NAME = "skin-fit"
 HELP = "fit melanin/haemoglobin skin parameters to measured reflectance spectra (CSV)"
+#: The output is written whole or not at all (polarface.io.output_folder, staged).
+STAGED = True
 
 log = logging.getLogger(__name__)
 
@@ -29,9 +30,9 @@ log = logging.getLogger(__name__)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Register the command's arguments."""
     parser.add_argument(
-        "spectra", type=Path, help="CSV: wavelength_nm column + one reflectance column per sample"
+        "spectra", type=local_path, help="CSV: wavelength_nm column + one reflectance column per sample"
     )
-    parser.add_argument("--out", type=Path, required=True, help="output folder (created)")
+    parser.add_argument("--out", type=local_folder, required=True, help="output folder (created; local)")
     add_force_argument(parser)
     parser.add_argument("--min-nm", type=float, default=420.0, help="fit band start, nm")
     parser.add_argument("--max-nm", type=float, default=700.0, help="fit band end, nm")
@@ -51,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
     from polarface.pipeline.skin_fit import SpectraFitOptions, fit_spectra_file
 
     options = options_from_args(SpectraFitOptions, args)
-    with output_folder(args.out, NAME, force=args.force) as out:
+    inputs = {"SPECTRA": args.spectra}
+    with output_folder(args.out, NAME, force=args.force, staged=True, inputs=inputs) as out:
         fit = fit_spectra_file(args.spectra, out, options)
     rmse = fit.rmse
     log.info("skin-fit: %d spectra in %.1f s, median RMSE %.4f", len(fit.names), fit.seconds, np.median(rmse))

@@ -4,24 +4,27 @@ Outputs in DIR: ``i0.exr i45.exr i90.exr i135.exr dop.exr aolp.exr`` (float32; `
 sensor, ``R G B`` for a colour one; AoLP in radians in [0, pi)), ``saturated.png`` (255 where a
 sample was at the white level), colour-mapped previews ``*.png`` and ``summary.json``.
 ``--rig rig.json --camera ID`` applies that camera's analyzer calibration (``docs/sensors.md``).
+DIR is a new or empty folder, or one stokes wrote (``--force`` replaces another), apart from the raw frame
+and the rig; it is written into a temporary sibling renamed onto DIR once every image is written.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
-from polarface.commands import add_force_argument, options_from_args
+from polarface.commands import add_force_argument, local_folder, local_path, options_from_args
 
 NAME = "stokes"
 HELP = "demosaic one raw polarization frame into I0/I45/I90/I135, DoP and AoLP images (EXR + PNG)"
+#: The output is written whole or not at all (polarface.io.output_folder, staged).
+STAGED = True
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("raw", type=Path, help="raw mosaic (PNG or TIFF, 8- or 16-bit)")
+    parser.add_argument("raw", type=local_path, help="raw mosaic (PNG or TIFF, 8- or 16-bit)")
     parser.add_argument("--sensor", required=True, choices=["mono-polarization", "color-polarization"])
-    parser.add_argument("--out", type=Path, required=True, help="output directory")
+    parser.add_argument("--out", type=local_folder, required=True, help="output directory (local)")
     parser.add_argument("--method", default="residual", choices=["residual", "bilinear"])
     parser.add_argument(
         "--bit-depth",
@@ -40,8 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="mosaic phase of the readout (default 0 0: row 0 = 90/45 deg)",
     )
     parser.add_argument("--exposure", type=float, default=1.0, help="relative exposure to divide by")
-    parser.add_argument("--rig", type=Path, default=None, help="rig.json whose camera's analyzer calibration "
-                        "is applied (with --camera; default: ideal analyzers)")
+    parser.add_argument("--rig", type=local_path, default=None, help="rig.json whose camera's analyzer "
+                        "calibration is applied (with --camera; default: ideal analyzers)")
     parser.add_argument("--camera", default=None, help="id of the rig camera that took the frame")
     add_force_argument(parser)
 
@@ -52,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
     from polarface.io.output_folder import output_folder
 
     options = options_from_args(StokesOptions, args, phase=tuple(args.phase))
-    with output_folder(args.out, NAME, force=args.force) as out:
+    inputs = {"RAW": args.raw, "--rig": args.rig}
+    with output_folder(args.out, NAME, force=args.force, staged=True, inputs=inputs) as out:
         summary = write_stokes_images(args.raw, out, args.sensor, options)
     print(json.dumps(summary, indent=2))
     if summary["median_dop"] is None:

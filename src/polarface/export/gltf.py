@@ -35,7 +35,7 @@ from polarface.export.formats import ExportOptions
 from polarface.export.gltf_glb import ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER, GlbBuilder
 from polarface.export.source import ExportSource
 from polarface.export.texture_images import fresnel_f0
-from polarface.io import atomic_path, encode_png
+from polarface.io import atomic_path, encode_png, record_path
 
 __all__ = ["GLB_NAME", "LOST", "tangent_space_normals", "write_gltf"]
 
@@ -269,7 +269,8 @@ def write_gltf(source: ExportSource, out: Path, options: ExportOptions) -> dict[
         "scene": 0,
         "scenes": [{"name": "polarface", "nodes": [0]}],
         "nodes": [{"name": "face", "mesh": 0, "extras": {"polarface": {
-            "model_to_gltf": model_to_gltf.tolist(), "axes": axes, "result": str(source.folder.root)}}}],
+            "model_to_gltf": model_to_gltf.tolist(), "axes": axes,
+            "result": record_path(out, source.folder.root)}}}],
         "meshes": [{"name": "face", "primitives": [
             {"attributes": attributes, "indices": indices, "material": 0, "mode": 4}]}],
         "materials": [_material(textures, images)],

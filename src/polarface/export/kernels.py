@@ -33,7 +33,7 @@ import numpy as np
 
 from polarface.export.formats import ExportOptions
 from polarface.export.source import ExportSource
-from polarface.io import atomic_path, write_json_atomic
+from polarface.io import atomic_path, record_path, write_json_atomic
 from polarface.results import layout
 from polarface.skin.layers import CHROMOPHORE_NAMES, SkinLayerConstants
 
@@ -292,7 +292,7 @@ def write_kernels(source: ExportSource, out: Path, options: ExportOptions) -> di
         "variances_mm2": ladder.tolist(),
         "clustering": {"method": "k-means on z-scored chromophores", "requested": options.kernel_clusters,
                        "clusters": len(centres), "seed": 0, "texels": int(mask.sum())},
-        "source": {"sog": str(source.map_file("sog")), "wavelengths_nm": wavelengths.tolist(),
+        "source": {"sog": record_path(out, source.map_file("sog")), "wavelengths_nm": wavelengths.tolist(),
                    "blurred_interreflections": 1, "constants": dataclasses.asdict(SkinLayerConstants())},
         "npz": KERNELS_NPZ,
         "clusters": clusters,

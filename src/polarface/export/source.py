@@ -1,7 +1,10 @@
 """What an exporter reads from a RESULT folder: maps (checked, named when missing), mesh, rig, frames.
 
 Every exporter goes through :class:`ExportSource`, so a RESULT that lacks a map a format needs is refused
-with one error naming the missing file before anything is written (:meth:`ExportSource.require`).
+with one error naming the missing file before anything is written (:meth:`ExportSource.require`), and one
+whose map, mesh, rig or ``sog.json`` cannot be read (truncated, NaN in ``rig.json``, corrupt JSON) with
+one error naming that file, also before anything is written (:meth:`ExportSource.load`: what it reads
+stays cached for the writers).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from polarface.io.named_reads import named_read
 from polarface.io.storage import PathOrUrl
 from polarface.results import ResultFolder, layout
 
@@ -98,6 +102,27 @@ class ExportSource:
                 "(run the stage that writes it first: docs/result_folder.md)"
             )
 
+    def load(self, names: Iterable[str], *, frames: bool = True) -> None:
+        """Read (and cache) the maps ``names``, the mesh and the rig of this source and, with ``frames``,
+        of each of :attr:`frames`, so that a file that cannot be read fails before the writers start.
+
+        Raises:
+            ValueError, OSError: a file cannot be read (naming it).
+        """
+        names = tuple(names)
+        for source in [self, *(self.frame(f) for f in self.frames if frames)]:
+            source.rig  # noqa: B018 - read for the check, cached for the writers
+            source.mesh  # noqa: B018
+            for name in names:
+                if name in (layout.MASK, layout.IN_GAMUT):
+                    named_read(source.map_file(name), lambda s=source, n=name: s.folder.read_mask(name=n))
+                elif name == "sog":
+                    source.sog  # noqa: B018
+                elif name == layout.RHO_SSS_BAR:
+                    source.channel_map(name)
+                else:
+                    source.scalar_map(name)
+
     # ---- data --------------------------------------------------------------------------------
     @functools.cached_property
     def channel_names(self) -> list[str]:
@@ -123,18 +148,18 @@ class ExportSource:
     @functools.cached_property
     def mesh(self):
         """:class:`polarface.geometry.TriangleMesh` of ``mesh.obj`` (model frame, mm, UVs; a frame's own
-        tracked mesh for a per-frame source)."""
+        tracked mesh for a per-frame source). Raises ValueError naming the file when it cannot be read."""
         return self.folder.read_mesh()
 
     @functools.cached_property
     def rig(self):
         """:class:`polarface.capture.Rig` of ``rig.json``."""
-        return self.folder.read_rig()
+        return named_read(self.folder.rig_path, self.folder.read_rig)
 
     @functools.cached_property
     def sog(self) -> dict[str, Any] | None:
         """``maps/sog.json`` (the biophysical stage's sum-of-Gaussians shapes) or None."""
-        return self.folder.read_sog()
+        return named_read(self.map_file("sog"), self.folder.read_sog)
 
     def timestamp_s(self, frame: int) -> float:
         """The capture time of dynamic ``frame`` (s; ``stages.dynamic.timestamps_s``), else the frame index

@@ -35,7 +35,7 @@ from polarface.export.texture_images import (
     specular_f0,
 )
 from polarface.geometry import UVRaster, rasterize_uv, reposition
-from polarface.io import write_png
+from polarface.io import record_path, write_png
 from polarface.skin.layers import PARAMETER_RANGES
 
 __all__ = ["USD_GEOMETRY_LAYER", "USD_ROOT_LAYER", "write_usd"]
@@ -260,7 +260,7 @@ def _write_root_layer(path: Path, static: dict[str, Any], textures: dict[str, st
         stage.SetStartTimeCode(float(min(frames)))
         stage.SetEndTimeCode(float(max(frames)))
     stage.GetRootLayer().customLayerData = {
-        "polarface:result": str(source.folder.root),
+        "polarface:result": record_path(path.parent, source.folder.root),
         "polarface:timestamps_s": {f"frame_{k}": v for k, v in timing["timestamps_s"].items()},
     }
     stage.GetRootLayer().Save()

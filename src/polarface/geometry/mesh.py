@@ -26,6 +26,7 @@ import numpy as np
 from polarface.geometry.obj_file import load_obj_per_corner, split_per_corner_uv
 from polarface.geometry.poses import check_rigid
 from polarface.io.atomic import atomic_path
+from polarface.io.named_reads import named_read
 from polarface.io.storage import PathOrUrl, StoragePath, UrlPath, local_copy, storage_path
 
 __all__ = [
@@ -268,7 +269,7 @@ def load_mesh(path: PathOrUrl, *, flip_v: bool = False, scale: float = 1.0) -> T
         if mesh is not None:
             _READ_MESHES.move_to_end(key)
             return mesh
-    mesh = _read_mesh_file(path, suffix, flip_v, scale)
+    mesh = named_read(path, lambda: _read_mesh_file(path, suffix, flip_v, scale))  # a parser's error names it
     with _READ_LOCK:
         _READ_MESHES[key] = mesh
         while len(_READ_MESHES) > _READ_ENTRIES or sum(map(_mesh_bytes, _READ_MESHES.values())) > _READ_BYTES:

@@ -8,7 +8,14 @@ Writes are atomic (temporary name, then rename). Paths may be URLs (``memory://`
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import contextlib
+import io
+import logging
+import os
+import sys
+import tempfile
+import threading
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -83,6 +90,71 @@ def write_exr(
     return storage_path(path)
 
 
+LOGGER = logging.getLogger(__name__)
+_NATIVE_OUTPUT = threading.Lock()
+
+
+class _NativeOutput:
+    """The lines native decoders wrote to file descriptors 1 and 2 during a :func:`_native_output` block."""
+
+    def __init__(self) -> None:
+        self.lines: dict[int, list[str]] = {1: [], 2: []}
+
+    def drop(self, path: object) -> None:
+        """A read that failed (the caller raises its own one-line error): the native lines go to the debug
+        log (``polarface -vv``)."""
+        for line in self.lines[2] + self.lines[1]:
+            LOGGER.debug("decoding '%s': %s", path, line)
+
+    def pass_on(self) -> None:
+        """A read that succeeded: its native messages go to stdout and stderr as the library wrote them."""
+        for stream, fd in ((sys.stdout, 1), (sys.stderr, 2)):
+            if self.lines[fd]:
+                stream.write("\n".join(self.lines[fd]) + "\n")
+
+
+def _flush_c_streams() -> None:
+    """``fflush(NULL)``: the C library's stdout buffer (full when stdout is a file or a pipe; C++'s
+    ``std::cout`` writes through it) written out now, not after the file descriptors are restored."""
+    import ctypes
+
+    with contextlib.suppress(Exception):  # no C library to call (another platform): nothing buffered here
+        ctypes.CDLL(None).fflush(None)
+
+
+@contextlib.contextmanager
+def _native_output() -> Iterator[_NativeOutput]:
+    """Hold what native decoders print during the block, so that a read that fails is one line of its own
+    naming the file (:meth:`_NativeOutput.drop`) and one that succeeds passes them on
+    (:meth:`_NativeOutput.pass_on`). They write to the process's file descriptors, not to Python's
+    streams, so a log level does not reach them all: OpenCV's logger (``[ERROR:0@0.1] global
+    grfmt_png.cpp ...``) and libpng (``libpng error: Read Error``, a PNG cut inside its last chunk) on
+    stderr, OpenEXR on stderr (``(EXR_ERR_BAD_CHUNK_LEADER) ...``) and its Python binding through
+    ``sys.stdout`` (``Warning: Exception raised reading pixel data ...``). One block at a time (a lock): file
+    descriptors are the process's, not a thread's."""
+    output = _NativeOutput()
+    with _NATIVE_OUTPUT, contextlib.ExitStack() as stack:
+        saved = {}
+        for stream, fd in ((sys.stdout, 1), (sys.stderr, 2)):
+            with contextlib.suppress(AttributeError, ValueError, OSError):
+                stream.flush()
+            sink = stack.enter_context(tempfile.TemporaryFile())
+            saved[fd] = (os.dup(fd), sink)
+            os.dup2(sink.fileno(), fd)
+        python = {1: io.StringIO(), 2: io.StringIO()}  # a binding's print() goes to sys.stdout
+        try:
+            with contextlib.redirect_stdout(python[1]), contextlib.redirect_stderr(python[2]):
+                yield output
+        finally:
+            _flush_c_streams()  # a decoder's buffered stdio output belongs to the block too
+            for fd, (original, sink) in saved.items():
+                os.dup2(original, fd)
+                os.close(original)
+                sink.seek(0)
+                text = sink.read().decode(errors="replace") + python[fd].getvalue()
+                output.lines[fd] = [line for line in text.splitlines() if line.strip()]
+
+
 def read_exr(path: PathOrUrl) -> dict[str, np.ndarray]:
     """Read every channel of an OpenEXR file as float32 ``(H, W)`` arrays keyed by channel name.
 
@@ -98,11 +170,15 @@ def read_exr(path: PathOrUrl) -> dict[str, np.ndarray]:
     path = storage_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"EXR file '{path}' does not exist")
+    native = None
     try:
-        with local_copy(path) as local, OpenEXR.File(str(local)) as exr:
+        with local_copy(path) as local, _native_output() as native, OpenEXR.File(str(local)) as exr:
             raw = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
     except Exception as exc:
+        if native is not None:
+            native.drop(path)
         raise ValueError(f"cannot read EXR file '{path}': {exc}") from exc
+    native.pass_on()
     out: dict[str, np.ndarray] = {}
     for name, pixels in raw.items():
         if pixels.ndim == 3:
@@ -211,18 +287,23 @@ def write_figure_png(path: PathOrUrl, figure: Figure, *, dpi: float | None = Non
 
 
 def _imread(path: PathOrUrl, flags: int) -> np.ndarray:
-    """``cv2.imread(path, flags)`` of an image file that must exist and decode (errors name the file)."""
+    """``cv2.imread(path, flags)`` of an image file that must exist and decode (errors name the file, in
+    one line: the decoders' own output is held, :func:`_native_output`)."""
     import cv2
 
     path = storage_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image file '{path}' does not exist")
-    if isinstance(path, UrlPath):  # decoded from memory: no temporary file
-        array = cv2.imdecode(np.frombuffer(path.read_bytes(), np.uint8), flags)
-    else:
-        array = cv2.imread(str(path), flags)
+    data = path.read_bytes() if isinstance(path, UrlPath) else None  # decoded from memory: no temporary file
+    with _native_output() as native:
+        if data is None:
+            array = cv2.imread(str(path), flags)
+        else:
+            array = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     if array is None:
+        native.drop(path)
         raise ValueError(f"cannot read image '{path}' (truncated, corrupt or not an image)")
+    native.pass_on()
     return array
 
 

@@ -23,6 +23,11 @@ Credentials and other options of a protocol come from fsspec's configuration (en
 every process and node reads the same way (some stages pass a location on as a string, which drops
 ``options``). A ``UrlPath`` pickles as its URL and options, so Ray tasks can receive it (``memory://``
 is private to one process, though).
+
+A URL of a file system that lives inside one process (:data:`PROCESS_PRIVATE_PROTOCOLS`: fsspec's
+``memory://``) names nothing that another process can read: a command line refuses it
+(:func:`process_private`; ``polarface.commands.store_location``), as an input (a fresh process holds
+nothing there) and as an output (what it writes would vanish when it exits). The Python API takes it.
 """
 
 from __future__ import annotations
@@ -40,23 +45,46 @@ from pathlib import Path, PurePosixPath
 from typing import Any, TypeAlias
 
 __all__ = [
+    "PROCESS_PRIVATE_PROTOCOLS",
     "PathOrUrl",
     "StoragePath",
     "UrlPath",
     "is_url",
     "local_copy",
     "open_zarr_group",
+    "process_private",
     "read_head",
     "remove_tree",
     "storage_path",
+    "url_protocols",
 ]
 
 _URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.\-]*(://|::)")
+
+#: fsspec protocols whose files live inside one process (module docstring): a command line refuses them.
+#: Tests that run a command in-process (``polarface.cli.main``) may empty it to use ``memory://`` as a
+#: stand-in for object storage.
+PROCESS_PRIVATE_PROTOCOLS: frozenset[str] = frozenset({"memory"})
 
 
 def is_url(value: object) -> bool:
     """True for a string that starts with a protocol (``memory://``, ``s3://``, ``simplecache::...``)."""
     return isinstance(value, str) and _URL.match(value) is not None
+
+
+def url_protocols(value: object) -> tuple[str, ...]:
+    """The protocols a URL names, outermost first (``"simplecache::s3://b/k"`` -> ``("simplecache",
+    "s3")``); ``()`` for a local path or a :class:`~pathlib.Path`."""
+    text = value.url if isinstance(value, UrlPath) else value
+    if not is_url(text):
+        return ()
+    return tuple(part.split("://", 1)[0].lower() for part in str(text).split("::") if part)
+
+
+def process_private(value: object) -> str | None:
+    """The protocol of :data:`PROCESS_PRIVATE_PROTOCOLS` that the URL ``value`` uses (a string or a
+    :class:`UrlPath`), or None (a local path, a URL that other processes can read)."""
+    return next((p for p in url_protocols(value) if p in PROCESS_PRIVATE_PROTOCOLS), None)
 
 
 def _missing_package(url: str, exc: ImportError) -> ValueError:
@@ -90,7 +118,7 @@ def _filesystem(url: str, options: Mapping[str, Any]) -> tuple[Any, str]:
             raise ValueError(f"storage URL '{url}': {exc}") from exc
         raise ValueError(
             f"storage URL '{url}': unknown protocol ({exc}); give a local path or a URL of an fsspec file "
-            "system (file://, memory://, s3://, gs://, ...)"
+            "system (file://, s3://, gs://, ...)"
         ) from exc
 
 

@@ -51,7 +51,8 @@ from polarface.pipeline.evaluate_biophysical import check_ground_truth
 from polarface.results import RESULT_FORMAT, RESULT_VERSION, RHO_SSS_BAR, ResultFolder
 from polarface.results import layout as names_
 
-__all__ = ["load_stage_inputs", "load_start", "run_biophysical_stage"]
+__all__ = ["check_coarse_factor", "largest_coarse_factor", "load_stage_inputs", "load_start",
+           "run_biophysical_stage"]
 
 LOGGER = logging.getLogger(__name__)
 
@@ -124,6 +125,51 @@ def load_stage_inputs(result_dir: str | Path | ResultFolder) -> dict[str, Any]:
         "texel_size_mm": texel_size,
         "stretch": stretch,
     }
+
+
+def _has_coarse_texel(mask: torch.Tensor, factor: int) -> bool:
+    """Whether the coarse grid of ``factor`` keeps a texel (one covered more than a quarter by ``mask``:
+    :func:`polarface.inverse.biophysical.resample.downsample_masked`)."""
+    from polarface.inverse.biophysical.resample import downsample_masked
+
+    _, coarse = downsample_masked(mask[..., None].to(torch.float32), mask, factor)
+    return bool(coarse.any())
+
+
+def largest_coarse_factor(mask: np.ndarray) -> int:
+    """The largest coarse-stage factor for the texture of ``mask`` ``(H, W)`` bool: at most the texture's
+    longer side, and its coarse grid keeps a texel covered more than a quarter by the mask (the coarse fit
+    needs one). Found by bisection (the coverage shrinks as the factor grows); 0 for an empty mask."""
+    valid = torch.from_numpy(np.asarray(mask, dtype=bool))
+    low, high = 0, max(valid.shape)
+    while low < high:  # invariant: low is valid (or 0), every factor > high invalid
+        middle = (low + high + 1) // 2
+        if _has_coarse_texel(valid, middle):
+            low = middle
+        else:
+            high = middle - 1
+    return low
+
+
+def check_coarse_factor(factor: int, mask: np.ndarray) -> None:
+    """Refuse a coarse-stage factor outside ``[1, largest_coarse_factor(mask)]`` (naming the option
+    ``--coarse-factor`` and the range for this texture).
+
+    Raises:
+        ValueError: the factor leaves the coarse fit no texel (or is < 1).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    if not mask.any():
+        return  # the fit's own error
+    if 1 <= factor <= max(mask.shape) and _has_coarse_texel(torch.from_numpy(mask), factor):
+        return
+    largest = largest_coarse_factor(mask)
+    height, width = mask.shape
+    raise ValueError(
+        f"argument '--coarse-factor' must lie in [1, {largest}] for this RESULT's {height} x {width} texture "
+        f"(a larger factor leaves the coarse stage no texel covered more than a quarter by the mask); "
+        f"got {factor}"
+    )
 
 
 def load_start(result_dir: str | Path | ResultFolder, calibration, resolution: tuple[int, int]
@@ -300,6 +346,8 @@ def run_biophysical_stage(
     started = time.perf_counter()
     folder = result_dir if isinstance(result_dir, ResultFolder) else ResultFolder(result_dir)
     inputs = load_stage_inputs(folder)
+    if start_from is None:  # a warm start skips the coarse stage
+        check_coarse_factor(int(config.coarse_factor), inputs["mask"])
     calibration = inputs["calibration"]
     table = TotalsTable(calibration.wavelengths_nm, config.constants)
     start = None if start_from is None else load_start(start_from, calibration, inputs["mask"].shape)

@@ -194,7 +194,7 @@ def calibrate_polarization(
         angles_deg: polarizer angles of the files in name order (when there is no ``frames.json``).
         options: estimator settings.
         out: rig file to write (default: update ``rig_path`` in place). An existing other file is refused
-            unless ``force``.
+            unless ``force``; a file inside ``frames_dir`` is refused.
         force: replace an existing ``out`` that is not ``rig_path``.
 
     Returns:
@@ -215,7 +215,8 @@ def calibrate_polarization(
     frames = read_polarization_frames(frames_dir, angles_deg)
     target = Path(out) if out is not None else rig_path
     same = target.exists() and target.resolve() == rig_path.resolve()
-    with output_file(target, _COMMAND, force=force, owned=lambda _: same):
+    # the output may be --rig itself (updated in place by design), never a file inside FRAMES
+    with output_file(target, _COMMAND, force=force, owned=lambda _: same, inputs={"FRAMES": frames_dir}):
         raws = [_read_raw(frame.path, camera) for frame in frames]
         result = calibrate_analyzers(
             raws,

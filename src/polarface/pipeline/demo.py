@@ -155,9 +155,12 @@ def _run_demo_tail(unit: _DemoTail) -> Any:
     sim, result = unit.out / "sim", unit.out / "result"  # each step imports only what it runs
     if unit.step == "evaluate":
         from polarface.io import write_json_atomic
+        from polarface.io.output_folder import output_folder
         from polarface.pipeline.evaluate import evaluate
 
-        metrics = evaluate(result, sim, figures_dir=unit.out / "figures")
+        # as `polarface evaluate --figures` writes it: the printed command line reruns on this folder
+        with output_folder(unit.out / "figures", "evaluate", force=True, staged=True) as figures:
+            metrics = evaluate(result, sim, figures_dir=figures)
         write_json_atomic(unit.out / "metrics.json", metrics)
         return metrics
     if unit.step == "report":

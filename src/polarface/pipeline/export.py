@@ -5,7 +5,9 @@ Layout of the export folder ``OUT`` (``docs/export.md``): one sub-folder per for
 offline 3D viewer page, written whenever ``gltf`` is; :func:`write_export_viewer`) and ``OUT/export.json``
 (``format`` = ``"polarface-export"``, ``version``, ``result``, ``frames``, ``formats.<name>``: the writer's
 record with ``files`` and ``seconds``, ``formats.viewer`` likewise; ``seconds``). Every format's maps are
-checked before anything is written, so a RESULT lacking one is refused with an error naming the missing file.
+checked and read before anything is written, so a RESULT lacking one, or holding one that cannot be read,
+is refused with an error naming the file. The caller writes ``out`` as a staged output folder
+(``polarface.io.output_folder``): a writer that still fails leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from polarface.export import EXPORT_FORMATS, ExportOptions, ExportSource
-from polarface.io import write_json_atomic
+from polarface.io import record_path, write_json_atomic
 from polarface.io.storage import PathOrUrl
 from polarface.pipeline.dynamic_inputs import parse_frame_selection
 from polarface.results import ResultFolder
@@ -79,6 +81,8 @@ def export_result(result: PathOrUrl, out: Path, options: ExportOptions | None = 
     formats = [EXPORT_FORMATS[name] for name in options.formats]
     for spec in formats:
         source.require(spec.maps, spec.name, frames=spec.frames)
+    for spec in formats:  # every file read (and cached) before the first is written
+        source.load(spec.maps, frames=spec.frames)
     out = Path(out)
     records: dict[str, Any] = {}
     for spec in formats:
@@ -93,7 +97,7 @@ def export_result(result: PathOrUrl, out: Path, options: ExportOptions | None = 
     summary = {
         "format": EXPORT_FORMAT,
         "version": EXPORT_VERSION,
-        "result": str(source.folder.root),
+        "result": record_path(out, source.folder.root),
         "frames": list(source.frames),
         "formats": records,
         "seconds": round(time.perf_counter() - started, 3),

@@ -1,10 +1,12 @@
-"""What a folder holds (``polarface info PATH``): a capture store, a simulation folder or a RESULT folder.
+"""What a folder holds (``polarface info PATH``): a capture store, a simulation folder, a RESULT folder or
+an imported authors' session.
 
 :func:`folder_info` reads only the small files (``manifest.json``, ``rig.json``, ``simulation.json``,
-``result.json``, frame markers, directory listings) and never decodes images or zarr arrays, so it
-is fast on any size of folder. :func:`format_info` renders its dict for people. Layouts:
-``docs/capture_store.md`` (capture store), ``docs/simulate.md`` (simulation folder) and
-``docs/result_folder.md`` (RESULT folder).
+``result.json``, ``imported.json``, frame markers, directory listings) and never decodes images or zarr
+arrays, so it is fast on any size of folder. :func:`format_info` renders its dict for people. Layouts:
+``docs/capture_store.md`` (capture store), ``docs/simulate.md`` (simulation folder),
+``docs/result_folder.md`` (RESULT folder) and ``docs/authors_dataset.md`` (imported session: its unwrap
+stores are compared with the chunk inventory the import recorded, a listing).
 """
 
 from __future__ import annotations
@@ -64,6 +66,31 @@ def capture_info(root: Path) -> dict[str, Any]:
         "cameras": _cameras(root / "rig.json"),
         "derived_store": (root / str(manifest.get("derived_store", "derived.zarr"))).is_dir(),
         "fingerprint": _fingerprint(manifest),
+    }
+
+
+def imported_info(root: Path) -> dict[str, Any]:
+    """Kind, frames, views, texture, cameras and state of an imported authors' session (``stores``: None
+    when the import recorded no inventory or is unfinished, else ``"intact"`` or what differs)."""
+    from polarface.pipeline.import_authors import IMPORTED_JSON, imported_stores_problem
+
+    record = read_json_object(root / IMPORTED_JSON)
+    complete = record.get("complete") is True
+    stores = None
+    if complete and isinstance(record.get("stores"), dict):
+        stores = imported_stores_problem(root, record) or "intact"
+    return {
+        "kind": "imported",
+        "path": str(root),
+        "sequence": record.get("kind"),
+        "complete": complete,
+        "session": record.get("session"),
+        "frames": len(record.get("frames") or []),
+        "views": record.get("views"),
+        "texture_resolution": record.get("texture_resolution"),
+        "cameras": _cameras(root / "rig.json"),
+        "stores": stores,
+        "seconds": record.get("seconds"),
     }
 
 
@@ -155,10 +182,12 @@ def result_info(root: Path) -> dict[str, Any]:
 
 
 def folder_info(path: str | Path) -> dict[str, Any]:
-    """What ``path`` holds, as a JSON-ready dict with ``kind`` = ``capture``, ``simulation`` or ``result``.
+    """What ``path`` holds, as a JSON-ready dict with ``kind`` = ``capture``, ``simulation``, ``result`` or
+    ``imported``.
 
     A RESULT has ``result.json``, a capture store ``manifest.json``, a simulation folder
-    ``simulation.json`` or a ``static/``/``dynamic/`` capture store beside ``ground_truth/``.
+    ``simulation.json`` or a ``static/``/``dynamic/`` capture store beside ``ground_truth/``, an imported
+    authors' session ``imported.json`` (a local folder).
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
@@ -171,12 +200,14 @@ def folder_info(path: str | Path) -> dict[str, Any]:
         return result_info(root)
     if (root / "manifest.json").is_file():
         return capture_info(root)
+    if isinstance(root, Path) and (root / "imported.json").is_file():
+        return imported_info(root)
     sequences = any((root / s / "manifest.json").is_file() for s in _SEQUENCES)
     if (root / "simulation.json").is_file() or (sequences and (root / "ground_truth").is_dir()):
         return simulation_info(root)
     raise ValueError(
-        f"argument 'PATH': '{root}' is not a capture store, simulation folder or RESULT folder "
-        "(no manifest.json, simulation.json or result.json)"
+        f"argument 'PATH': '{root}' is not a capture store, simulation folder or RESULT folder, nor an "
+        "imported session (no manifest.json, simulation.json, result.json or imported.json)"
     )
 
 
@@ -248,13 +279,34 @@ def _result_lines(info: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _imported_lines(info: dict[str, Any]) -> list[str]:
+    state = "complete" if info["complete"] else "INTERRUPTED (rerun 'polarface import-authors' to finish)"
+    resolution = info["texture_resolution"] or ["?", "?"]
+    stores = {None: "not checked (no inventory recorded)", "intact": "as the import wrote them"}.get(
+        info["stores"], f"CHANGED: {info['stores']}")
+    lines = [
+        f"  {info['sequence']} session ({state}) from {info['session']}",
+        f"  {info['frames']} frames, {info['views'] if info['views'] is not None else '?'} views, texture "
+        f"{resolution[0]} x {resolution[1]} texels",
+        f"  unwrap stores: {stores}",
+        f"  cameras ({len(info['cameras'])}):",
+    ]
+    for cam in info["cameras"]:
+        width, height = cam["resolution"]
+        lines.append(f"    {cam['id']:<12} {cam['role'] or '?':<14} {cam['sensor'] or '?':<20} "
+                     f"{width} x {height} px")
+    return lines
+
+
 def format_info(info: dict[str, Any]) -> str:
     """The human-readable text of a :func:`folder_info` dict (several lines, no trailing newline)."""
     kind = info["kind"]
-    lines = [f"{ {'capture': 'capture store', 'simulation': 'simulation folder'}.get(kind, 'RESULT folder')} "
-             f"{info['path']}"]
+    titles = {"capture": "capture store", "simulation": "simulation folder", "imported": "imported session"}
+    lines = [f"{titles.get(kind, 'RESULT folder')} {info['path']}"]
     if kind == "capture":
         lines += _capture_lines(info)
+    elif kind == "imported":
+        lines += _imported_lines(info)
     elif kind == "simulation":
         seconds, memory = _number(info["seconds"], " s"), _number(info["peak_rss_mb"], " MB")
         lines.append(

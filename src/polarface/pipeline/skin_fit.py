@@ -22,7 +22,13 @@ from polarface.io import agg_figure, atomic_path, write_figure_png, write_json_a
 from polarface.skin.chromophores import HAEMOGLOBIN_TABLE_RANGE_NM
 from polarface.skin.fitting import FIT_PARAMETER_NAMES, FitSettings, fit_reflectance_spectra
 
-__all__ = ["SkinFitSummary", "SpectraFitOptions", "fit_spectra_file", "read_reflectance_csv"]
+__all__ = ["MAX_ITERATIONS", "MAX_STARTS", "SkinFitSummary", "SpectraFitOptions", "fit_spectra_file",
+           "read_reflectance_csv"]
+
+#: Upper bounds of the fit's settings (defaults 40 and 4): the fit converges in tens of iterations, and
+#: every start is a copy of every sample in memory.
+MAX_ITERATIONS = 10_000
+MAX_STARTS = 1_000
 
 _MIN_WAVELENGTHS = 8
 
@@ -34,8 +40,8 @@ class SpectraFitOptions:
     Attributes:
         min_nm, max_nm: fit band, nm.
         max_offset: upper bound in [0, 0.5] of the flat surface-reflection offset (reflectance factor).
-        iterations: Levenberg-Marquardt iterations (>= 1).
-        starts: starting points per sample (>= 1).
+        iterations: Levenberg-Marquardt iterations, 1 .. :data:`MAX_ITERATIONS`.
+        starts: starting points per sample, 1 .. :data:`MAX_STARTS`.
     """
 
     min_nm: float = 420.0
@@ -258,10 +264,12 @@ def fit_spectra_file(
         FileNotFoundError, ValueError: see :func:`read_reflectance_csv`; bad settings.
     """
     min_nm, max_nm = options.min_nm, options.max_nm
-    if options.iterations < 1 or options.starts < 1:
-        raise ValueError("--iterations and --starts must be >= 1")
+    for name, value, largest in (("iterations", options.iterations, MAX_ITERATIONS),
+                                 ("starts", options.starts, MAX_STARTS)):
+        if not 1 <= value <= largest:
+            raise ValueError(f"argument '--{name}' must lie in [1, {largest}]; got {value}")
     if not 0.0 <= options.max_offset <= 0.5:
-        raise ValueError(f"--max-offset must lie in [0, 0.5]; got {options.max_offset}")
+        raise ValueError(f"argument '--max-offset' must lie in [0, 0.5]; got {options.max_offset}")
     wavelengths, names, measured = read_reflectance_csv(Path(spectra), min_nm, max_nm)
     settings = FitSettings(
         max_surface_offset=options.max_offset, iterations=options.iterations, starts=options.starts

@@ -15,6 +15,12 @@ and writes to ``out``:
   ``render.json``.
 
 Images are linear radiance, channels-last ``(h, w, 6)``; Stokes in the camera frame.
+
+The subsurface transport uses the RESULT's sum-of-Gaussians profiles ``maps/sog.json``, written by the
+biophysical stage with the chromophore maps. A RESULT whose ``result.json`` records that stage but lacks
+the file is refused (FileNotFoundError naming it). A folder without that record (maps made by hand or by
+another tool) is rendered with profiles fitted at its median texel; ``warn`` is told so, and
+``render.json``'s ``profiles`` says which profiles were used (``"maps/sog.json"`` or ``"median texel"``).
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +39,7 @@ from polarface.io import agg_figure, colormap_png, write_exr, write_figure_png, 
 from polarface.optics.stokes import aolp, linear_dop
 from polarface.render.colour import encode_srgb, linear_rgb_from_channels, linear_srgb_to_lab
 from polarface.render.relight import RenderedResult, mueller_images, parse_edits, render_result_view
-from polarface.results import ResultAppearance
+from polarface.results import ResultAppearance, ResultFolder
 
 __all__ = ["RenderOptions", "render_result_outputs"]
 
@@ -92,24 +99,65 @@ def _load_pose(poses_path: Path | None, pose_frame: int) -> np.ndarray | None:
     return poses[pose_frame]
 
 
+def _profiles(folder: ResultFolder, appearance: ResultAppearance) -> tuple[str, str | None]:
+    """Which diffusion profiles the render uses (module docstring): ``("maps/sog.json", None)``, or
+    ``("median texel", warning)`` for a folder without a biophysical stage record.
+
+    Raises:
+        FileNotFoundError: the RESULT records its biophysical stage but ``maps/sog.json`` is missing.
+    """
+    if appearance.shapes is not None:
+        return "maps/sog.json", None
+    path = folder.map_path("sog", ".json")
+    if folder.stage_record("biophysical"):
+        raise FileNotFoundError(
+            f"'{path}' does not exist: the RESULT's biophysical stage wrote its diffusion profiles there "
+            f"and rendering needs them; run 'polarface biophysical {folder.root}' to write them again"
+        )
+    return "median texel", (f"'{path}' does not exist and the RESULT records no biophysical stage: the "
+                            "diffusion profiles are fitted at its median texel")
+
+
 def render_result_outputs(
-    result_dir: Path, out: Path | None = None, options: RenderOptions = RenderOptions()
+    result_dir: Path,
+    out: Path | None = None,
+    options: RenderOptions = RenderOptions(),
+    warn: Callable[[str], None] | None = None,
 ) -> dict:
     """Render the RESULT at ``result_dir`` as ``options`` say and write the images (module docstring) to
-    ``out`` (default ``RESULT/render``); returns the summary also written to ``render.json``."""
+    ``out`` (default ``RESULT/render``); returns the summary also written to ``render.json``.
+
+    Every input (maps, mesh, rig, ``maps/sog.json``, ``options.poses_path``) is read and checked before
+    the first image is written. ``warn`` receives a one-line message when the render uses profiles
+    fitted at the median texel (module docstring).
+    """
     started = time.perf_counter()
     edits = parse_edits(options.edit)
-    appearance = ResultAppearance.load(result_dir)
+    folder = ResultFolder(result_dir)
+    appearance = ResultAppearance.load(folder)
     if options.camera is not None:
         try:
             appearance.rig.camera(options.camera)
         except ValueError as exc:
             raise ValueError(f"argument '--camera': {exc}") from None
+    profiles, warning = _profiles(folder, appearance)
     out = out or (result_dir / "render")
     pose = _load_pose(options.poses_path, options.pose_frame)
+    if warning is not None and warn is not None:  # every input checked: the render runs
+        warn(warning)
     names = list(appearance.rig.spectral.channel_names)
     steps = 1 + options.mueller + options.strip + bool(edits)
-    bar = tqdm(total=steps, desc="render", unit="pass")
+    with tqdm(total=steps, desc="render", unit="pass") as bar:  # closed before an error is printed
+        summary = _render_outputs(appearance, out, options, edits, pose, names, bar)
+    summary["profiles"] = profiles
+    summary["seconds"] = time.perf_counter() - started
+    write_json_atomic(out / "render.json", summary)
+    return summary
+
+
+def _render_outputs(appearance: ResultAppearance, out: Path, options: RenderOptions, edits: dict[str, float],
+                    pose: np.ndarray | None, names: list[str], bar: tqdm) -> dict:
+    """Render and write every image of :func:`render_result_outputs`; returns the summary so far."""
     view = render_result_view(appearance, options.camera, pose, edits=edits)
     bar.update(1)
     s0, polarizer, green = _write_polarization(out, view, names, options.polarizer_deg)
@@ -142,9 +190,6 @@ def render_result_outputs(
     if options.strip:
         _write_strip(out, appearance, options.camera, pose, edits, options.strip_width_mm, names)
         bar.update(1)
-    bar.close()
-    summary["seconds"] = time.perf_counter() - started
-    write_json_atomic(out / "render.json", summary)
     return summary
 
 
