@@ -54,8 +54,9 @@ def test_ray_geometry_frames_are_the_local_executor_files(sim, local_geom, ray_i
     assert summary["frames"] == {k: {**v, "seconds": summary["frames"][k]["seconds"]}
                                  for k, v in expected["frames"].items()}
     assert summary["rejected_frames"] == expected["rejected_frames"] == {}
-    np.testing.assert_allclose(load_poses(tmp_path / "geom" / "poses.json"), load_poses(local / "poses.json"),
-                               rtol=0, atol=1e-9)
+    # the registration runs Open3D on one thread: the same poses bit for bit (docs/reconstruct.md)
+    poses = load_poses(tmp_path / "geom" / "poses.json")
+    np.testing.assert_array_equal(poses, load_poses(local / "poses.json"))
     units = summary["executor"]["units"]
     reference = str(summary["reference_frame"])
     assert summary["executor"]["name"] == "ray" and sorted(units) == ["0", "1", "2", "3"]

@@ -1,8 +1,9 @@
 """polarface.render.lobe_kernel.add_lobes_fused against the differentiable reference
 polarface.optics.lobes.add_lobes (itself the bits of render_polarimetric, tests/optics/test_lobes.py):
-the same Stokes to float rounding for every component count, dtype, per-light intensities and polarizer
-states, per-channel albedos, eager and lazy visibility (the same shadow rays asked), no light lit; the
-cases the loop does not take go through add_lobes (same bits, gradients); the same errors."""
+the same Stokes to float rounding (a few ulps whatever the CPU: _assert_rounding) for every component
+count, dtype, per-light intensities and polarizer states, per-channel albedos, eager and lazy visibility
+(the same shadow rays asked), no light lit; the cases the loop does not take go through add_lobes (same
+bits, gradients); the same errors."""
 
 from __future__ import annotations
 
@@ -24,12 +25,25 @@ def _both(geometry, params, lights, visible, intensity, stokes, **kwargs):
     return add_lobes(*arguments, **kwargs), add_lobes_fused(*arguments, **kwargs)
 
 
-def _assert_rounding(got: torch.Tensor, reference: torch.Tensor, ulps: float = 4.0) -> None:
-    """Equal to a few units in the last place of the largest value, and mostly the same bits."""
+def _assert_rounding(got: torch.Tensor, reference: torch.Tensor, ulps: float = 8.0) -> None:
+    """Equal to rounding: every Stokes component within ``ulps`` units in the last place of its Stokes
+    vector's largest component (per fragment and channel, the ``(..., S)`` rows).
+
+    Why this tolerance and not a share of identical bits: the two evaluate the same expressions, but
+    torch's vectorised elementwise kernels (and its scalar tails) are picked for the CPU it runs on (AVX2,
+    AVX-512) and some of them are not correctly rounded, while numba's are IEEE's; so which values come
+    out the same bits depends on the CPU (93.9 % in float32 on an AMD EPYC without AVX-512 against more
+    than 95 % on Intel), not on either implementation. What the renderer needs is that the fused loop
+    computes the reference's numbers to float rounding: the lobes are sums of non-negative terms of some
+    twenty operations each, every one within one ulp, so a few ulps of the vector's magnitude. The row's
+    largest component is the scale because s1..s3 are signed sums that may cancel (their own relative
+    error is meaningless near 0) while their rounding follows the magnitude of what was summed. Measured
+    on that AMD CPU: at most 2.4 ulps (float32) and 1.2 ulps (float64)."""
     assert got.shape == reference.shape and got.dtype == reference.dtype
-    scale = float(reference.abs().max())
-    assert float((got - reference).abs().max()) <= ulps * torch.finfo(reference.dtype).eps * scale
-    assert float((got == reference).double().mean()) > 0.95
+    info = torch.finfo(reference.dtype)
+    ulp = info.eps * reference.abs().amax(-1, keepdim=True).clamp_min(info.tiny)
+    in_ulps = (got - reference).abs() / ulp
+    assert float(in_ulps.max()) <= ulps, float(in_ulps.max())
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

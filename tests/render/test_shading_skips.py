@@ -106,9 +106,17 @@ def _reference_view(caster, mesh, camera, textures, lights, intensity, channels,
 def test_render_view_gives_the_full_paths_images(small_rig):
     """The head, turned to face the rig at 1 m: ``render_view`` (s0 alone for RGB, s0..s2 for the
     polarization camera, shadow rays only towards modules lighting a fragment from the front, the lobes
-    in one compiled loop) gives the images of the full per-module path to float32 rounding (torch's
-    float32 square root is not IEEE's: tests/render/test_lobe_kernel.py), and some shadow rays are
-    skipped."""
+    in one compiled loop) gives the images of the full per-module path to float32 rounding, and some
+    shadow rays are skipped.
+
+    Rounding, per pixel: within 8 ulps of the pixel's intensity s0. Not a share of identical bits: the
+    two paths evaluate the same expressions, but torch's vectorised kernels are chosen for the CPU and
+    some are not correctly rounded (tests/render/test_lobe_kernel.py), so the share of equal pixels is
+    the CPU's (82 % on an AMD EPYC without AVX-512, above 95 % on Intel with it). An analyzer image
+    I_theta = (s0 + cos s1 + sin s2) / 2 sums terms of the size of s0, and I90 nearly cancels (its own
+    relative error reaches 10 ulps where it is 0.3 % of the image's maximum), so its rounding is
+    measured against s0, not against itself or the image's maximum (which would be loose on dim pixels).
+    """
     asset = load_head_asset(texture_resolution=128)
     turn = np.diag([-1.0, 1.0, -1.0, 1.0])
     turn[2, 3] = 1000.0
@@ -132,7 +140,9 @@ def test_render_view_gives_the_full_paths_images(small_rig):
         assert fragments.count > 500 and not visible.all()
         pixel = np.unravel_index(fragments.pixel, view.mask.shape)
         assert set(view.images) == set(expected)
+        # the pixel's intensity s0 (I0 + I90 for the polarization camera) is the scale of its rounding
+        pixel_s0 = (expected["i0"] + expected["i90"]).numpy() if polarization else expected["s0"].numpy()
         for name, image in expected.items():
             got, image = view.images[name][pixel], image.numpy()
-            assert np.abs(got - image).max() <= 4 * np.finfo(np.float32).eps * np.abs(image).max()
-            assert np.mean(got == image) > 0.95  # the same expressions: most pixels the same bits
+            error = np.abs(got.astype(np.float64) - image) / (np.finfo(np.float32).eps * pixel_s0)
+            assert error.max() <= 8.0, (name, float(error.max()))  # measured: at most 2.6 ulps

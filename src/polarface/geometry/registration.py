@@ -47,6 +47,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from polarface.geometry.open3d_library import serial_open3d
 from polarface.geometry.point_cloud import PointCloud
 from polarface.geometry.poses import check_rigid, invert_rigid
 from polarface.geometry.registration_icp import icp, registration_levels
@@ -235,12 +236,13 @@ def register_sequence(
     from tqdm import tqdm
 
     bar = tqdm(total=2 * len(frames), desc="register", unit="frame", disable=not progress)
-    graph, relative, reasons, centre = chain_and_close(frames, load_cloud, reference, config, bar)
-    optimised = optimise(graph, reference, config)
-    local_to_world = np.eye(4)
-    local_to_world[:3, 3] = centre
-    poses = local_to_world @ all_poses(frames, optimised, relative) @ invert_rigid(local_to_world)
-    fitness, rmse = residuals_against_model(frames, load_cloud, reference, poses, reasons, config, bar)
+    with serial_open3d():  # the same poses on every run (polarface.geometry.open3d_library)
+        graph, relative, reasons, centre = chain_and_close(frames, load_cloud, reference, config, bar)
+        optimised = optimise(graph, reference, config)
+        local_to_world = np.eye(4)
+        local_to_world[:3, 3] = centre
+        poses = local_to_world @ all_poses(frames, optimised, relative) @ invert_rigid(local_to_world)
+        fitness, rmse = residuals_against_model(frames, load_cloud, reference, poses, reasons, config, bar)
     bar.close()
     for k, frame in enumerate(frames):
         if frame not in reasons and fitness[k] < config.min_fitness:
@@ -298,11 +300,12 @@ def register_pair_starts(
 ) -> list[PairRegistration]:
     """:func:`register_pair` of ``source`` onto ``target`` from each of ``starts`` (``(4, 4)`` source ->
     target), in their order: the two clouds' ICP levels are built once, and the starts' ICPs run in
-    ``threads`` threads (Open3D's ICP releases Python's lock; its OpenMP loops alone kept about 1.5 of 2
-    cores busy). The same transforms as :func:`register_pair` per start, up to Open3D's own run-to-run
-    differences (~1e-13 mm). The dynamic stage's alignment tries 13 starts: on the demo, 7.7-10.1 s with
-    :func:`register_pair` per start, 7.0-7.6 s with the levels built once, 5.6-6.2 s in 2 threads (2-core
-    VM, docs/performance.md).
+    ``threads`` threads (Open3D's ICP releases Python's lock), each ICP on its own thread
+    (:func:`~polarface.geometry.open3d_library.serial_open3d`): the same transforms as
+    :func:`register_pair` per start, bit for bit, on every run. The dynamic stage's alignment tries 13
+    starts: on the demo, 7.7-10.1 s with :func:`register_pair` per start, 7.0-7.6 s with the levels built
+    once, 5.6-6.2 s in 2 threads (2-core VM, docs/performance.md; measured when Open3D's own threads ran
+    each ICP too).
 
     Raises:
         ValueError: as :func:`register_pair`; a non-rigid start names its index (``starts[k]``); ``threads``
@@ -330,10 +333,11 @@ def register_pair_starts(
                                             invert_rigid(local))
         return PairRegistration(shift @ local @ invert_rigid(shift), fitness, rmse, float(reverse.fitness))
 
-    if len(inits) <= 1 or int(threads) == 1:
-        return [from_start(init) for init in inits]
-    with ThreadPoolExecutor(max_workers=min(int(threads), len(inits)), thread_name_prefix="icp") as pool:
-        return list(pool.map(from_start, inits))
+    with serial_open3d():  # the same transforms on every run (polarface.geometry.open3d_library)
+        if len(inits) <= 1 or int(threads) == 1:
+            return [from_start(init) for init in inits]
+        with ThreadPoolExecutor(max_workers=min(int(threads), len(inits)), thread_name_prefix="icp") as pool:
+            return list(pool.map(from_start, inits))
 
 
 def _check_frames(frame_indices: Sequence[int], reference: int) -> list[int]:

@@ -352,6 +352,14 @@ def sog_blur(
     return _sog_blur_fft(image, weights, variances.to(image), texel_size_mm, mask)
 
 
+def _spectrum_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a * b`` of complex tensors as separate real operations: torch's complex ``*`` rounds the tail of
+    each thread's chunk on another path than its vector body, so its bits depend on the thread count;
+    real products and sums do not (a run's maps must not depend on ``--threads``)."""
+    ar, ai, br, bi = a.real, a.imag, b.real, b.imag
+    return torch.complex(ar * br - ai * bi, ar * bi + ai * br)
+
+
 def _sog_blur_fft(
     image: torch.Tensor,
     weights: torch.Tensor,
@@ -377,7 +385,8 @@ def _sog_blur_fft(
 
     def convolve(x: torch.Tensor, transfer_fn: torch.Tensor) -> torch.Tensor:
         padded = nnf.pad(x, (radius, radius, radius, radius))
-        out = torch.fft.irfft2(torch.fft.rfft2(padded, s=(n_h, n_w)) * transfer_fn, s=(n_h, n_w))
+        spectrum = _spectrum_product(torch.fft.rfft2(padded, s=(n_h, n_w)), transfer_fn)
+        out = torch.fft.irfft2(spectrum, s=(n_h, n_w))
         return out[..., 2 * radius : 2 * radius + height, 2 * radius : 2 * radius + width]
 
     if mask is None:

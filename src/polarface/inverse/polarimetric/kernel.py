@@ -78,11 +78,15 @@ GRAD_LAYOUT = (
 )  # fmt: skip
 PARAM_COUNT = len(GRAD_LAYOUT)
 _ETA, _AS, _ASS, _RS, _RSS, _RHO = 3, 4, 5, 6, 7, 8  # columns of GRAD_LAYOUT (normal: 0-2)
-# fast-math without nnan/ninf (inputs are validated finite; min/max and the masks keep their meaning):
-# reassociation lets the loops vectorise their reductions
+# fast-math without nnan/ninf (inputs are validated finite; min/max and the masks keep their meaning) and
+# without reassoc: numba optimises a parallel kernel's prange body differently in the process that
+# compiles it and in one that loads it from numba's cache (numba/numba#10617), and with reassoc the two
+# re-associated sums differently, so the first fit after a compile and every later one gave other bits
+# (issue 47). Without it both are the same bits (tests/inverse/polarimetric/test_kernel_cache.py) and the
+# kernel is as fast (measured; its block loops are elementwise: there is nothing to re-associate)
 _JIT = {
     "nogil": True,
-    "fastmath": {"nsz", "arcp", "contract", "reassoc", "afn"},
+    "fastmath": {"nsz", "arcp", "contract", "afn"},
     "cache": True,
     "error_model": "numpy",
 }
