@@ -1,7 +1,9 @@
-"""A small fake dynamic RESULT for the report tests (importable: ``tests`` is on pytest's ``pythonpath``)."""
+"""Small fake RESULTs for the dynamic stage's tests (importable: ``tests`` is on pytest's ``pythonpath``): a
+dynamic RESULT for the report tests, a static one for the input checks, and a folder snapshot."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -9,10 +11,11 @@ import numpy as np
 from disk_fixtures import plane_mesh
 from polarface.capture import SIX_CHANNEL_NAMES
 from polarface.geometry import save_obj
-from polarface.io import write_png
+from polarface.io import record_path, write_png
 from polarface.results import ResultFolder
+from polarface.results.fingerprint import capture_identity
 
-__all__ = ["C_H_OUT", "DROP", "RES", "STEP_S", "write_dynamic_result"]
+__all__ = ["C_H_OUT", "DROP", "RES", "STEP_S", "fake_static_result", "snapshot", "write_dynamic_result"]
 
 RES = 32
 #: Frame spacing (s) of the fakes, as in the demo preset.
@@ -62,3 +65,27 @@ def write_dynamic_result(root: Path, frames: int = 5, failed: dict[int, str] | N
         "timings": {"frames": {str(t): {"total_s": 3.0 + t} for t in done}}, "seconds_per_frame": 4.5,
     })
     return root
+
+
+def fake_static_result(root: Path, static_capture: Path, *, polarimetric: bool = True) -> Path:
+    """A RESULT whose files pass the dynamic stage's check of a static result (rig, mesh, eta, mask,
+    polarimetric stage complete; with ``polarimetric`` False that stage is not recorded) and whose records
+    name ``static_capture`` as the capture it was reconstructed from (its files, not a reconstruction)."""
+    folder = ResultFolder(root)
+    root.mkdir(parents=True)
+    folder.write_result_header(SIX_CHANNEL_NAMES, (8, 8), 1.0)
+    shutil.copyfile(static_capture / "rig.json", root / "rig.json")
+    save_obj(root / "mesh.obj", plane_mesh())
+    folder.write_scalar_map("eta", np.full((8, 8), 1.4, np.float32))
+    folder.write_mask(np.ones((8, 8), bool))
+    folder.update_result({"fingerprint": {"capture": capture_identity(static_capture)}})
+    folder.record_stage("prepare", {"capture": record_path(root, static_capture)})
+    if polarimetric:
+        folder.record_stage("polarimetric", {})
+    return root
+
+
+def snapshot(root: Path) -> dict[str, tuple[int, int]]:
+    """Every file under ``root``: size and mtime (to check that nothing was written or removed)."""
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in sorted(root.rglob("*")) if p.is_file()}

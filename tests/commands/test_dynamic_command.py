@@ -9,48 +9,19 @@ from __future__ import annotations
 
 import os
 import shutil
-from pathlib import Path
 
-import numpy as np
 import pytest
 
-from disk_fixtures import plane_mesh
-from polarface.capture import SIX_CHANNEL_NAMES
+from dynamic_fixtures import fake_static_result, snapshot
 from polarface.cli import main
-from polarface.geometry import save_obj
-from polarface.io import record_path
-from polarface.results import ResultFolder
-from polarface.results.fingerprint import capture_identity
-
-
-def _fake_static_result(root: Path, static_capture: Path, *, polarimetric: bool = True) -> Path:
-    """A RESULT whose files pass the dynamic stage's check of a static result (unless ``polarimetric`` is
-    False: its polarimetric stage not recorded), made from ``static_capture``."""
-    folder = ResultFolder(root)
-    root.mkdir(parents=True)
-    folder.write_result_header(SIX_CHANNEL_NAMES, (8, 8), 1.0)
-    shutil.copyfile(static_capture / "rig.json", root / "rig.json")
-    save_obj(root / "mesh.obj", plane_mesh())
-    folder.write_scalar_map("eta", np.full((8, 8), 1.4, np.float32))
-    folder.write_mask(np.ones((8, 8), bool))
-    folder.update_result({"fingerprint": {"capture": capture_identity(static_capture)}})
-    folder.record_stage("prepare", {"capture": record_path(root, static_capture)})
-    if polarimetric:
-        folder.record_stage("polarimetric", {})
-    return root
-
-
-def _snapshot(root: Path) -> dict[str, tuple[int, int]]:
-    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
-            for p in sorted(root.rglob("*")) if p.is_file()}
 
 
 @pytest.fixture
 def workspace(tiny_sim, tmp_path):
     """``(SIM, RESULT, work folder)``: a fake static RESULT of the tiny simulation's static capture, a
     copy of the dynamic capture with one stereo image truncated, a RESULT without its static stage."""
-    result = _fake_static_result(tmp_path / "result", tiny_sim / "static")
-    _fake_static_result(tmp_path / "unfinished", tiny_sim / "static", polarimetric=False)
+    result = fake_static_result(tmp_path / "result", tiny_sim / "static")
+    fake_static_result(tmp_path / "unfinished", tiny_sim / "static", polarimetric=False)
     truncated = tmp_path / "truncated"
     shutil.copytree(tiny_sim / "dynamic", truncated)
     image = truncated / "raw" / "stereo0_a" / "000001.png"
@@ -109,33 +80,33 @@ def test_bad_input_is_one_line_naming_it_and_nothing_is_written(workspace, case,
     sim, result, work = workspace
     args, named = CASES[case]
     argv = ["dynamic", *(a.format(sim=sim, result=result, work=work) for a in args), "--quiet"]
-    before, inputs = _snapshot(work), _snapshot(sim)
+    before, inputs = snapshot(work), snapshot(sim)
     line = _refused(argv, capsys)
     for text in named:
         assert text in line, line
-    assert _snapshot(work) == before and _snapshot(sim) == inputs
+    assert snapshot(work) == before and snapshot(sim) == inputs
     assert not (result / "tracking").exists()
 
 
 def test_a_url_of_an_unknown_scheme_is_reported_as_a_url(workspace, capsys):
     """argparse's ``type=Path`` would collapse ``foo://x`` into ``foo:/x`` and report a missing folder."""
     sim, result, work = workspace
-    before = _snapshot(work)
+    before = snapshot(work)
     for argv in (["dynamic", str(result), "foo://x"], ["dynamic", "foo://x", str(sim)]):
         line = _refused(argv, capsys, argparse_error=True)
         assert "'foo://x'" in line and "protocol" in line and "does not exist" not in line, line
-    assert _snapshot(work) == before
+    assert snapshot(work) == before
 
 
 def test_reconstruct_refuses_the_static_capture_or_a_descending_range_as_dynamic_before_writing(
         workspace, capsys):
     sim, _, work = workspace
     fresh = work / "fresh"
-    before = _snapshot(work)
+    before = snapshot(work)
     line = _refused(["reconstruct", str(sim), "--dynamic", str(sim / "static"), "--out", str(fresh),
                      "--quiet"], capsys)
-    assert "records sequence 'static'" in line and "manifest.json" in line
+    assert f"dynamic capture '{sim / 'static'}' is the static capture" in line
     line = _refused(["reconstruct", str(sim), "--dynamic", str(sim), "--frames", "1-0", "--out", str(fresh),
                      "--quiet"], capsys)
     assert "'--frames'" in line and "descending" in line
-    assert not fresh.exists() and _snapshot(work) == before
+    assert not fresh.exists() and snapshot(work) == before

@@ -71,14 +71,14 @@ def test_a_recorded_input_that_is_gone_names_the_record_the_path_and_the_option(
     (tmp_path / "sim").mkdir()
     value = record_path(tmp_path / "result", tmp_path / "sim")
     assert recorded_input(tmp_path / "result", value, record="result.json", key="stages.prepare.capture",
-                          option="--capture") == tmp_path / "sim"
+                          remedy="give its new place with --capture") == tmp_path / "sim"
     (tmp_path / "sim").rmdir()
     with pytest.raises(FileNotFoundError) as raised:
         recorded_input(tmp_path / "result", value, record="R/result.json", key="stages.prepare.capture",
-                       option="--capture")
+                       remedy="give its new place with --capture")
     message = str(raised.value)
     assert "'R/result.json'" in message and "stages.prepare.capture" in message
     assert f"'{value}'" in message and "--capture" in message
     with pytest.raises(FileNotFoundError, match=r"records no stages\.prepare\.capture; give it with"):
         recorded_input(tmp_path, None, record="R/result.json", key="stages.prepare.capture",
-                       option="--capture")
+                       remedy="give it with --capture")

@@ -18,11 +18,8 @@ import numpy as np
 import pytest
 
 import polarface.pipeline.dynamic as dynamic_module
-from disk_fixtures import plane_mesh
-from polarface.capture import SIX_CHANNEL_NAMES
+from dynamic_fixtures import fake_static_result, snapshot
 from polarface.capture.store import CaptureStore
-from polarface.geometry import save_obj
-from polarface.io import record_path
 from polarface.pipeline.dynamic import reconstruct_dynamic
 from polarface.pipeline.dynamic_geometry import _tracking_images
 from polarface.pipeline.dynamic_inputs import (
@@ -34,23 +31,6 @@ from polarface.pipeline.dynamic_inputs import (
     selection_note,
 )
 from polarface.results import ResultFolder
-from polarface.results.fingerprint import capture_identity
-
-
-def fake_static_result(root: Path, static_capture: Path) -> Path:
-    """A RESULT whose files pass :func:`check_static_result` (rig, mesh, eta, mask, polarimetric stage
-    complete) and whose records name ``static_capture`` as the capture it was reconstructed from."""
-    folder = ResultFolder(root)
-    root.mkdir(parents=True)
-    folder.write_result_header(SIX_CHANNEL_NAMES, (8, 8), 1.0)
-    shutil.copyfile(static_capture / "rig.json", root / "rig.json")
-    save_obj(root / "mesh.obj", plane_mesh())
-    folder.write_scalar_map("eta", np.full((8, 8), 1.4, np.float32))
-    folder.write_mask(np.ones((8, 8), bool))
-    folder.update_result({"fingerprint": {"capture": capture_identity(static_capture)}})
-    folder.record_stage("prepare", {"capture": record_path(root, static_capture)})
-    folder.record_stage("polarimetric", {})
-    return root
 
 
 def linked_copy(store: Path, out: Path, sequence: str | None = None) -> Path:
@@ -66,12 +46,6 @@ def linked_copy(store: Path, out: Path, sequence: str | None = None) -> Path:
         manifest = json.loads((out / "manifest.json").read_text())
         (out / "manifest.json").write_text(json.dumps({**manifest, "sequence": sequence}))
     return out
-
-
-def snapshot(root: Path) -> dict[str, tuple[int, int]]:
-    """Every file under ``root``: size and mtime (nothing written, nothing removed)."""
-    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
-            for p in sorted(root.rglob("*")) if p.is_file()}
 
 
 @pytest.fixture

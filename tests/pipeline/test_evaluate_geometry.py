@@ -300,3 +300,16 @@ def test_cli_figures_never_overwrite_a_users_file(truth, tmp_path, capsys):
         assert (figures / GEOMETRY_ERROR_PNG).is_file()
     assert main([*argv, "--out", str(result / "metrics.json")]) == 2
     assert "argument '--out'" in capsys.readouterr().err and not (result / "metrics.json").exists()
+
+
+def test_a_geometry_folder_gone_from_its_recorded_place_is_named_with_what_to_do(tmp_path):
+    """A RESULT made with `reconstruct --geometry GEOM` records GEOM (outside it) absolute; GEOM moved away,
+    the geometry group names the record, the key, the recorded path and the remedy."""
+    from polarface.pipeline.evaluate_geometry import geometry_metrics
+
+    folder = ResultFolder(tmp_path / "result")
+    folder.root.mkdir()
+    folder.record_stage("prepare", {"geometry": str(tmp_path / "gone")})
+    pattern = r"result\.json' records stages\.prepare\.geometry = '.*gone', which does not exist.*--groups"
+    with pytest.raises(FileNotFoundError, match=pattern):
+        geometry_metrics(tmp_path / "result", tmp_path / "sim")

@@ -8,7 +8,8 @@ copied or renamed and still be read from any working directory.
 * :func:`resolve_recorded_path` turns a stored value back into a path: a relative value is taken from the
   recording folder, wherever that folder now is and whatever the working directory.
 * :func:`recorded_input` does the same for an input that must exist, and otherwise raises an error that
-  names the record, the key, the recorded path and the option that points to the input's new place.
+  names the record, the key, the recorded path and what to do (the option that points to the input's new
+  place).
 
 Records written before this rule (polarface 0.1 before issue 47) stored paths as given on the command
 line, relative to the working directory of the run: a relative value that does not exist under the
@@ -82,26 +83,26 @@ def resolve_recorded_path(folder: PathOrUrl, value: object) -> StoragePath | Non
     return inside
 
 
-def recorded_input(folder: PathOrUrl, value: object, *, record: str, key: str, option: str) -> StoragePath:
+def recorded_input(folder: PathOrUrl, value: object, *, record: str, key: str, remedy: str) -> StoragePath:
     """An input that a record of ``folder`` names and that must exist (a file or a folder).
 
     Args:
         folder: the folder whose record holds ``value``.
         value: the recorded value (:func:`record_path`).
         record: the record file, for the message (e.g. ``'RESULT/result.json'``).
-        key: the key path in the record, for the message (e.g. ``stages.prepare.capture``).
-        option: how the user points to the input's new place, for the message (e.g. ``--capture``).
+        key: the key path in the record, for the message (e.g. ``stages.prepare.geometry``).
+        remedy: what the user does about it, for the message: the option that points to the input's new
+            place (``"give its new place with --gt"``), or how to do without it.
 
     Raises:
         FileNotFoundError: nothing is recorded, or the recorded path does not exist (naming the record,
-            the key, the path and ``option``).
+            the key, the recorded path and ``remedy``).
     """
     path = resolve_recorded_path(folder, value)
     if path is None:
-        raise FileNotFoundError(f"'{record}' records no {key}; give it with {option}")
+        raise FileNotFoundError(f"'{record}' records no {key}; {remedy}")
     if not path.exists():
         raise FileNotFoundError(
-            f"'{record}' records {key} = '{value}', which does not exist (moved or deleted?); "
-            f"give its new place with {option}"
+            f"'{record}' records {key} = '{value}', which does not exist (moved or deleted?); {remedy}"
         )
     return path

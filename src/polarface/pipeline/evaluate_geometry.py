@@ -49,6 +49,7 @@ from polarface.geometry import load_poses, rasterize_uv
 from polarface.geometry.mesh import TriangleMesh, sample_surface
 from polarface.geometry.poses import invert_rigid
 from polarface.geometry.raycast import closest_surface_points
+from polarface.io import recorded_input
 from polarface.pipeline.evaluate_alignment import (
     geometry_dir,
     load_truth_mesh,
@@ -215,9 +216,10 @@ def geometry_metrics(result_dir: str | Path, gt_dir: str | Path,
     if geometry is None:
         return {"skipped": "the RESULT has no geometry folder (known-geometry mode: stages.prepare.geometry "
                            "is not set)"}
-    if not geometry.is_dir():
-        raise FileNotFoundError(f"geometry folder '{geometry}' (result.json stages.prepare.geometry) "
-                                "does not exist")
+    recorded_input(result.root, result.stage_record("prepare").get("geometry"),
+                   record=str(result.result_json_path), key="stages.prepare.geometry",
+                   remedy="put the geometry folder back there, or leave the geometry group out (--groups "
+                   "polarimetric rerender biophysical dynamic)")
     gt_root = truth_root(gt_dir)
     reference = reference_frame(result)
     summary_reference, rejected, meshes = _read_geometry_summary(geometry)

@@ -244,9 +244,14 @@ def _capture_lines(info: dict[str, Any], indent: str = "  ") -> list[str]:
         f"({info['frames_with_marker']} with a completion marker, {info['frames_derived']} demosaiced"
         f"{', ' + '/'.join(info['demosaicing']) if info['demosaicing'] else ''}), "
         f"{_number(info['duration_s'], ' s')} long",
-        f"{indent}cameras ({len(info['cameras'])}):",
     ]
-    for cam in info["cameras"]:
+    return lines + _camera_lines(info["cameras"], indent)
+
+
+def _camera_lines(cameras: list[dict[str, Any]], indent: str) -> list[str]:
+    """``cameras (N):`` and one line per camera: id, role, sensor, resolution."""
+    lines = [f"{indent}cameras ({len(cameras)}):"]
+    for cam in cameras:
         width, height = cam["resolution"]
         lines.append(f"{indent}  {cam['id']:<12} {cam['role'] or '?':<14} {cam['sensor'] or '?':<20} "
                      f"{width} x {height} px")
@@ -289,13 +294,8 @@ def _imported_lines(info: dict[str, Any]) -> list[str]:
         f"  {info['frames']} frames, {info['views'] if info['views'] is not None else '?'} views, texture "
         f"{resolution[0]} x {resolution[1]} texels",
         f"  unwrap stores: {stores}",
-        f"  cameras ({len(info['cameras'])}):",
     ]
-    for cam in info["cameras"]:
-        width, height = cam["resolution"]
-        lines.append(f"    {cam['id']:<12} {cam['role'] or '?':<14} {cam['sensor'] or '?':<20} "
-                     f"{width} x {height} px")
-    return lines
+    return lines + _camera_lines(info["cameras"], "  ")
 
 
 def format_info(info: dict[str, Any]) -> str:
