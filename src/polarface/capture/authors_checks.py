@@ -39,8 +39,8 @@ __all__ = [
     "ExrHeader",
     "check_session_files",
     "exr_header",
-    "fingerprint_differences",
     "inventory_problem",
+    "session_differences",
     "session_fingerprint",
     "store_inventory",
 ]
@@ -215,7 +215,7 @@ def session_fingerprint(session: AuthorsSession) -> dict[str, Any]:
     }
 
 
-def fingerprint_differences(recorded: Mapping[str, Any], current: Mapping[str, Any],
+def session_differences(recorded: Mapping[str, Any], current: Mapping[str, Any],
                             written: Collection[str]) -> list[str]:
     """What makes the session of fingerprint ``current`` another one than that of ``recorded``
     (:func:`session_fingerprint`), for an import that has already written what it read from the files

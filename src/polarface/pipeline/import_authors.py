@@ -45,8 +45,8 @@ import numpy as np
 
 from polarface.capture.authors_checks import (
     check_session_files,
-    fingerprint_differences,
     inventory_problem,
+    session_differences,
     session_fingerprint,
     store_inventory,
 )
@@ -312,7 +312,7 @@ def check_import_folder(plan: ImportPlan, out: str | Path) -> dict[str, Any] | N
                         f"{_frame_span(plan.session.frame_names)}")
     inputs = record.get("inputs")
     if isinstance(inputs, dict):
-        problems += fingerprint_differences(inputs, plan.fingerprint, _written_files(plan, out))
+        problems += session_differences(inputs, plan.fingerprint, _written_files(plan, out))
     else:  # a record of polarface before issue 47: the session's place is all it tells
         recorded = resolve_recorded_path(out, record.get("session"))
         if recorded is None or Path(os.path.abspath(recorded)) != Path(os.path.abspath(plan.session.root)):
