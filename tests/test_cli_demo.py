@@ -88,21 +88,30 @@ def _broken_links(page: Path) -> list[str]:
     return [t for t, name in files.items() if not (page.parent / name).exists()]
 
 
+def _check_demo_folder(out: Path) -> dict:
+    """The landing page, the report, the metrics and the exports of a finished demo folder, every link of
+    the two pages resolving; returns the metrics."""
+    page = (out / "index.html").read_text(encoding="utf-8")
+    assert "result/report.html" in page and "result/exports/viewer/index.html" in page
+    assert _broken_links(out / "index.html") == [] and _broken_links(out / "result" / "report.html") == []
+    exports = json.loads((out / "result" / "exports" / "export.json").read_text(encoding="utf-8"))
+    assert {"mitsuba", "gltf", "viewer", "usd", "kernels"} <= set(exports["formats"])
+    return json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+
+
 @pytest.mark.slow
 def test_the_readme_main_job_as_a_user_types_it(tmp_path):
     """`polarface demo --preset tiny` as a subprocess in a scratch directory with the default relative
     --out: the landing page, the report, the metrics and the exports, every link resolving; rerun on its
     finished folder it redoes nothing; moved elsewhere, its folders work from another directory through
-    relative paths (evaluate, export, render, info, dynamic and reconstruct --resume)."""
+    relative paths (evaluate, export, render, info, dynamic and reconstruct --resume); and a new run with
+    a relative --out into a sub-folder."""
     user = tmp_path / "user"
     user.mkdir()
     run = _polarface(["demo", "--preset", "tiny"], user)
     assert run.returncode == 0, run.stderr[-3000:]
     out = user / "demo_out"
-    page = (out / "index.html").read_text(encoding="utf-8")
-    assert "result/report.html" in page and "result/exports/viewer/index.html" in page
-    assert _broken_links(out / "index.html") == [] and _broken_links(out / "result" / "report.html") == []
-    metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+    metrics = _check_demo_folder(out)
     assert {"polarimetric", "rerender", "biophysical"} <= set(metrics)
     assert metrics["polarimetric"]["eta"]["median_abs_error"] < 0.1
     assert metrics["biophysical"]["c_m"]["median_abs_error"] < 0.02
@@ -115,9 +124,7 @@ def test_the_readme_main_job_as_a_user_types_it(tmp_path):
     assert (prepare["poses"], prepare["mesh"], prepare["geometry"]) == (
         "geometry/poses.json", "geometry/mesh.obj", "geometry")
     assert prepare["capture"] == (out / "sim" / "static").as_posix()
-    # every export format, and the report (written on a worker after the export) recorded as a stage
-    exports = json.loads((out / "result" / "exports" / "export.json").read_text(encoding="utf-8"))
-    assert {"mitsuba", "gltf", "viewer", "usd", "kernels"} <= set(exports["formats"])
+    # the report, written on a worker after the export, recorded as a stage
     assert record["stages"]["report"]["complete"] and record["stages"]["report"]["timings"]["report_s"] > 0
 
     # the same command on its finished folder: nothing is redone
@@ -149,6 +156,16 @@ def test_the_readme_main_job_as_a_user_types_it(tmp_path):
     assert json.loads((other / "metrics.json").read_text(encoding="utf-8"))["polarimetric"] == \
         metrics["polarimetric"]
     assert (other / "exports" / "mitsuba").is_dir() and (other / "render").is_dir()
+
+    # a new run with a relative --out into a sub-folder (created), then evaluated from elsewhere
+    run = _polarface(["demo", "--preset", "tiny", "--out", "runs/fresh"], other)
+    assert run.returncode == 0, run.stderr[-3000:]
+    _check_demo_folder(other / "runs" / "fresh")
+    run = _polarface(["evaluate", "other/runs/fresh/result", "--gt", "other/runs/fresh/sim", "--groups",
+                      "geometry"], tmp_path)
+    assert run.returncode == 0, run.stderr[-3000:]
+    fresh_metrics = json.loads((other / "runs" / "fresh" / "metrics.json").read_text(encoding="utf-8"))
+    assert json.loads(run.stdout)["geometry"] == fresh_metrics["geometry"]
 
 
 def test_sphere_demo_never_deletes_user_data(tmp_path, capsys):
