@@ -155,8 +155,7 @@ def test_serial_open3d_is_counted_over_threads_and_restores_the_limit():
     from polarface.geometry.open3d_library import open3d_module, serial_open3d
 
     utility = open3d_module().utility
-    if not hasattr(utility, "set_max_threads"):
-        pytest.skip("Open3D < 0.20 has no thread limit")
+    assert hasattr(utility, "set_max_threads"), "pyproject.toml requires Open3D >= 0.20, which has it"
     before = utility.get_max_threads()
     inside, leave = threading.Event(), threading.Event()
     seen = []
