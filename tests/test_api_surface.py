@@ -39,7 +39,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
     "polarface.executors": (
         "EXECUTOR_NAMES", "Executor", "LocalExecutor", "ProcessExecutor", "RayExecutor", "ThreadSettings",
         "UNIT_FAILURES",
-        "UnitOutcome", "check_ray_address", "create_executor", "failure_reason", "map_units_with_progress",
+        "UnitOutcome", "check_ray_address", "check_thread_count", "create_executor", "failure_reason",
+        "map_units_with_progress",
         "run_unit",
     ),
     "polarface.export": (

@@ -20,12 +20,12 @@ import pytest
 import polarface.pipeline.dynamic as dynamic_module
 from dynamic_fixtures import fake_static_result, snapshot
 from polarface.capture.store import CaptureStore
+from polarface.executors import check_thread_count
 from polarface.pipeline.dynamic import reconstruct_dynamic
 from polarface.pipeline.dynamic_geometry import _tracking_images
 from polarface.pipeline.dynamic_inputs import (
     check_dynamic_sequence,
     check_raw_images_whole,
-    check_thread_count,
     open_dynamic_capture,
     parse_frame_selection,
     selection_note,

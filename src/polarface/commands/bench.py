@@ -56,6 +56,8 @@ MAX_SECONDS = 3600.0
 
 def _check_arguments(args: argparse.Namespace) -> None:
     """Each option within its range, named as typed (ValueError)."""
+    from polarface.executors import check_thread_count
+
     for name, (low, high) in LIMITS.items():
         value = getattr(args, name)
         if not low <= value <= high:
@@ -63,10 +65,7 @@ def _check_arguments(args: argparse.Namespace) -> None:
             raise ValueError(f"argument '{option}' must lie in [{low}, {high}]; got {value}")
     if not (math.isfinite(args.seconds) and 0 < args.seconds <= MAX_SECONDS):
         raise ValueError(f"argument '--seconds' must be a number in (0, {MAX_SECONDS:g}]; got {args.seconds}")
-    cpus = os.cpu_count() or 1
-    if args.threads is not None and not 1 <= args.threads <= cpus:
-        raise ValueError(f"argument '--threads' must lie in [1, {cpus}] (this machine's CPUs); "
-                         f"got {args.threads}")
+    check_thread_count(args.threads, maximum=os.cpu_count() or 1)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -18,6 +18,7 @@ import os
 
 from polarface.commands import local_path, store_location
 from polarface.device import resolve_device
+from polarface.executors import check_thread_count
 from polarface.inverse.biophysical import BiophysicalConfig
 from polarface.io.output_folder import lock_output
 from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
@@ -72,10 +73,7 @@ def _check_arguments(args: argparse.Namespace) -> None:
     if not (args.gamut_tolerance > 0):  # NaN too; inf disables the screen
         raise ValueError(f"argument '--gamut-tolerance' must be > 0 (inf: no screen); "
                          f"got {args.gamut_tolerance}")
-    cpus = os.cpu_count() or 1
-    if not 1 <= args.threads <= cpus:
-        raise ValueError(f"argument '--threads' must lie in [1, {cpus}] (this machine's CPUs); "
-                         f"got {args.threads}")
+    check_thread_count(args.threads, maximum=os.cpu_count() or 1)
 
 
 def run(args: argparse.Namespace) -> int:

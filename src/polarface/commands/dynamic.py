@@ -44,9 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the stage and rewrite the report; print the stage's record as JSON."""
+    from polarface.executors import check_thread_count
     from polarface.io.output_folder import lock_output
     from polarface.pipeline.dynamic import reconstruct_dynamic
-    from polarface.pipeline.dynamic_inputs import check_thread_count
     from polarface.pipeline.reconstruct import write_result_report
     from polarface.results import ResultFolder
 

@@ -36,6 +36,7 @@ __all__ = [
     "ThreadSettings",
     "UnitOutcome",
     "UnitSchedule",
+    "check_thread_count",
     "failure_reason",
     "map_units_with_progress",
     "run_unit",
@@ -82,6 +83,21 @@ class UnitOutcome:
         if self.error is not None:
             record["error"] = self.error
         return record
+
+
+def check_thread_count(threads: Any, option: str = "--threads", maximum: int | None = None) -> None:
+    """ValueError (naming ``option``) unless ``threads`` (a stage's torch/numba thread count, ``--threads``)
+    is None or an integer >= 1 and, when ``maximum`` is given (this machine's CPU count, for work that runs
+    here), <= ``maximum``; checked before a stage writes anything."""
+    if threads is None:
+        return
+    whole = not isinstance(threads, bool) and isinstance(threads, int | float) and threads == int(threads)
+    if maximum is not None and (not whole or not 1 <= threads <= maximum):
+        raise ValueError(
+            f"argument '{option}' must lie in [1, {maximum}] (this machine's CPUs); got {threads!r}"
+        )
+    if not whole or threads < 1:
+        raise ValueError(f"argument '{option}' must be an integer >= 1; got {threads!r}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -49,7 +49,13 @@ from typing import Any, Literal
 import numpy as np
 
 from polarface.capture.store import CaptureStore
-from polarface.executors import Executor, LocalExecutor, UnitOutcome, map_units_with_progress
+from polarface.executors import (
+    Executor,
+    LocalExecutor,
+    UnitOutcome,
+    check_thread_count,
+    map_units_with_progress,
+)
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.poses import invert_rigid
 from polarface.geometry.registration import RegistrationConfig
@@ -61,7 +67,6 @@ from polarface.io.storage import remove_tree
 from polarface.pipeline.dynamic_geometry import TrackingFolder, align_reference, stereo_pass, track_sequence
 from polarface.pipeline.dynamic_inputs import (
     check_static_result,
-    check_thread_count,
     open_dynamic_capture,
     parse_frame_selection,
     resolve_dynamic_capture,

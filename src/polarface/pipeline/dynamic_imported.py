@@ -20,10 +20,11 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from polarface.executors import check_thread_count
 from polarface.geometry.mesh import load_mesh
 from polarface.io import record_path
 from polarface.pipeline.dynamic import DynamicStageConfig, _frame_done, _process_frame, _static_inputs
-from polarface.pipeline.dynamic_inputs import check_static_result, check_thread_count, parse_frame_selection
+from polarface.pipeline.dynamic_inputs import check_static_result, parse_frame_selection
 from polarface.pipeline.import_authors import copy_unwrap_store, read_imported
 from polarface.results import ResultFolder
 

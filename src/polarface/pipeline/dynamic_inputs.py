@@ -1,5 +1,5 @@
 """The dynamic stage's inputs, checked before anything is written: the dynamic capture store (or a
-simulation folder's ``dynamic``), its frame selection (``--frames``), its thread count (``--threads``),
+simulation folder's ``dynamic``), its frame selection (``--frames``),
 its rig against the static one, that it is not the static capture, that its raw images are whole, and
 the static RESULT the frames build on (:mod:`polarface.pipeline.dynamic`; rules in ``docs/dynamic.md``,
 "Bad input")."""
@@ -24,7 +24,6 @@ __all__ = [
     "check_dynamic_sequence",
     "check_raw_images_whole",
     "check_static_result",
-    "check_thread_count",
     "open_dynamic_capture",
     "parse_frame_selection",
     "resolve_dynamic_capture",
@@ -150,20 +149,6 @@ def selection_note(spec: str | Iterable[int] | None, selected: Sequence[int]) ->
     return (f"--frames {spec if isinstance(spec, str) else firsts!r}: the frames are fitted once "
             f"each, in the sequence's order ({_ranges(selected)}); the tracking always runs forward "
             "through the whole sequence")
-
-
-def check_thread_count(threads: Any, option: str = "--threads", maximum: int | None = None) -> None:
-    """ValueError (naming ``option``) unless ``threads`` is None or an integer >= 1 and, when ``maximum``
-    is given (this machine's CPU count, for fits that run here), <= ``maximum``."""
-    if threads is None:
-        return
-    whole = not isinstance(threads, bool) and isinstance(threads, int | float) and threads == int(threads)
-    if maximum is not None and (not whole or not 1 <= threads <= maximum):
-        raise ValueError(
-            f"argument '{option}' must lie in [1, {maximum}] (this machine's CPUs); got {threads!r}"
-        )
-    if not whole or threads < 1:
-        raise ValueError(f"argument '{option}' must be an integer >= 1; got {threads!r}")
 
 
 def check_static_result(folder: ResultFolder) -> None:

@@ -400,7 +400,7 @@ def reconstruct(
         )
     if holdout_every < 0 or holdout_every == 1:
         raise ValueError(f"argument '--holdout-every' must be 0 or >= 2; got {holdout_every}")
-    from polarface.pipeline.dynamic_inputs import check_thread_count
+    from polarface.executors import check_thread_count
 
     check_thread_count(threads)  # '--threads' >= 1, refused before anything is written
     stereo = inputs.mesh_path is None
