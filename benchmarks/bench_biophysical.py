@@ -30,10 +30,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from polarface.evaluate import evaluate_biophysical
 from polarface.geometry.mesh import save_obj
 from polarface.inverse.biophysical import BiophysicalConfig
 from polarface.io import read_exr, write_exr, write_json_atomic, write_png
-from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
+from polarface.pipeline import run_biophysical_stage
 from polarface.render.subsurface import texture_space_exitance
 from polarface.simulate.ground_truth import facial_region_weights
 from polarface.simulate.pipeline import SimulationConfig, SimulationScene

@@ -93,8 +93,8 @@ def _warm_up(unit: tuple[str | None, int]) -> int:
     Ray worker's first unit pays both otherwise)."""
     import polarface.capture.ingest
     import polarface.inverse.polarimetric.kernel
-    import polarface.pipeline.dynamic
-    import polarface.pipeline.geometry
+    import polarface.pipeline.dynamic.stage
+    import polarface.pipeline.geometry.stage
     import polarface.simulate.frames  # noqa: F401
 
     unwrap, index = unit

@@ -24,8 +24,8 @@ from pathlib import Path
 
 def _prepare(sim: Path, result: Path) -> None:
     from polarface.pipeline import resolve_reconstruct_inputs
-    from polarface.pipeline.reconstruct import ReconstructContext, stage_prepare
-    from polarface.pipeline.reconstruct_fingerprint import check_fingerprint
+    from polarface.pipeline.reconstruct import ReconstructContext, check_fingerprint
+    from polarface.pipeline.reconstruct.stages import stage_prepare
 
     if (result / "unwrap.zarr").is_dir():
         return

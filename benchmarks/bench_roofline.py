@@ -12,7 +12,7 @@ Measures
   arrays x 8 bytes per element, no write-allocate);
 * the fused kernel's work per texel-view iteration (one sample: a texel seen in one view, forward and
   analytic gradient over all K lights), counted by *instrumenting* kernel.py's own code: its phase
-  functions (:mod:`polarface.inverse.polarimetric.kernel`, :mod:`polarface.inverse.polarimetric.kernel_math`)
+  functions (:mod:`polarface.inverse.polarimetric.kernel`, :mod:`polarface.inverse.polarimetric._kernel_math`)
   are re-bound, as ``kernel._compile`` does for numba, to a namespace whose float type ``F`` and
   ``math.sqrt`` build a dataflow graph instead of numbers, and run on one real sample of the benchmark
   patch. Each graph node is one add/sub/mul/div/sqrt; equal nodes inside one vectorised loop body
@@ -294,7 +294,7 @@ def _traced_phases():
     namespace["F"] = lambda x: x if isinstance(x, _Node) else _Node(x)
     namespace["math"] = shim
     for name in (
-        "_fresnel", "_ggx", "_g1_over_cos", "_cos2_sin2", "_double_angle", "_light", "_geometry",
+        "fresnel", "ggx", "g1_over_cos", "cos2_sin2", "double_angle", "light_terms", "_geometry",
         "_texel", "_exit_terms", "_view_terms", "_load_light", "_zero_rows", "_current_light",
         "_forward_lights", "_channel", "_losses", "_reverse_lights",
     ):  # fmt: skip

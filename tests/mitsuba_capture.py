@@ -49,8 +49,8 @@ from polarface.optics import stokes_frame
 from polarface.render.renderer import shading_normals
 from polarface.render.shading import fill_empty_texels
 from polarface.simulate.ground_truth import build_appearance_maps
-from polarface.simulate.pipeline import MAP_SEED
 from polarface.simulate.presets import get_preset, get_skin_type
+from polarface.simulate.scene import MAP_SEED
 
 __all__ = [
     "ANALYZER_ANGLES",

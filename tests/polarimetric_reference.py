@@ -14,7 +14,8 @@ import numpy as np
 import torch
 
 from polarface.inverse.polarimetric import PolarimetricConfig, initial_raw
-from polarface.inverse.polarimetric.fit import _to_maps, haloed_slices, torch_fit_settings
+from polarface.inverse.polarimetric.config import fit_maps_from_raw
+from polarface.inverse.polarimetric.fit import haloed_slices, torch_fit_settings
 from polarface.inverse.polarimetric.init import apply_closed_form_starts
 from polarface.inverse.polarimetric.optimise import optimise_patch
 from polarface.inverse.polarimetric.patch_units import patch_side
@@ -65,5 +66,5 @@ def row_major_fit(unwrap: UnwrapStore, config: PolarimetricConfig
         torch.manual_seed(config.seed)
         for rows, cols in patches:
             _fit_patch(unwrap, rows, cols, fitting, views, config, scale, raw, initialised, curve)
-        maps = _to_maps(raw, config)
+        maps = fit_maps_from_raw(raw, config)
     return maps, [v / len(patches) for v in curve]

@@ -275,7 +275,7 @@ def test_resume_refuses_other_options_or_capture(sim, tmp_path, capsys):
 def test_a_run_stopped_by_ctrl_c_in_an_early_stage_resumes(sim, tmp_path, capsys, monkeypatch, stage):
     """Ctrl-C in the geometry or the prepare stage says 'rerun with --resume', and the resume is taken:
     the folder is already a RESULT (its format keys are written with the fingerprint, before any stage)."""
-    module = importlib.import_module("polarface.pipeline.reconstruct")
+    module = importlib.import_module("polarface.pipeline.reconstruct.stages")
 
     def interrupted(ctx):
         raise KeyboardInterrupt

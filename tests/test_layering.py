@@ -25,14 +25,28 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("render",),  # the renderer
     ("simulate",),  # the rig simulator
     ("inverse",),  # inverse stages
+    ("evaluate",),  # metrics of a RESULT against the simulator's ground truth
     ("export",),  # files for other tools (Mitsuba, glTF, USD, diffusion kernels)
     ("report",),  # HTML pages
     ("pipeline",),  # orchestration of stages on folders
     ("commands", "cli"),  # the command line
 )
 
+#: ``polarface.pipeline``'s rooms from the bottom up, under the same rule one level down: a stage
+#: subpackage or one-command job imports only from its own room and the rooms below it.
+PIPELINE_LAYERS: tuple[tuple[str, ...], ...] = (
+    ("inputs",),  # what a path holds, each stage's inputs checked; the authors' import
+    ("geometry",),  # the geometry stage
+    ("biophysical",),  # the biophysical stage
+    ("dynamic",),  # the dynamic stage (runs the geometry frames and the biophysical stage per frame)
+    ("reconstruct",),  # the static reconstruction's stages (runs all of the above)
+    ("calibrate_polarization", "export", "info", "ior", "skin_fit"),  # one-command jobs
+    ("demo",),  # the demo job (reconstructs, evaluates, exports)
+)
+
 PACKAGE_ROOT = Path(polarface.__file__).parent
 LAYER_OF = {name: level for level, names in enumerate(LAYERS) for name in names}
+PIPELINE_LAYER_OF = {name: level for level, names in enumerate(PIPELINE_LAYERS) for name in names}
 
 
 def _top_level(module: str) -> str:
@@ -72,6 +86,24 @@ def upward_imports(source: str, module: str, is_package: bool = False) -> list[s
     return bad
 
 
+def upward_pipeline_imports(source: str, module: str, is_package: bool = False) -> list[str]:
+    """The imports of a module inside ``polarface.pipeline`` that point to another room of its own
+    :data:`PIPELINE_LAYERS` level, a higher room, or the ``polarface.pipeline`` face itself."""
+    parts = module.split(".")
+    if parts[:2] != ["polarface", "pipeline"] or len(parts) < 3:
+        return []  # outside pipeline, or its face
+    own = parts[2]
+    bad = []
+    for line, name in imported_modules(source, module, is_package):
+        target = name.split(".")
+        if target[:2] != ["polarface", "pipeline"]:
+            continue
+        room = target[2] if len(target) > 2 else ""
+        if room != own and PIPELINE_LAYER_OF.get(room, len(PIPELINE_LAYERS)) >= PIPELINE_LAYER_OF[own]:
+            bad.append(f"{module}:{line} imports {name}")
+    return bad
+
+
 def _source_files() -> list[Path]:
     return sorted(p for p in PACKAGE_ROOT.rglob("*.py") if "__pycache__" not in p.parts)
 
@@ -88,6 +120,20 @@ def test_every_package_has_a_layer():
         if (p.is_dir() and (p / "__init__.py").exists()) or (p.suffix == ".py" and p.stem != "__init__")
     }
     assert top_level <= set(LAYER_OF), f"packages without a layer: {sorted(top_level - set(LAYER_OF))}"
+
+
+def test_every_pipeline_room_has_a_layer():
+    rooms = {p.stem if p.is_file() else p.name for p in (PACKAGE_ROOT / "pipeline").iterdir()
+             if (p.is_dir() and (p / "__init__.py").exists()) or (p.suffix == ".py" and p.stem != "__init__")}
+    assert rooms == set(PIPELINE_LAYER_OF), f"rooms without a layer: {sorted(rooms - set(PIPELINE_LAYER_OF))}"
+
+
+def test_pipeline_rooms_import_downwards():
+    violations = []
+    for path in _source_files():
+        source = path.read_text(encoding="utf-8")
+        violations += upward_pipeline_imports(source, _module_name(path), path.name == "__init__.py")
+    assert not violations, "imports against pipeline's rooms:\n" + "\n".join(violations)
 
 
 def test_imports_point_down_the_pipeline():
@@ -110,3 +156,18 @@ def test_imports_point_down_the_pipeline():
 )
 def test_the_checker_finds_upward_imports(source, module, expected):
     assert len(upward_imports(source, module)) == expected
+
+
+@pytest.mark.parametrize(
+    ("source", "module", "expected"),
+    [
+        ("from polarface.pipeline.reconstruct import reconstruct\n", "polarface.pipeline.dynamic.stage", 1),
+        ("from polarface.pipeline import evaluate\n", "polarface.pipeline.inputs.static", 1),  # the face
+        ("from polarface.pipeline.info import folder_info\n", "polarface.pipeline.export", 1),  # same level
+        ("from polarface.pipeline.inputs import read_imported\n", "polarface.pipeline.dynamic.imported", 0),
+        ("from . import config\n", "polarface.pipeline.geometry.stage", 0),
+        ("from polarface.pipeline.demo import x\n", "polarface.report.html", 0),  # not pipeline's rule
+    ],
+)
+def test_the_checker_finds_upward_pipeline_imports(source, module, expected):
+    assert len(upward_pipeline_imports(source, module)) == expected

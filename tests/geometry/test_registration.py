@@ -197,7 +197,7 @@ def test_clouds_are_loaded_lazily(sweep):
 def test_walks_run_in_threads_and_enter_the_graph_in_walk_order(head_surface):
     from tqdm import tqdm
 
-    from polarface.geometry.registration_steps import chain_and_close
+    from polarface.geometry.registration.odometry import chain_and_close
 
     truth = true_poses(count=8)
     threads = set()
@@ -272,7 +272,7 @@ def test_bad_arguments_name_the_argument():
 def test_edges_do_not_keep_open3d_results_alive(head_surface):
     """Regression: ``np.asarray(result.transformation)`` is a view whose base keeps Open3D's whole
     registration result (its correspondence set) alive in the pose graph: memory grew ~1 MB per frame."""
-    from polarface.geometry.registration_icp import icp, registration_levels
+    from polarface.geometry.registration.icp import icp, registration_levels
 
     config = RegistrationConfig()
     truth = true_poses(count=2)
@@ -342,7 +342,7 @@ def test_icp_scores_and_information_are_those_of_its_transform(head_surface):
     ``get_information_matrix_from_point_clouds`` at the returned transform (independent reference)."""
     from open3d.pipelines import registration as reg
 
-    from polarface.geometry.registration_icp import icp, registration_levels
+    from polarface.geometry.registration.icp import icp, registration_levels
 
     config = RegistrationConfig()
     truth = true_poses(count=2)
@@ -361,7 +361,7 @@ def test_icp_scores_and_information_are_those_of_its_transform(head_surface):
 def test_information_matrix_is_the_sum_of_point_jacobians():
     """Closed form against the explicit sum of ``G^T G``, ``G = [-[t]x | I]``; points on one line leave the
     rotation about that line unconstrained (rank 5); bad shapes name the argument."""
-    from polarface.geometry.registration_icp import information_matrix
+    from polarface.geometry.registration.icp import information_matrix
 
     points = np.random.default_rng(3).normal(0.0, 50.0, (40, 3))
     explicit = np.zeros((6, 6))

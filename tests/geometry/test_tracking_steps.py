@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from polarface.geometry.tracking import TrackingConfig
-from polarface.geometry.tracking_steps import DIS_PRESETS, MIN_CROP_PX, flow_crop, sampled_flow
+from polarface.geometry.tracking.config import DIS_PRESETS
+from polarface.geometry.tracking.flow import MIN_CROP_PX, flow_crop, sampled_flow
 
 WIDTH, HEIGHT = 320, 240
 SHIFT = np.array([3.4, -2.3])  # px, image b = image a moved by SHIFT
@@ -117,7 +118,7 @@ def test_median_over_cameras_is_numpys_nanmedian():
     camera counts, all-NaN vertices NaN."""
     import warnings
 
-    from polarface.geometry.tracking_steps import _median_over_cameras
+    from polarface.geometry.tracking.propagation import _median_over_cameras
 
     rng = np.random.default_rng(3)
     for cameras, missing in ((10, 0.5), (7, 0.2), (2, 0.6), (1, 0.3)):

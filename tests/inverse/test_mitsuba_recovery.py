@@ -17,9 +17,9 @@ import pytest
 
 from mitsuba_capture import family_a, write_mitsuba_capture
 from mitsuba_reference import validate_against_polarface
+from polarface.evaluate import evaluate
 from polarface.io import read_exr, read_png
 from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
-from polarface.pipeline.evaluate import evaluate
 
 TEXTURE_RESOLUTION = 128
 CONFIG = family_a(texture_resolution=TEXTURE_RESOLUTION)

@@ -91,7 +91,7 @@ def test_cli_text_json_and_errors(sim, tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert main(["info", str(tmp_path / "empty")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "not a capture store, simulation folder or RESULT folder" in err
+    assert err.count("\n") == 1 and "is not a RESULT folder, a capture store, an imported session or a" in err
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / "result.json").write_text("{nope")
     assert main(["info", str(tmp_path / "bad")]) == 2

@@ -55,7 +55,7 @@ def demo_dir(tmp_path_factory):
     sim, result = out / "sim", out / "result"
     make_sphere_capture(sim, SphereCaptureConfig(texture_resolution=RES, frames=4))
     result.mkdir()
-    stage_prepare = importlib.import_module("polarface.pipeline.reconstruct").stage_prepare
+    stage_prepare = importlib.import_module("polarface.pipeline.reconstruct.stages").stage_prepare
     context = ReconstructContext(
         sim / "static", result, sim / "ground_truth" / "mesh_rest.obj",
         sim / "ground_truth" / "static" / "poses.json", RES, "cpu", False, False, 4,

@@ -18,8 +18,8 @@ from polarface.capture.store import CaptureStore
 from polarface.io import read_png
 from polarface.optics.analyzer import AnalyzerModel
 from polarface.simulate.analyzers import SimulatedAnalyzers
-from polarface.simulate.frames import _raw_frames
-from polarface.simulate.pipeline import SimulationConfig, _check_resume, simulate
+from polarface.simulate.frames import raw_frames
+from polarface.simulate.pipeline import SimulationConfig, simulate
 
 NON_IDEAL = SimulatedAnalyzers(extinction_ratio=100.0, angle_error_deg=1.0, seed=3)
 
@@ -83,11 +83,11 @@ def test_rig_json_with_and_without_the_calibration(tmp_path):
     assert json.loads(json.dumps(record)) == record
 
 
-def test_configuration_record_keeps_older_folders(tmp_path):
+def test_configuration_record_keeps_older_folders():
     """An ideal sensor's configuration is recorded as before (older simulation folders resume); a
     non-ideal one is recorded with its analyzers."""
-    assert "analyzers" not in _check_resume(tmp_path / "a", SimulationConfig(preset="tiny"), True)
-    recorded = _check_resume(tmp_path / "b", SimulationConfig(preset="tiny", analyzers=NON_IDEAL), True)
+    assert "analyzers" not in SimulationConfig(preset="tiny").to_json()
+    recorded = SimulationConfig(preset="tiny", analyzers=NON_IDEAL).to_json()
     assert recorded["analyzers"] == {"extinction_ratio": 100.0, "angle_error_deg": 1.0, "seed": 3,
                                      "calibration_supplied": True}
 
@@ -111,7 +111,7 @@ def test_raw_frames_pass_through_the_analyzers():
 
     def raws(analyzers):
         config = SimulationConfig(preset="tiny", noise=False, analyzers=analyzers)
-        return _raw_frames(types.SimpleNamespace(config=config, rig=rig, exposure=1.0), frame, "static", 0)
+        return raw_frames(types.SimpleNamespace(config=config, rig=rig, exposure=1.0), frame, "static", 0)
 
     ideal, other = raws(SimulatedAnalyzers()), raws(NON_IDEAL)
     calibrated_rig = NON_IDEAL.rig_for_folder(rig)

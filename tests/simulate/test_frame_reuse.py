@@ -9,10 +9,11 @@ import torch
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import reposition
 from polarface.render.subsurface import SubsurfaceModel
-from polarface.simulate.frames import exposure_from, frame_exposure, render_frame
+from polarface.simulate.ground_truth import chromophore_maps
 from polarface.simulate.ground_truth_store import texel_visibility
-from polarface.simulate.pipeline import SimulationConfig, SimulationScene
-from polarface.simulate.sequences import chromophore_maps, sequence_frame
+from polarface.simulate.render import exposure_from, frame_exposure, render_frame
+from polarface.simulate.scene import SimulationConfig, SimulationScene
+from polarface.simulate.sequences import sequence_frame
 from polarface.skin.layers import subsurface_albedo
 
 

@@ -16,7 +16,7 @@ from polarface.capture.store import CaptureStore
 from polarface.geometry.poses import check_rigid, load_poses
 from polarface.io import read_exr
 from polarface.results.fingerprint import RecordMismatchError
-from polarface.simulate.frames import _raw_frames
+from polarface.simulate.frames import raw_frames
 from polarface.simulate.pipeline import SimulationConfig, SimulationScene, simulate
 from polarface.simulate.presets import SKIN_TYPES, get_preset, get_skin_type
 
@@ -73,7 +73,7 @@ def test_same_seed_same_bytes_other_seed_other_noise():
         scene = types.SimpleNamespace(
             config=SimulationConfig(preset="tiny", seed=seed, noise=noise), rig=rig, exposure=2.0
         )
-        return _raw_frames(scene, frame, "static", 3)
+        return raw_frames(scene, frame, "static", 3)
 
     first, again, other = raws(0), raws(0), raws(1)
     for cam in first:

@@ -13,6 +13,7 @@ Modules:
     derived_chunks   which chunk of a derived array a read found damaged or missing (one-line errors).
     store_writer     writing a capture store: frames, derived arrays, markers, resume.
     manifest         the store's manifest and frame markers, and their checks against the files.
+    checks           a store checked before a stage reads it (finished, readable, rectifiable, whole).
     ingest           RAW_DIR -> capture store.
     calibration      OpenCV chessboard / ChArUco detection and calibration written into a rig.
     rig_calibration  board photos -> calibrated rig.json (``polarface calibrate``).
@@ -47,6 +48,13 @@ from polarface.capture.calibration import (
     reprojection_rms,
     update_rig,
 )
+from polarface.capture.checks import (
+    check_capture_manifest,
+    check_derived_store,
+    check_raw_images_whole,
+    check_stereo_pairs,
+    raw_image_cameras,
+)
 from polarface.capture.demosaic import (
     DEMOSAIC_METHODS,
     DemosaicMethod,
@@ -56,7 +64,9 @@ from polarface.capture.demosaic import (
 )
 from polarface.capture.ingest import RAW_SUFFIXES, ingest_directory, scan_raw_directory
 from polarface.capture.manifest import (
+    DERIVED_ZARR,
     MANIFEST_FORMAT,
+    MANIFEST_JSON,
     MANIFEST_VERSION,
     FrameRecord,
     frame_marker_path,
@@ -114,7 +124,9 @@ from polarface.capture.synthetic import PATTERNS, DemosaicErrors, measure_demosa
 __all__ = [
     "BAYER_BLOCK",
     "DEMOSAIC_METHODS",
+    "DERIVED_ZARR",
     "MANIFEST_FORMAT",
+    "MANIFEST_JSON",
     "MANIFEST_VERSION",
     "OBSERVATION_NAMES",
     "PATTERNS",
@@ -153,6 +165,10 @@ __all__ = [
     "calibrate_stereo",
     "camera_analyzer_models",
     "central_roi",
+    "check_capture_manifest",
+    "check_derived_store",
+    "check_raw_images_whole",
+    "check_stereo_pairs",
     "chessboard_object_points",
     "colour_index_map",
     "convergence_distance_mm",
@@ -176,6 +192,7 @@ __all__ = [
     "pattern_period",
     "plane_homography",
     "raw_bit_depth_ok",
+    "raw_image_cameras",
     "read_gray",
     "read_image_list",
     "read_manifest",

@@ -1,6 +1,6 @@
 """Checks of an authors' session before an import writes anything, and of an import's stores afterwards.
 
-``polarface import-authors`` (:mod:`polarface.pipeline.import_authors`) reads hundreds of EXR images; a
+``polarface import-authors`` (:mod:`polarface.pipeline.inputs.authors`) reads hundreds of EXR images; a
 truncated or wrongly sized one found halfway would leave a half-written import. Before anything is
 written it therefore reads every EXR's header and offset table (not its pixels; about a millisecond a
 file), :func:`check_session_files`:

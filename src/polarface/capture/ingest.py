@@ -39,7 +39,13 @@ from tqdm import tqdm
 
 from polarface.capture.analyzers import applied_analyzers
 from polarface.capture.demosaic import DemosaicMethod
-from polarface.capture.manifest import raw_bit_depth_ok, raw_digest, read_frame_marker, read_manifest
+from polarface.capture.manifest import (
+    MANIFEST_JSON,
+    raw_bit_depth_ok,
+    raw_digest,
+    read_frame_marker,
+    read_manifest,
+)
 from polarface.capture.rig import Rig
 from polarface.capture.store import CaptureStore
 from polarface.executors import Executor, LocalExecutor, UnitOutcome, map_units_with_progress
@@ -197,7 +203,7 @@ def check_store_inputs(
     problems = []
     if Rig.load(root / "rig.json").model_dump(mode="json") != rig.model_dump(mode="json"):
         problems.append("its rig.json differs from --rig")
-    manifest = root / "manifest.json"
+    manifest = root / MANIFEST_JSON
     if manifest.exists():
         recorded = read_manifest(manifest)["sequence"]
         if recorded != sequence:

@@ -23,7 +23,9 @@ from polarface.io.images import image_header, read_png
 from polarface.io.storage import PathOrUrl, StoragePath, storage_path
 
 __all__ = [
+    "DERIVED_ZARR",
     "MANIFEST_FORMAT",
+    "MANIFEST_JSON",
     "MANIFEST_VERSION",
     "FrameRecord",
     "frame_marker_path",
@@ -35,6 +37,10 @@ __all__ = [
     "write_manifest",
 ]
 
+#: The capture store's marker: its manifest, at the store's root.
+MANIFEST_JSON = "manifest.json"
+#: The capture store's derived arrays (Stokes observations), beside the manifest (``capture.store``).
+DERIVED_ZARR = "derived.zarr"
 #: ``format`` field of ``manifest.json``.
 MANIFEST_FORMAT = "polarface-capture"
 #: ``version`` field of ``manifest.json``.
@@ -135,14 +141,14 @@ def write_manifest(root: PathOrUrl, rig: Rig, sequence: str, *, complete: bool) 
         "complete": complete,
         "frame_count": len(frames),
         "cameras": [c.id for c in rig.cameras],
-        "derived_store": "derived.zarr",
+        "derived_store": DERIVED_ZARR,
         "observations": list(OBSERVATION_NAMES),
         "frames": frames,
     }
     analyzers = applied_analyzers(rig)
     if analyzers:  # absent: every camera ideal, nothing applied (ideal stores keep their bytes)
         manifest["analyzers"] = analyzers
-    write_json_atomic(root / "manifest.json", manifest)
+    write_json_atomic(root / MANIFEST_JSON, manifest)
     return manifest
 
 

@@ -25,7 +25,13 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, ValidationError, model_validator
 
-from polarface.capture.rig_components import AnalyzerCalibration, Camera, LightModule, _Model, _one_line
+from polarface.capture.rig_components import (
+    AnalyzerCalibration,
+    Camera,
+    LightModule,
+    StrictModel,
+    one_line_errors,
+)
 from polarface.capture.rig_spectral import SIX_CHANNEL_NAMES, SpectralModel
 from polarface.geometry.camera import look_at
 from polarface.io.atomic import write_json_atomic
@@ -42,7 +48,7 @@ __all__ = [
 ]
 
 
-class Rig(_Model):
+class Rig(StrictModel):
     """The whole rig: ``rig.json``.
 
     Attributes:
@@ -171,7 +177,7 @@ class Rig(_Model):
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            raise ValueError(f"rig file '{path}' is invalid: {_one_line(exc)}") from exc
+            raise ValueError(f"rig file '{path}' is invalid: {one_line_errors(exc)}") from exc
 
     def save(self, path: PathOrUrl) -> StoragePath:
         """Write ``rig.json`` atomically; returns the path."""

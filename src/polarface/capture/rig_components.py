@@ -1,9 +1,10 @@
 """The parts of ``rig.json``: cameras (with their measured analyzers) and polarized light modules.
 
-Pydantic v2 models on one base (``_Model``: unknown keys, NaN and infinity refused); ``_one_line``
-puts a ``ValidationError`` on one line naming the fields (``lights[3].position_mm: ...``), as
-:meth:`polarface.capture.rig.Rig.load` reports a bad file. Units: positions in mm, light polarizer
-angles in radians, analyzer angles in degrees, ``K`` in pixels. Camera poses are 4x4
+Pydantic v2 models on one base (:class:`StrictModel`: unknown keys, NaN and infinity refused);
+:func:`one_line_errors` puts a ``ValidationError`` on one line naming the fields
+(``lights[3].position_mm: ...``), as :meth:`polarface.capture.rig.Rig.load` reports a bad file. Both are
+shared with :mod:`polarface.capture.rig` and :mod:`polarface.capture.rig_spectral`. Units: positions in
+mm, light polarizer angles in radians, analyzer angles in degrees, ``K`` in pixels. Camera poses are 4x4
 ``world_to_camera`` matrices in the OpenCV convention (camera x right, y down, z forward). The whole
 rig and the channel order of ``colour_channels``: :mod:`polarface.capture.rig`.
 """
@@ -31,7 +32,9 @@ def _finite_matrix(value: Any, rows: int, cols: int, name: str) -> list[list[flo
     return array.tolist()
 
 
-class _Model(BaseModel):
+class StrictModel(BaseModel):
+    """The base of the rig's models: unknown keys and NaN/infinity refused, assignments validated."""
+
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
@@ -43,13 +46,13 @@ def _field_path(loc: tuple[Any, ...]) -> str:
     return path or "rig"
 
 
-def _one_line(exc: ValidationError) -> str:
+def one_line_errors(exc: ValidationError) -> str:
     """Every error of a pydantic ``ValidationError`` on one line: ``field.path: message; ...``."""
     parts = (f"{_field_path(tuple(e['loc']))}: {' '.join(str(e['msg']).split())}" for e in exc.errors())
     return "; ".join(parts)
 
 
-class AnalyzerCalibration(_Model):
+class AnalyzerCalibration(StrictModel):
     """The measured analyzers of a polarization camera (or of one colour channel of it).
 
     Absent from ``rig.json`` means ideal (infinite extinction ratio, 0/45/90/135 deg). Written by
@@ -78,7 +81,7 @@ class AnalyzerCalibration(_Model):
         return AnalyzerModel(ratio, self.analyzer_angles_deg)
 
 
-class Camera(_Model):
+class Camera(StrictModel):
     """One camera of the rig.
 
     Attributes:
@@ -158,12 +161,12 @@ class Camera(_Model):
                 try:
                     per_colour[colour] = AnalyzerCalibration.model_validate(entry)
                 except ValidationError as exc:
-                    raise ValueError(f"{colour}: {_one_line(exc)}") from None
+                    raise ValueError(f"{colour}: {one_line_errors(exc)}") from None
             return per_colour
         try:
             return AnalyzerCalibration.model_validate(value)
         except ValidationError as exc:
-            raise ValueError(_one_line(exc)) from None
+            raise ValueError(one_line_errors(exc)) from None
 
     @field_validator("colour_channels")
     @classmethod
@@ -235,7 +238,7 @@ class Camera(_Model):
         return PinholeCamera.from_dict(self.model_dump())
 
 
-class LightModule(_Model):
+class LightModule(StrictModel):
     """One polarized LED module, treated as a point light.
 
     Attributes:

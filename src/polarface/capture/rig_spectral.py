@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field, model_validator
 
-from polarface.capture.rig_components import _Model
+from polarface.capture.rig_components import StrictModel
 
 __all__ = ["SIX_CHANNEL_NAMES", "SpectralModel"]
 
@@ -21,7 +21,7 @@ __all__ = ["SIX_CHANNEL_NAMES", "SpectralModel"]
 SIX_CHANNEL_NAMES = ("red_upper", "green_upper", "blue_upper", "red_lower", "green_lower", "blue_lower")
 
 
-class SpectralModel(_Model):
+class SpectralModel(StrictModel):
     """Spectral calibration: six camera channel responses and the LED spectrum on one grid.
 
     Attributes:

@@ -36,10 +36,17 @@ import numpy as np
 
 from polarface.capture.demosaic import PolarizationStack
 from polarface.capture.derived_chunks import damaged_chunk_message, missing_chunk_message
-from polarface.capture.manifest import FrameRecord, frame_marker_path, manifest_problems, read_manifest
+from polarface.capture.manifest import (
+    DERIVED_ZARR,
+    MANIFEST_JSON,
+    FrameRecord,
+    frame_marker_path,
+    manifest_problems,
+    read_manifest,
+)
 from polarface.capture.observations import OBSERVATION_NAMES, observations_from_stack
 from polarface.capture.rig import Rig
-from polarface.capture.store_writer import _CaptureStoreWriter
+from polarface.capture.store_writer import CaptureStoreWriter
 from polarface.io.images import read_png
 from polarface.io.storage import PathOrUrl, StoragePath, open_zarr_group, storage_path
 
@@ -51,7 +58,7 @@ def _observation(intensities: np.ndarray, name: str) -> np.ndarray:
     return getattr(observations_from_stack(PolarizationStack(intensities, flags, flags)), name)
 
 
-class CaptureStore(_CaptureStoreWriter):
+class CaptureStore(CaptureStoreWriter):
     """A capture store directory (see the module docstring). Use :meth:`create` or :meth:`open`."""
 
     def __init__(self, root: PathOrUrl, rig: Rig, sequence: str, chunk: int = 512) -> None:
@@ -75,9 +82,9 @@ class CaptureStore(_CaptureStoreWriter):
                 unknown protocol or missing package.
         """
         root = storage_path(path)
-        manifest_path = root / "manifest.json"
+        manifest_path = root / MANIFEST_JSON
         if not manifest_path.is_file():
-            raise FileNotFoundError(f"'{root}' is not a capture store: no manifest.json")
+            raise FileNotFoundError(f"'{root}' is not a capture store: no {MANIFEST_JSON}")
         rig = Rig.load(root / "rig.json")
         manifest = read_manifest(manifest_path)
         store = cls(root, rig, manifest["sequence"])
@@ -91,7 +98,7 @@ class CaptureStore(_CaptureStoreWriter):
         """The parsed ``manifest.json``, read once per store object (one request per read at a URL) and
         refreshed by this object's own writes; reopen the store to see frames another process added."""
         if self._manifest is None:
-            self._manifest = read_manifest(self.root / "manifest.json")
+            self._manifest = read_manifest(self.root / MANIFEST_JSON)
         return self._manifest
 
     @property
@@ -166,10 +173,10 @@ class CaptureStore(_CaptureStoreWriter):
     def _zarr(self, mode: str = "a"):
         if self._group is None or mode == "a":
             try:
-                self._group = open_zarr_group(self.root / "derived.zarr", mode)
+                self._group = open_zarr_group(self.root / DERIVED_ZARR, mode)
             except ValueError as exc:  # a zarr.json that is not JSON (JSONDecodeError) or not zarr's
-                raise ValueError(f"capture store '{self.root}': the metadata of 'derived.zarr' cannot be "
-                                 f"read (derived.zarr/zarr.json: {exc})") from None
+                raise ValueError(f"capture store '{self.root}': the metadata of '{DERIVED_ZARR}' cannot be "
+                                 f"read ({DERIVED_ZARR}/zarr.json: {exc})") from None
         return self._group
 
     def _derived_array(self, name: str, frame_index: int):
@@ -179,12 +186,12 @@ class CaptureStore(_CaptureStoreWriter):
         try:
             return self._zarr("r")[name]
         except (KeyError, FileNotFoundError) as exc:
-            raise ValueError(f"derived array '{name}' is missing from '{self.root}/derived.zarr'") from exc
+            raise ValueError(f"derived array '{name}' is missing from '{self.root}/{DERIVED_ZARR}'") from exc
         except ValueError as exc:  # the array's (or its parent group's) zarr.json is damaged
             if str(exc).startswith(f"capture store '{self.root}'"):
                 raise
             raise ValueError(f"capture store '{self.root}': the metadata of derived array '{name}' cannot be "
-                             f"read (derived.zarr/{name}/zarr.json: {exc})") from None
+                             f"read ({DERIVED_ZARR}/{name}/zarr.json: {exc})") from None
 
     def _read_derived(self, name: str, frame_index: int, region: tuple) -> np.ndarray:
         """``array[frame_index, *region]`` of derived array ``name``, refusing a chunk that cannot be decoded

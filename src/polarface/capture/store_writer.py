@@ -20,13 +20,15 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import Literal, Self
 
 import numpy as np
 
 from polarface.capture.analyzers import applied_analyzers
 from polarface.capture.demosaic import DemosaicMethod, PolarizationStack, demosaic_camera
 from polarface.capture.manifest import (
+    DERIVED_ZARR,
+    MANIFEST_JSON,
     raw_bit_depth_ok,
     raw_digest,
     read_frame_marker,
@@ -38,9 +40,6 @@ from polarface.capture.rig import Camera, Rig
 from polarface.io.atomic import write_json_atomic
 from polarface.io.images import write_png
 from polarface.io.storage import PathOrUrl, StoragePath, storage_path
-
-if TYPE_CHECKING:
-    from polarface.capture.store import CaptureStore
 
 _POLARIZATION = ("mono-polarization", "color-polarization")
 
@@ -54,16 +53,17 @@ def _remove_stale_temporaries(root: StoragePath) -> None:
         for path in root.glob(pattern):
             if path.is_file():
                 path.unlink(missing_ok=True)
-    derived = root / "derived.zarr"
+    derived = root / DERIVED_ZARR
     if isinstance(derived, Path) and derived.is_dir():
         for path in derived.rglob("*.partial"):
             if path.is_file():
                 path.unlink(missing_ok=True)
 
 
-class _CaptureStoreWriter:
+class CaptureStoreWriter:
     """The writing methods of :class:`polarface.capture.store.CaptureStore` (a mixin: it uses the store's
-    ``root``, ``rig``, ``sequence``, ``chunk``, ``plane_distance_mm`` and reading helpers)."""
+    ``root``, ``rig``, ``sequence``, ``chunk``, ``plane_distance_mm`` and reading helpers; its constructors
+    return the class they are called on, the store)."""
 
     @classmethod
     def create(
@@ -73,7 +73,7 @@ class _CaptureStoreWriter:
         *,
         sequence: Literal["static", "dynamic"] = "static",
         chunk: int = 512,
-    ) -> CaptureStore:
+    ) -> Self:
         """Create a store, or reopen an unfinished/finished one with the same rig to resume.
 
         Stale ``.tmp-*`` files of a killed run (in the root, ``raw/<camera>/`` and ``frames/``) are
@@ -92,7 +92,7 @@ class _CaptureStoreWriter:
             existing = Rig.load(rig_path)
             if existing.model_dump(mode="json") != rig.model_dump(mode="json"):
                 raise ValueError(f"store '{root}' exists with a different rig.json; choose another output")
-            manifest_path = root / "manifest.json"
+            manifest_path = root / MANIFEST_JSON
             held = read_manifest(manifest_path)["sequence"] if manifest_path.exists() else sequence
             if held != sequence:
                 raise ValueError(f"store '{root}' holds a {held} sequence, not a {sequence} one; choose "
@@ -108,7 +108,7 @@ class _CaptureStoreWriter:
         return store
 
     @classmethod
-    def open_writer(cls, path: PathOrUrl, *, chunk: int = 512) -> CaptureStore:
+    def open_writer(cls, path: PathOrUrl, *, chunk: int = 512) -> Self:
         """Open a store that :meth:`create` made (finished or not) to add frames from a unit: nothing is
         validated, removed or written (module docstring).
 
@@ -117,10 +117,10 @@ class _CaptureStoreWriter:
             ValueError: an invalid rig or manifest.
         """
         root = storage_path(path)
-        for name in ("rig.json", "manifest.json"):
+        for name in ("rig.json", MANIFEST_JSON):
             if not (root / name).is_file():
                 raise FileNotFoundError(f"'{root}' is not a capture store being written: no {name}")
-        return cls(root, Rig.load(root / "rig.json"), read_manifest(root / "manifest.json")["sequence"],
+        return cls(root, Rig.load(root / "rig.json"), read_manifest(root / MANIFEST_JSON)["sequence"],
                    chunk)
 
     def reserve_frames(self, frame_count: int) -> None:

@@ -18,10 +18,11 @@ import os
 
 from polarface.commands import local_path, store_location
 from polarface.device import resolve_device
+from polarface.evaluate import evaluate_biophysical
 from polarface.executors import check_thread_count
 from polarface.inverse.biophysical import BiophysicalConfig
 from polarface.io.output_folder import lock_output
-from polarface.pipeline import evaluate_biophysical, run_biophysical_stage
+from polarface.pipeline import run_biophysical_stage
 
 NAME = "biophysical"
 HELP = "recover melanin/haemoglobin maps and diffusion profiles from a RESULT's rho_sss_bar"
@@ -64,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _check_arguments(args: argparse.Namespace) -> None:
     """Each numeric option within its range, named as typed (``--coarse-factor``'s upper bound depends on
-    the texture: :func:`polarface.pipeline.biophysical.check_coarse_factor`)."""
+    the texture: :func:`polarface.pipeline.biophysical.stage.check_coarse_factor`)."""
     if args.coarse_factor < 1:
         raise ValueError(f"argument '--coarse-factor' must be >= 1; got {args.coarse_factor}")
     if not 1 <= args.shape_rounds <= MAX_SHAPE_ROUNDS:

@@ -2,7 +2,7 @@
 
 RESULT holds a finished static reconstruction (``polarface reconstruct STATIC_CAPTURE --out RESULT``);
 DYNAMIC is a capture store of the same rig (or a simulation folder: ``SIM/dynamic``). The stage
-(:func:`polarface.pipeline.dynamic.reconstruct_dynamic`) writes ``RESULT/tracking`` and
+(:func:`polarface.pipeline.dynamic.stage.reconstruct_dynamic`) writes ``RESULT/tracking`` and
 ``RESULT/frames/NNNN`` and records ``stages.dynamic`` in ``result.json``; the report is rewritten with
 its section (animations of the per-frame maps, chromophores over time). Rerunning the command resumes:
 finished frames are kept. ``polarface reconstruct STATIC --dynamic DYNAMIC`` runs both in one command.

@@ -1,7 +1,7 @@
 """``polarface evaluate RESULT --gt SIM_DIR``: JSON metrics of a reconstruction against ground truth.
 
 The metric groups (``polarimetric``, ``rerender``, ``biophysical``, ``geometry``, ``dynamic``) are
-:data:`polarface.pipeline.METRIC_GROUPS` (definitions in :mod:`polarface.pipeline.evaluate`).
+:data:`polarface.evaluate.METRIC_GROUPS` (definitions in :mod:`polarface.evaluate`).
 ``--figures DIR`` also writes the figures (the geometry error heat map ``DIR/geometry_error_mm.png``).
 
 Outputs follow the output-folder policy (``polarface.io.output_folder``): ``--out`` is a metrics file
@@ -40,9 +40,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from polarface.evaluate import evaluate
     from polarface.io import write_json_atomic
     from polarface.io.output_folder import output_file, output_folder
-    from polarface.pipeline import evaluate
 
     inputs = {"RESULT": args.result, "--gt": args.gt}
     none = contextlib.nullcontext()
@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _metrics_file(path: Path) -> bool:
     """A JSON object of metric groups, as ``polarface evaluate --out`` writes."""
-    from polarface.pipeline import METRIC_GROUPS
+    from polarface.evaluate import METRIC_GROUPS
 
     try:
         data = json.loads(path.read_text(encoding="utf-8"))

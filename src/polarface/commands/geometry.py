@@ -48,7 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from polarface.io.output_folder import json_manifest, output_folder
     from polarface.pipeline import resolve_reconstruct_inputs
-    from polarface.pipeline.geometry import GEOMETRY_JSON, GeometryConfig, reconstruct_geometry
+    from polarface.pipeline.geometry import GeometryConfig, reconstruct_geometry
+    from polarface.results.layout import GEOMETRY_JSON
 
     inputs = resolve_reconstruct_inputs(args.capture, texture_resolution=args.texture_resolution)
     config = GeometryConfig(

@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Import (module docstring); prints ``imported.json``'s record."""
     from polarface.io.output_folder import json_manifest, output_folder
-    from polarface.pipeline.import_authors import (
+    from polarface.pipeline.inputs import (
         IMPORTED_FORMAT,
         IMPORTED_JSON,
         ImportStoppedError,

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from polarface.capture.manifest import MANIFEST_JSON
 from polarface.commands import (
     add_executor_arguments,
     add_force_argument,
@@ -69,6 +70,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _capture_store(folder: Path) -> bool:
     """A capture store, complete (``manifest.json``) or interrupted (``rig.json`` and ``frames/``)."""
-    if (folder / "manifest.json").is_file():
+    if (folder / MANIFEST_JSON).is_file():
         return True
     return (folder / "rig.json").is_file() and (folder / "frames").is_dir()

@@ -11,8 +11,14 @@ Modules: :mod:`~polarface.optics.stokes` (analyzer images, DoP, AoLP),
 inverses), :mod:`~polarface.optics.pbssrdf` (full Mueller matrices P_s, P_ss, P_sss, coaxial model) and
 :mod:`~polarface.optics.image_formation` (fast per-pixel forward model, the one definition of the
 image formation used by the renderers and the inverse stages).
+
+For other packages' inner loops, unchecked kernels (valid, broadcast tensors in):
+:func:`fresnel_amplitudes`, :func:`ggx_d_unchecked`, :func:`smith_g1_over_cos_unchecked` and
+:func:`ray_double_angle` (the polarimetric fit's forward model), and :func:`ask_shadow_test` (the
+renderers' lazy shadow rays, :mod:`~polarface.optics.lobes`).
 """
 
+from polarface.optics._kernels import ray_double_angle
 from polarface.optics.analyzer import IDEAL_ANALYZER_ANGLES_DEG, AnalyzerModel
 from polarface.optics.dop import (
     diffuse_dop,
@@ -24,6 +30,7 @@ from polarface.optics.dop import (
 from polarface.optics.fresnel import (
     FresnelTerms,
     brewster_angle,
+    fresnel_amplitudes,
     fresnel_reflectance,
     fresnel_terms,
     fresnel_transmittance,
@@ -36,7 +43,15 @@ from polarface.optics.image_formation import (
     subsurface_entry_flux,
     subsurface_exit_stokes,
 )
-from polarface.optics.microfacet import ggx_d, smith_g, smith_g1, smith_g1_over_cos
+from polarface.optics.lobes import ask_shadow_test
+from polarface.optics.microfacet import (
+    ggx_d,
+    ggx_d_unchecked,
+    smith_g,
+    smith_g1,
+    smith_g1_over_cos,
+    smith_g1_over_cos_unchecked,
+)
 from polarface.optics.mueller import (
     depolarizer,
     double_angle_cos_sin,
@@ -75,16 +90,19 @@ __all__ = [
     "PolarimetricImages",
     "analyzer_intensity",
     "aolp",
+    "ask_shadow_test",
     "brewster_angle",
     "depolarizer",
     "diffuse_dop",
     "double_angle_cos_sin",
     "frame_rotation_angle",
+    "fresnel_amplitudes",
     "fresnel_reflectance",
     "fresnel_terms",
     "fresnel_transmittance",
     "fresnel_transmittance_exit",
     "ggx_d",
+    "ggx_d_unchecked",
     "incidence_frame_angle",
     "intensities_from_stokes",
     "linear_dop",
@@ -97,11 +115,13 @@ __all__ = [
     "pbssrdf_specular_mueller",
     "pbssrdf_subsurface_mueller",
     "plane_azimuth",
+    "ray_double_angle",
     "render_polarimetric",
     "rotator",
     "smith_g",
     "smith_g1",
     "smith_g1_over_cos",
+    "smith_g1_over_cos_unchecked",
     "specular_dop",
     "stokes_frame",
     "stokes_from_intensities",

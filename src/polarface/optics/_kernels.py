@@ -1,7 +1,9 @@
-"""Private structure-of-arrays kernels shared by the fast image-formation paths (unchecked inputs).
+"""Structure-of-arrays kernels shared by the fast image-formation paths (unchecked inputs).
 
-Vectors are passed as tuples of three component tensors (``Vec3``) so that every operation is a
-contiguous elementwise kernel; frames follow :func:`polarface.optics.mueller.stokes_frame`.
+A private module: its names are shared by :mod:`polarface.optics.image_formation` and
+:mod:`polarface.optics.lobes`; what other packages may use (:func:`ray_double_angle`) the package's
+``__init__`` re-exports. Vectors are passed as tuples of three component tensors (``Vec3``) so that every
+operation is a contiguous elementwise kernel; frames follow :func:`polarface.optics.mueller.stokes_frame`.
 """
 
 from __future__ import annotations
@@ -11,8 +13,8 @@ import math
 import torch
 
 from polarface._validation import broadcast_named, check_last_dim, check_range, check_unit_vectors
-from polarface.optics.fresnel import _amplitudes
-from polarface.optics.microfacet import _g1_over_cos, _ggx_d
+from polarface.optics.fresnel import fresnel_amplitudes
+from polarface.optics.microfacet import ggx_d_unchecked, smith_g1_over_cos_unchecked
 
 #: Incident Stokes vector of the rig's polarized LEDs in their own frame: linear along image x.
 DEFAULT_LIGHT_STOKES = (1.0, 1.0, 0.0, 0.0)
@@ -20,7 +22,7 @@ DEFAULT_LIGHT_STOKES = (1.0, 1.0, 0.0, 0.0)
 Vec3 = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
 
-def _split(vector: torch.Tensor) -> Vec3:
+def split_xyz(vector: torch.Tensor) -> Vec3:
     """``(..., 3)`` -> three ``(...)`` component tensors (structure of arrays: fast elementwise math)."""
     return vector[..., 0].contiguous(), vector[..., 1].contiguous(), vector[..., 2].contiguous()
 
@@ -33,8 +35,9 @@ def _cross3(a: Vec3, b: Vec3) -> Vec3:
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-def _double_angle(vector: Vec3, direction: Vec3, up_projected: Vec3) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(cos 2 phi, sin 2 phi)`` of ``vector``'s azimuth in the Stokes frame of a ray along ``direction``.
+def ray_double_angle(vector: Vec3, direction: Vec3, up_projected: Vec3) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(cos 2 phi, sin 2 phi)`` of ``vector``'s azimuth in the Stokes frame of a ray along ``direction``,
+    each ``(...)``, from three ``Vec3`` of ``(...)`` components (unchecked).
 
     The frame is ``y = up_projected / |up_projected|``, ``x = y x direction`` (see
     :func:`~polarface.optics.mueller.stokes_frame`); the normalisation cancels in the double-angle
@@ -57,7 +60,10 @@ def _project_up(up: Vec3, direction: Vec3) -> Vec3:
     return (up[0] - along * direction[0], up[1] - along * direction[1], up[2] - along * direction[2])
 
 
-def _prepare_lights(light_positions, light_intensity, light_stokes):
+def prepare_lights(light_positions, light_intensity, light_stokes):
+    """Checked light arguments of the image formation: ``(light_intensity (K, C), light_stokes (K, 4))``
+    from ``light_positions`` ``(K, 3)``, intensities ``(K, C)``, ``(K,)``, ``(C,)`` or scalar and Stokes
+    ``(4,)``, ``(K, 4)`` or None (:data:`DEFAULT_LIGHT_STOKES`)."""
     check_last_dim(light_positions, "light_positions", 3)
     if light_positions.ndim != 2:
         raise ValueError(f"argument 'light_positions' must be (K, 3); got {tuple(light_positions.shape)}")
@@ -87,7 +93,8 @@ def _prepare_lights(light_positions, light_intensity, light_stokes):
     return light_intensity, light_stokes
 
 
-def _check_geometry(normal, position, camera_center, camera_up) -> torch.Size:
+def check_geometry(normal, position, camera_center, camera_up) -> torch.Size:
+    """Check the ``(..., 3)`` geometry arguments (unit normals, broadcasting); their broadcast shape."""
     check_unit_vectors(normal, "normal")
     check_last_dim(position, "position", 3)
     check_last_dim(camera_center, "camera_center", 3)
@@ -97,7 +104,7 @@ def _check_geometry(normal, position, camera_center, camera_up) -> torch.Size:
     return shape
 
 
-class _Light:
+class Light:
     """Per-light geometry at every pixel (unchecked, structure of arrays)."""
 
     def __init__(self, light_position: torch.Tensor, position: Vec3, normal: Vec3, up: Vec3) -> None:
@@ -113,13 +120,14 @@ class _Light:
         self.up_projected = _project_up(up, self.w_i)
 
 
-def _fresnel_t(cos: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    r_s, r_p = _amplitudes(cos, eta)
+def fresnel_t(cos: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(T+, T-)`` of the Fresnel transmission at air angle ``cos`` (clamped to [0, 1]), unchecked."""
+    r_s, r_p = fresnel_amplitudes(cos, eta)
     r_s2, r_p2 = r_s * r_s, r_p * r_p
     return 1.0 - 0.5 * (r_s2 + r_p2), -0.5 * (r_s2 - r_p2)  # T+, T-
 
 
-class _Viewer:
+class Viewer:
     """View geometry at every pixel and the subsurface exit factor (unchecked)."""
 
     def __init__(self, normal: Vec3, position: Vec3, camera_center: Vec3, up: Vec3, eta: torch.Tensor):
@@ -132,8 +140,8 @@ class _Viewer:
                                                                                           strict=True))
         self.cos_o = _dot3(normal, self.w_o).clamp(-1.0, 1.0)
         self.up_projected = _project_up(up, self.w_o)
-        cos_2phi, sin_2phi = _double_angle(normal, self.w_o, self.up_projected)
-        t_plus, t_minus = _fresnel_t(self.cos_o[..., None], eta)
+        cos_2phi, sin_2phi = ray_double_angle(normal, self.w_o, self.up_projected)
+        t_plus, t_minus = fresnel_t(self.cos_o[..., None], eta)
         self.exit_stokes = torch.stack(
             [t_plus, -cos_2phi[..., None] * t_minus, -sin_2phi[..., None] * t_minus,
              torch.zeros_like(t_plus)],
@@ -141,19 +149,20 @@ class _Viewer:
         ) / math.pi
 
 
-class _LobeView:
+class LobeView:
     """The light-independent part of the specular and single-scattering lobes (unchecked): the view
-    geometry (:class:`_Viewer`), ``cos_o`` ``(..., 1)`` and ``G1_o / cos_o`` of both roughnesses."""
+    geometry (:class:`Viewer`), ``cos_o`` ``(..., 1)`` and ``G1_o / cos_o`` of both roughnesses."""
 
     def __init__(self, normal: Vec3, position: Vec3, camera_center: Vec3, up: Vec3, eta: torch.Tensor,
                  alpha_s: torch.Tensor, alpha_ss: torch.Tensor) -> None:
         self.normal, self.eta, self.alpha_s, self.alpha_ss = normal, eta, alpha_s, alpha_ss
-        self.viewer = _Viewer(normal, position, camera_center, up, eta)
+        self.viewer = Viewer(normal, position, camera_center, up, eta)
         self.cos_o = self.viewer.cos_o[..., None]
-        self.g1o_s, self.g1o_ss = _g1_over_cos(self.cos_o, alpha_s), _g1_over_cos(self.cos_o, alpha_ss)
+        self.g1o_s = smith_g1_over_cos_unchecked(self.cos_o, alpha_s)
+        self.g1o_ss = smith_g1_over_cos_unchecked(self.cos_o, alpha_ss)
 
 
-def _specular_stokes(light: _Light, viewer: _Viewer, normal: Vec3, eta: torch.Tensor, stokes: torch.Tensor,
+def _specular_stokes(light: Light, viewer: Viewer, normal: Vec3, eta: torch.Tensor, stokes: torch.Tensor,
                      components: int = 4) -> tuple[torch.Tensor, torch.Tensor]:
     """The first ``components`` (1..4) of the unit-kappa specular Stokes ``C(-varphi~_o) F^R(theta_d)
     C(varphi~_i) s``, ``(..., C, components)``; and ``n . h`` ``(...)``.
@@ -169,16 +178,16 @@ def _specular_stokes(light: _Light, viewer: _Viewer, normal: Vec3, eta: torch.Te
     degenerate = norm2 <= torch.finfo(norm2.dtype).eps ** 2
     inv = torch.rsqrt(torch.where(degenerate, torch.ones_like(norm2), norm2))
     h = tuple(torch.where(degenerate, o, c * inv) for c, o in zip(half, w_o, strict=True))
-    c_i, s_i = _double_angle(h, light.direction, light.up_projected)
+    c_i, s_i = ray_double_angle(h, light.direction, light.up_projected)
     c_i, s_i = -c_i, -s_i  # double angles of the tilde angle (phi - pi/2)
     u1 = (c_i * stokes[1] + s_i * stokes[2])[..., None]
-    r_s, r_p = _amplitudes(_dot3(h, w_i).clamp(-1.0, 1.0)[..., None], eta)
+    r_s, r_p = fresnel_amplitudes(_dot3(h, w_i).clamp(-1.0, 1.0)[..., None], eta)
     r_s2, r_p2 = r_s * r_s, r_p * r_p
     r_plus, r_minus = 0.5 * (r_s2 + r_p2), 0.5 * (r_s2 - r_p2)
     v0 = r_plus * stokes[0] + r_minus * u1
     if components == 1:
         return v0[..., None], _dot3(normal, h)
-    c_o, s_o = _double_angle(h, w_o, viewer.up_projected)
+    c_o, s_o = ray_double_angle(h, w_o, viewer.up_projected)
     c_o, s_o = -c_o[..., None], -s_o[..., None]
     u2 = (-s_i * stokes[1] + c_i * stokes[2])[..., None]
     r_retarded = r_s * r_p
@@ -188,8 +197,8 @@ def _specular_stokes(light: _Light, viewer: _Viewer, normal: Vec3, eta: torch.Te
     return torch.stack(torch.broadcast_tensors(*rows), dim=-1), _dot3(normal, h)
 
 
-def _lobe_terms(
-    light: _Light, view: _LobeView, intensity: torch.Tensor, stokes: torch.Tensor, rho_s: torch.Tensor,
+def lobe_terms(
+    light: Light, view: LobeView, intensity: torch.Tensor, stokes: torch.Tensor, rho_s: torch.Tensor,
     rho_ss: torch.Tensor, components: int,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Specular and single-scattering Stokes ``(..., C, components)`` of one light of radiant
@@ -201,8 +210,10 @@ def _lobe_terms(
     #         = I rho D (G1_i / cos_i)(G1_o / cos_o) cos_i / (4 Gamma^2): no division by cosines.
     base = intensity * (0.25 * light.cos_i.clamp_min(0.0) * light.inv_distance2)[..., None]
     cos_h, cos_i = cos_h[..., None], light.cos_i[..., None]
-    k_s = base * rho_s * _ggx_d(cos_h, view.alpha_s) * _g1_over_cos(cos_i, view.alpha_s) * view.g1o_s
-    k_ss = base * rho_ss * _ggx_d(cos_h, view.alpha_ss) * _g1_over_cos(cos_i, view.alpha_ss) * view.g1o_ss
+    k_s = (base * rho_s * ggx_d_unchecked(cos_h, view.alpha_s)
+           * smith_g1_over_cos_unchecked(cos_i, view.alpha_s) * view.g1o_s)
+    k_ss = (base * rho_ss * ggx_d_unchecked(cos_h, view.alpha_ss)
+            * smith_g1_over_cos_unchecked(cos_i, view.alpha_ss) * view.g1o_ss)
     k_s = torch.where(front, k_s, 0.0)
     k_ss = torch.where(front, k_ss, 0.0)
     return k_s[..., None] * specular, k_ss[..., None] * specular

@@ -22,6 +22,10 @@ Conventions (``docs/conventions.md``):
 
 All functions are pure torch, broadcasting, differentiable, float32/float64, any device; torch,
 numpy or Python floats in give the same kind out.
+
+Unchecked kernels (valid, broadcast tensors in; for inner loops and the package's other modules):
+:func:`fresnel_amplitudes`, :func:`fresnel_terms_unchecked`, :func:`retarded_r_cross`; the checks
+themselves: :func:`check_fresnel_args`.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from polarface._validation import array_api, broadcast_named, check_range
 __all__ = [
     "FresnelTerms",
     "brewster_angle",
+    "fresnel_amplitudes",
     "fresnel_reflectance",
     "fresnel_terms",
     "fresnel_transmittance",
@@ -62,14 +67,17 @@ class FresnelTerms(NamedTuple):
     t_cross: torch.Tensor
 
 
-def _check_fresnel_args(cos_theta_i: torch.Tensor, eta: torch.Tensor, cos_name: str = "cos_theta_i"):
+def check_fresnel_args(cos_theta_i: torch.Tensor, eta: torch.Tensor, cos_name: str = "cos_theta_i"):
+    """The argument checks of the Fresnel functions: ``ValueError`` on NaN/inf, cosines outside [-1, 1] or
+    ``eta <= 1``; returns ``(cos_theta_i, eta)`` broadcast to one shape."""
     check_range(cos_theta_i, cos_name, -1.0, 1.0)
     check_range(eta, "eta", 1.0, None, low_inclusive=False)
     return broadcast_named((cos_name, cos_theta_i), ("eta", eta))
 
 
-def _amplitudes(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Unchecked amplitude reflection coefficients ``(r_s, r_p)`` (real for a dielectric).
+def fresnel_amplitudes(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unchecked amplitude reflection coefficients ``(r_s, r_p)``, each ``(...)`` (real for a dielectric), at
+    ``clamp(cos_theta_i, 0, 1)`` (``(...)``) and relative index ``eta > 1`` (broadcasting tensors).
 
     Sign convention of Born & Wolf: ``r_s = (cos_i - eta cos_t) / (cos_i + eta cos_t)`` (< 0) and
     ``r_p = (eta cos_i - cos_t) / (eta cos_i + cos_t)``, positive below the Brewster angle and negative
@@ -89,13 +97,13 @@ def _amplitudes(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Ten
 
 def _reflectance(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Unchecked kernel of :func:`fresnel_reflectance` (inputs already valid tensors)."""
-    r_s, r_p = _amplitudes(cos_theta_i, eta)
+    r_s, r_p = fresnel_amplitudes(cos_theta_i, eta)
     return r_s * r_s, r_p * r_p
 
 
-def _terms(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> FresnelTerms:
+def fresnel_terms_unchecked(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> FresnelTerms:
     """Unchecked kernel of :func:`fresnel_terms`."""
-    r_s, r_p = _amplitudes(cos_theta_i, eta)
+    r_s, r_p = fresnel_amplitudes(cos_theta_i, eta)
     r_perp = r_s * r_s
     r_par = r_p * r_p
     r_plus = 0.5 * (r_perp + r_par)
@@ -109,9 +117,9 @@ def _terms(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> FresnelTerms:
     return FresnelTerms(r_plus, r_minus, (r_s * r_p).abs(), 1.0 - r_plus, -r_minus, t_cross)
 
 
-def _retarded_r_cross(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
+def retarded_r_cross(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
     """``sqrt(R_perp R_par) cos(delta)`` with the Brewster phase rule, as the smooth product ``r_s r_p``."""
-    r_s, r_p = _amplitudes(cos_theta_i, eta)
+    r_s, r_p = fresnel_amplitudes(cos_theta_i, eta)
     return r_s * r_p
 
 
@@ -134,7 +142,7 @@ def fresnel_reflectance(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> tuple[t
     Raises:
         ValueError: NaN/inf, cosines outside [-1, 1], ``eta <= 1`` or shapes that do not broadcast.
     """
-    cos_theta_i, eta = _check_fresnel_args(cos_theta_i, eta)
+    cos_theta_i, eta = check_fresnel_args(cos_theta_i, eta)
     return _reflectance(cos_theta_i, eta)
 
 
@@ -153,7 +161,7 @@ def fresnel_transmittance(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> tuple
     Returns:
         ``(T_perp, T_par)``, each ``(...)`` dimensionless in [0, 1].
     """
-    cos_theta_i, eta = _check_fresnel_args(cos_theta_i, eta)
+    cos_theta_i, eta = check_fresnel_args(cos_theta_i, eta)
     r_perp, r_par = _reflectance(cos_theta_i, eta)
     return 1.0 - r_perp, 1.0 - r_par
 
@@ -172,7 +180,7 @@ def fresnel_transmittance_exit(
         cos_theta_o: ``(...)`` cosine between the normal and the direction to the viewer, in [-1, 1].
         eta: ``(...)`` relative refractive index of the skin, > 1.
     """
-    cos_theta_o, eta = _check_fresnel_args(cos_theta_o, eta, "cos_theta_o")
+    cos_theta_o, eta = check_fresnel_args(cos_theta_o, eta, "cos_theta_o")
     r_perp, r_par = _reflectance(cos_theta_o, eta)
     return 1.0 - r_perp, 1.0 - r_par
 
@@ -185,8 +193,8 @@ def fresnel_terms(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> FresnelTerms:
         cos_theta_i: ``(...)`` cosine of the angle in air, in [-1, 1]; negatives clamp to 0.
         eta: ``(...)`` relative refractive index, > 1.
     """
-    cos_theta_i, eta = _check_fresnel_args(cos_theta_i, eta)
-    return _terms(cos_theta_i, eta)
+    cos_theta_i, eta = check_fresnel_args(cos_theta_i, eta)
+    return fresnel_terms_unchecked(cos_theta_i, eta)
 
 
 @array_api("eta")

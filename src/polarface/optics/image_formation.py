@@ -36,16 +36,16 @@ import torch
 from polarface._validation import array_api, broadcast_named, check_range
 from polarface.optics._kernels import (
     DEFAULT_LIGHT_STOKES,
+    Light,
+    LobeView,
     Vec3,
-    _check_geometry,
-    _double_angle,
-    _fresnel_t,
-    _Light,
-    _lobe_terms,
-    _LobeView,
-    _prepare_lights,
-    _split,
-    _Viewer,
+    Viewer,
+    check_geometry,
+    fresnel_t,
+    lobe_terms,
+    prepare_lights,
+    ray_double_angle,
+    split_xyz,
 )
 
 __all__ = [
@@ -111,11 +111,11 @@ class PolarimetricImages:
         return aolp(self.stokes)
 
 
-def _entry_term(light: _Light, normal: Vec3, intensity: torch.Tensor, stokes: torch.Tensor,
+def _entry_term(light: Light, normal: Vec3, intensity: torch.Tensor, stokes: torch.Tensor,
                 eta: torch.Tensor) -> torch.Tensor:
     """``S_k`` times the first row of ``F^T(theta_i) C(phi~_i)`` applied to ``s_k``: ``(..., C)``."""
-    cos_2phi, sin_2phi = _double_angle(normal, light.direction, light.up_projected)
-    t_plus, t_minus = _fresnel_t(light.cos_i[..., None], eta)
+    cos_2phi, sin_2phi = ray_double_angle(normal, light.direction, light.up_projected)
+    t_plus, t_minus = fresnel_t(light.cos_i[..., None], eta)
     # C(phi~) with cos 2phi~ = -cos 2phi, sin 2phi~ = -sin 2phi
     linear = -(cos_2phi * stokes[1] + sin_2phi * stokes[2])
     shading = intensity * (light.cos_i.clamp_min(0.0) * light.inv_distance2)[..., None]
@@ -123,17 +123,18 @@ def _entry_term(light: _Light, normal: Vec3, intensity: torch.Tensor, stokes: to
 
 
 def _entry_flux(normal, position, up, light_positions, light_intensity, light_stokes, eta):
-    normal3, position3, up3 = _split(normal), _split(position), _split(up)
+    normal3, position3, up3 = split_xyz(normal), split_xyz(position), split_xyz(up)
     flux = None
     for k in range(light_positions.shape[0]):
-        light = _Light(light_positions[k], position3, normal3, up3)
+        light = Light(light_positions[k], position3, normal3, up3)
         term = _entry_term(light, normal3, light_intensity[k], light_stokes[k], eta)
         flux = term if flux is None else flux + term
     return flux
 
 
 def _exit_stokes(normal, position, camera_center, up, eta) -> torch.Tensor:
-    return _Viewer(_split(normal), _split(position), _split(camera_center), _split(up), eta).exit_stokes
+    viewer = Viewer(split_xyz(normal), split_xyz(position), split_xyz(camera_center), split_xyz(up), eta)
+    return viewer.exit_stokes
 
 
 @array_api("normal", "position", "camera_up", "light_positions", "light_intensity", "eta", "light_stokes")
@@ -158,9 +159,9 @@ def subsurface_entry_flux(
         eta: broadcastable to ``(..., C)``, > 1.
         light_stokes: ``(4,)`` or ``(K, 4)`` in each light's frame; default ``[1, 1, 0, 0]``.
     """
-    _check_geometry(normal, position, position, camera_up)
+    check_geometry(normal, position, position, camera_up)
     check_range(eta, "eta", 1.0, None, low_inclusive=False)
-    light_intensity, light_stokes = _prepare_lights(light_positions, light_intensity, light_stokes)
+    light_intensity, light_stokes = prepare_lights(light_positions, light_intensity, light_stokes)
     return _entry_flux(normal, position, camera_up, light_positions, light_intensity, light_stokes, eta)
 
 
@@ -183,7 +184,7 @@ def subsurface_exit_stokes(
             or ``(..., 3)``.
         eta: broadcastable to ``(..., C')`` (``(..., 1)`` for a single-valued map), > 1.
     """
-    _check_geometry(normal, position, camera_center, camera_up)
+    check_geometry(normal, position, camera_center, camera_up)
     check_range(eta, "eta", 1.0, None, low_inclusive=False)
     if eta.ndim == 0:
         eta = eta.reshape(1)
@@ -194,14 +195,14 @@ def subsurface_exit_stokes(
            "alpha_s", "alpha_ss", "rho_s", "rho_ss", "rho_sss_bar", "light_stokes", "diffused_exitance")
 def _render(normal, position, camera_center, camera_up, light_positions, light_intensity, eta, alpha_s,
             alpha_ss, rho_s, rho_ss, rho_sss_bar, light_stokes, diffused_exitance):
-    shape = _check_geometry(normal, position, camera_center, camera_up)
+    shape = check_geometry(normal, position, camera_center, camera_up)
     for name, value, low, high, inclusive in (
         ("eta", eta, 1.0, None, False), ("alpha_s", alpha_s, 0.0, None, False),
         ("alpha_ss", alpha_ss, 0.0, None, False), ("rho_s", rho_s, 0.0, None, True),
         ("rho_ss", rho_ss, 0.0, None, True), ("rho_sss_bar", rho_sss_bar, 0.0, 1.0, True),
     ):
         check_range(value, name, low, high, low_inclusive=inclusive)
-    light_intensity, light_stokes = _prepare_lights(light_positions, light_intensity, light_stokes)
+    light_intensity, light_stokes = prepare_lights(light_positions, light_intensity, light_stokes)
     pixel = torch.empty((*shape[:-1], light_intensity.shape[-1]), device="meta")
     named = [("pixels (..., C)", pixel), ("eta", eta), ("alpha_s", alpha_s), ("alpha_ss", alpha_ss),
              ("rho_s", rho_s), ("rho_ss", rho_ss), ("rho_sss_bar", rho_sss_bar)]
@@ -210,12 +211,12 @@ def _render(normal, position, camera_center, camera_up, light_positions, light_i
         named.append(("diffused_exitance", diffused_exitance))
     broadcast_named(*named)
 
-    normal3, position3, up3 = _split(normal), _split(position), _split(camera_up)
-    view = _LobeView(normal3, position3, _split(camera_center), up3, eta, alpha_s, alpha_ss)
+    normal3, position3, up3 = split_xyz(normal), split_xyz(position), split_xyz(camera_up)
+    view = LobeView(normal3, position3, split_xyz(camera_center), up3, eta, alpha_s, alpha_ss)
     specular = single = flux = None
     for k in range(light_positions.shape[0]):
-        light = _Light(light_positions[k], position3, normal3, up3)
-        term_s, term_ss = _lobe_terms(light, view, light_intensity[k], light_stokes[k], rho_s, rho_ss, 4)
+        light = Light(light_positions[k], position3, normal3, up3)
+        term_s, term_ss = lobe_terms(light, view, light_intensity[k], light_stokes[k], rho_s, rho_ss, 4)
         specular = term_s if specular is None else specular + term_s
         single = term_ss if single is None else single + term_ss
         if diffused_exitance is None:

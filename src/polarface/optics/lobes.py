@@ -2,7 +2,7 @@
 per-light shading).
 
 :func:`add_lobes` evaluates the lobes of :func:`polarface.optics.render_polarimetric` — the same
-floating-point expressions (:func:`polarface.optics._kernels._lobe_terms`), hence the same bits — for
+floating-point expressions (:func:`polarface.optics._kernels.lobe_terms`), hence the same bits — for
 ``K`` point lights, each times its shadow-ray visibility, without building the images and observations
 of :class:`~polarface.optics.image_formation.PolarimetricImages`:
 
@@ -29,9 +29,9 @@ import numpy as np
 import torch
 
 from polarface._validation import check_range
-from polarface.optics._kernels import _check_geometry, _Light, _lobe_terms, _LobeView, _prepare_lights, _split
+from polarface.optics._kernels import Light, LobeView, check_geometry, lobe_terms, prepare_lights, split_xyz
 
-__all__ = ["ShadowTest", "add_lobes", "checked_lobe_inputs"]
+__all__ = ["ShadowTest", "add_lobes", "ask_shadow_test", "checked_lobe_inputs"]
 
 #: Lazy shadow-ray visibility for :func:`add_lobes`: ``test(k, rows)`` -> ``(len(rows),)`` bool, whether
 #: light ``k`` is visible from the points ``rows`` (``(M,)`` int64 indices).
@@ -84,17 +84,17 @@ def add_lobes(
     )  # fmt: skip
     lazy, components = callable(visible), stokes.shape[-1]
     numpy_dtype = np.float32 if position.dtype == torch.float32 else np.float64
-    normal3, position3, up3 = _split(normal), _split(position), _split(camera_up)
-    view = _LobeView(normal3, position3, _split(camera_center), up3, eta, alpha_s, alpha_ss)
+    normal3, position3, up3 = split_xyz(normal), split_xyz(position), split_xyz(camera_up)
+    view = LobeView(normal3, position3, split_xyz(camera_center), up3, eta, alpha_s, alpha_ss)
     for k in range(lights.shape[0]):
-        light = _Light(lights[k], position3, normal3, up3)
+        light = Light(lights[k], position3, normal3, up3)
         if lazy:
-            lit = _ask(visible, k, ((light.cos_i > 0.0) & (view.cos_o[..., 0] > 0.0)).numpy())
+            lit = ask_shadow_test(visible, k, ((light.cos_i > 0.0) & (view.cos_o[..., 0] > 0.0)).numpy())
         else:
             lit = visible[:, k]
         if skip_unlit and not lit.any():
             continue
-        term_s, term_ss = _lobe_terms(light, view, intensities[k], polarizer[k], rho_s, rho_ss, components)
+        term_s, term_ss = lobe_terms(light, view, intensities[k], polarizer[k], rho_s, rho_ss, components)
         terms = term_s + term_ss
         if not lit.all():  # 1 * x is x: multiply only where some point is shadowed
             terms = torch.from_numpy(lit.astype(numpy_dtype))[:, None, None] * terms
@@ -134,17 +134,17 @@ def checked_lobe_inputs(
     dtype = position.dtype
     numpy_dtype = np.float32 if dtype == torch.float32 else np.float64
     lights = torch.from_numpy(np.asarray(light_positions, np.float64).astype(numpy_dtype))
-    _check_geometry(normal, position, camera_center, camera_up)
+    check_geometry(normal, position, camera_center, camera_up)
     check_range(eta, "eta", 1.0, None, low_inclusive=False)
     for name, value, inclusive in (("alpha_s", alpha_s, False), ("alpha_ss", alpha_ss, False),
                                    ("rho_s", rho_s, True), ("rho_ss", rho_ss, True)):
         check_range(value, name, 0.0, None, low_inclusive=inclusive)
     polarizer = None if light_stokes is None else torch.as_tensor(light_stokes, dtype=dtype)
-    intensities, polarizer = _prepare_lights(lights, light_intensity, polarizer)
+    intensities, polarizer = prepare_lights(lights, light_intensity, polarizer)
     return visible, lights, intensities, polarizer
 
 
-def _ask(test: ShadowTest, light: int, front: np.ndarray) -> np.ndarray:
+def ask_shadow_test(test: ShadowTest, light: int, front: np.ndarray) -> np.ndarray:
     """``(N,)`` bool visibility of ``light``: ``test`` asked for the ``front`` points, False elsewhere."""
     rows = np.flatnonzero(front)
     lit = np.zeros(front.shape[0], bool)

@@ -27,10 +27,18 @@ import torch
 
 from polarface._validation import array_api, broadcast_named, check_range
 
-__all__ = ["ggx_d", "smith_g", "smith_g1", "smith_g1_over_cos"]
+__all__ = [
+    "ggx_d",
+    "ggx_d_unchecked",
+    "smith_g",
+    "smith_g1",
+    "smith_g1_over_cos",
+    "smith_g1_over_cos_unchecked",
+]
 
 
-def _ggx_d(cos_theta_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+def ggx_d_unchecked(cos_theta_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """:func:`ggx_d` without the argument checks (broadcasting tensors in, ``(...)`` sr^-1 out)."""
     cos2 = cos_theta_h.clamp_min(0.0) ** 2
     alpha2 = alpha * alpha
     denominator = cos2 * (alpha2 - 1.0) + 1.0
@@ -38,15 +46,16 @@ def _ggx_d(cos_theta_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     return torch.where(cos_theta_h > 0.0, value, torch.zeros_like(value))
 
 
-def _g1_over_cos(cos_theta: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-    """``G1 / cos theta``, bounded (-> 2 / alpha at grazing): used to cancel 1 / (n . w) stably."""
+def smith_g1_over_cos_unchecked(cos_theta: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """:func:`smith_g1_over_cos` without the argument checks: ``G1 / cos theta`` ``(...)``, bounded
+    (-> 2 / alpha at grazing): used to cancel 1 / (n . w) stably."""
     cos = cos_theta.clamp(0.0, 1.0)
     cos2 = cos * cos
     return 2.0 / (cos + torch.sqrt(cos2 + alpha * alpha * (1.0 - cos2)))
 
 
 def _g1(cos_theta: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-    return cos_theta.clamp(0.0, 1.0) * _g1_over_cos(cos_theta, alpha)
+    return cos_theta.clamp(0.0, 1.0) * smith_g1_over_cos_unchecked(cos_theta, alpha)
 
 
 def _check(name: str, cos: torch.Tensor, alpha: torch.Tensor) -> None:
@@ -67,7 +76,7 @@ def ggx_d(cos_theta_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     """
     _check("cos_theta_h", cos_theta_h, alpha)
     cos_theta_h, alpha = broadcast_named(("cos_theta_h", cos_theta_h), ("alpha", alpha))
-    return _ggx_d(cos_theta_h, alpha)
+    return ggx_d_unchecked(cos_theta_h, alpha)
 
 
 @array_api("cos_theta", "alpha")
@@ -98,7 +107,7 @@ def smith_g1_over_cos(cos_theta: torch.Tensor, alpha: torch.Tensor) -> torch.Ten
     """
     _check("cos_theta", cos_theta, alpha)
     cos_theta, alpha = broadcast_named(("cos_theta", cos_theta), ("alpha", alpha))
-    return _g1_over_cos(cos_theta, alpha)
+    return smith_g1_over_cos_unchecked(cos_theta, alpha)
 
 
 @array_api("cos_theta_i", "cos_theta_o", "alpha")

@@ -15,6 +15,10 @@ s direction (perpendicular to the plane of incidence) on both sides, with each s
 above, which here comes out of the sign of the amplitude product ``r_s r_p`` (Born & Wolf sign
 convention), identical to Mitsuba 3's ``mueller.specular_reflection``.
 
+Unchecked kernels for the package's other modules (:mod:`polarface.optics.pbssrdf`): :func:`stack_matrix4`,
+:func:`rotator_from_double_angle`, :func:`mueller_fresnel_reflection_unchecked`,
+:func:`mueller_fresnel_transmission_unchecked`, :func:`safe_normalize` and :func:`stokes_frame_unchecked`.
+
 References:
     Collett, *Field Guide to Polarization*, SPIE 2005 (rotator, polarizer, depolarizer).
     Ha et al., ACM TOG 43(6) 2024, supplement Eqs. ccrot and fresnelmat.
@@ -34,7 +38,7 @@ from polarface._validation import (
     check_range,
     check_unit_vectors,
 )
-from polarface.optics.fresnel import _check_fresnel_args, _retarded_r_cross, _terms
+from polarface.optics.fresnel import check_fresnel_args, fresnel_terms_unchecked, retarded_r_cross
 
 __all__ = [
     "depolarizer",
@@ -50,7 +54,7 @@ __all__ = [
 ]
 
 
-def _matrix4(rows: list[list[torch.Tensor | float]], like: torch.Tensor) -> torch.Tensor:
+def stack_matrix4(rows: list[list[torch.Tensor | float]], like: torch.Tensor) -> torch.Tensor:
     """Stack a nested 4x4 list of broadcastable tensors / floats into a ``(..., 4, 4)`` tensor."""
     shape = broadcast_shape(like.shape, *(e.shape for row in rows for e in row
                                           if isinstance(e, torch.Tensor)))
@@ -59,9 +63,9 @@ def _matrix4(rows: list[list[torch.Tensor | float]], like: torch.Tensor) -> torc
     return torch.stack([torch.stack(row, dim=-1) for row in entries], dim=-2)
 
 
-def _rotator(cos_2t: torch.Tensor, sin_2t: torch.Tensor) -> torch.Tensor:
+def rotator_from_double_angle(cos_2t: torch.Tensor, sin_2t: torch.Tensor) -> torch.Tensor:
     """Unchecked ``C(theta)`` from ``cos 2 theta`` and ``sin 2 theta``."""
-    return _matrix4(
+    return stack_matrix4(
         [[1.0, 0.0, 0.0, 0.0], [0.0, cos_2t, sin_2t, 0.0], [0.0, -sin_2t, cos_2t, 0.0], [0.0, 0.0, 0.0, 1.0]],
         cos_2t,
     )
@@ -82,7 +86,7 @@ def rotator(theta: torch.Tensor) -> torch.Tensor:
     Returns:
         ``(..., 4, 4)`` Mueller matrix.
     """
-    return _rotator(torch.cos(2.0 * theta), torch.sin(2.0 * theta))
+    return rotator_from_double_angle(torch.cos(2.0 * theta), torch.sin(2.0 * theta))
 
 
 @array_api("theta", "transmittance")
@@ -104,7 +108,7 @@ def linear_polarizer(theta: torch.Tensor, transmittance: torch.Tensor | float = 
     theta, transmittance = broadcast_named(("theta", theta), ("transmittance", transmittance))
     c, s = torch.cos(2.0 * theta), torch.sin(2.0 * theta)
     half = 0.5 * transmittance
-    return _matrix4(
+    return stack_matrix4(
         [
             [half, half * c, half * s, 0.0],
             [half * c, half * c * c, half * c * s, 0.0],
@@ -128,15 +132,16 @@ def depolarizer(albedo: torch.Tensor | float = 1.0) -> torch.Tensor:
     """
     albedo = torch.as_tensor(albedo, dtype=torch.float64) if not isinstance(albedo, torch.Tensor) else albedo
     check_range(albedo, "albedo", 0.0, None)
-    return _matrix4(
+    return stack_matrix4(
         [[albedo, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]], albedo
     )
 
 
-def _fresnel_reflection(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
-    terms = _terms(cos_theta_i, eta)
-    retarded = _retarded_r_cross(cos_theta_i, eta)
-    return _matrix4(
+def mueller_fresnel_reflection_unchecked(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
+    """:func:`mueller_fresnel_reflection` without the argument checks, ``(..., 4, 4)``."""
+    terms = fresnel_terms_unchecked(cos_theta_i, eta)
+    retarded = retarded_r_cross(cos_theta_i, eta)
+    return stack_matrix4(
         [
             [terms.r_plus, terms.r_minus, 0.0, 0.0],
             [terms.r_minus, terms.r_plus, 0.0, 0.0],
@@ -147,9 +152,10 @@ def _fresnel_reflection(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> torch.T
     )
 
 
-def _fresnel_transmission(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
-    terms = _terms(cos_theta_i, eta)
-    return _matrix4(
+def mueller_fresnel_transmission_unchecked(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> torch.Tensor:
+    """:func:`mueller_fresnel_transmission` without the argument checks, ``(..., 4, 4)``."""
+    terms = fresnel_terms_unchecked(cos_theta_i, eta)
+    return stack_matrix4(
         [
             [terms.t_plus, terms.t_minus, 0.0, 0.0],
             [terms.t_minus, terms.t_plus, 0.0, 0.0],
@@ -176,8 +182,8 @@ def mueller_fresnel_reflection(cos_theta_i: torch.Tensor, eta: torch.Tensor) -> 
     Returns:
         ``(..., 4, 4)`` Mueller matrix, dimensionless.
     """
-    cos_theta_i, eta = _check_fresnel_args(cos_theta_i, eta)
-    return _fresnel_reflection(cos_theta_i, eta)
+    cos_theta_i, eta = check_fresnel_args(cos_theta_i, eta)
+    return mueller_fresnel_reflection_unchecked(cos_theta_i, eta)
 
 
 @array_api("cos_theta_i", "eta")
@@ -195,11 +201,11 @@ def mueller_fresnel_transmission(cos_theta_i: torch.Tensor, eta: torch.Tensor) -
     Returns:
         ``(..., 4, 4)`` Mueller matrix, dimensionless (no radiance ``eta^2`` factor).
     """
-    cos_theta_i, eta = _check_fresnel_args(cos_theta_i, eta)
-    return _fresnel_transmission(cos_theta_i, eta)
+    cos_theta_i, eta = check_fresnel_args(cos_theta_i, eta)
+    return mueller_fresnel_transmission_unchecked(cos_theta_i, eta)
 
 
-def _safe_normalize(vector: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor:
+def safe_normalize(vector: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor:
     """Normalize on the last axis; where the norm is ~0 return ``fallback`` (finite gradients)."""
     squared = (vector * vector).sum(-1, keepdim=True)
     small = squared <= torch.finfo(vector.dtype).eps ** 2
@@ -208,7 +214,7 @@ def _safe_normalize(vector: torch.Tensor, fallback: torch.Tensor) -> torch.Tenso
     return torch.where(small, fallback, safe * torch.rsqrt(safe_squared))
 
 
-def _stokes_frame(direction: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def stokes_frame_unchecked(direction: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Unchecked kernel of :func:`stokes_frame`."""
     direction, up = torch.broadcast_tensors(direction, up)
     projected = up - (up * direction).sum(-1, keepdim=True) * direction
@@ -218,7 +224,7 @@ def _stokes_frame(direction: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tens
                         (~use_x).to(direction.dtype)], dim=-1)
     fallback_raw = helper - (helper * direction).sum(-1, keepdim=True) * direction
     fallback = fallback_raw / torch.linalg.vector_norm(fallback_raw, dim=-1, keepdim=True)
-    y_axis = _safe_normalize(projected, fallback)
+    y_axis = safe_normalize(projected, fallback)
     x_axis = torch.linalg.cross(y_axis, direction, dim=-1)
     return x_axis, y_axis
 
@@ -242,7 +248,7 @@ def stokes_frame(direction: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tenso
     check_unit_vectors(direction, "direction")
     check_last_dim(up, "up", 3)
     broadcast_named(("direction", direction), ("up", up))
-    return _stokes_frame(direction, up)
+    return stokes_frame_unchecked(direction, up)
 
 
 def double_angle_cos_sin(

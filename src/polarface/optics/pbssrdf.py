@@ -37,16 +37,16 @@ from polarface._validation import (
     check_range,
     check_unit_vectors,
 )
-from polarface.optics.fresnel import _amplitudes, _terms
-from polarface.optics.microfacet import _g1_over_cos, _ggx_d
+from polarface.optics.fresnel import fresnel_amplitudes, fresnel_terms_unchecked
+from polarface.optics.microfacet import ggx_d_unchecked, smith_g1_over_cos_unchecked
 from polarface.optics.mueller import (
-    _fresnel_reflection,
-    _fresnel_transmission,
-    _matrix4,
-    _rotator,
-    _safe_normalize,
-    _stokes_frame,
     double_angle_cos_sin,
+    mueller_fresnel_reflection_unchecked,
+    mueller_fresnel_transmission_unchecked,
+    rotator_from_double_angle,
+    safe_normalize,
+    stack_matrix4,
+    stokes_frame_unchecked,
 )
 
 __all__ = [
@@ -68,7 +68,7 @@ def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def _half_vector(w_i: torch.Tensor, w_o: torch.Tensor) -> torch.Tensor:
-    return _safe_normalize(w_i + w_o, w_o.expand(broadcast_shape(w_i.shape, w_o.shape)))
+    return safe_normalize(w_i + w_o, w_o.expand(broadcast_shape(w_i.shape, w_o.shape)))
 
 
 def _check_geometry(**vectors: torch.Tensor) -> None:
@@ -100,23 +100,24 @@ def microfacet_kappa(
     Unchecked tensor kernel (callers validate). Uses the bounded ``G1 / cos`` so grazing angles give
     finite values and gradients.
     """
-    value = (0.25 * rho * _ggx_d(cos_theta_h, alpha)
-             * _g1_over_cos(cos_theta_i, alpha) * _g1_over_cos(cos_theta_o, alpha))
+    value = (0.25 * rho * ggx_d_unchecked(cos_theta_h, alpha)
+             * smith_g1_over_cos_unchecked(cos_theta_i, alpha)
+             * smith_g1_over_cos_unchecked(cos_theta_o, alpha))
     front = (cos_theta_i > 0.0) & (cos_theta_o > 0.0)
     return torch.where(front, value, torch.zeros_like(value))
 
 
 def _specular(normal, w_i, w_o, up, eta, alpha, rho) -> torch.Tensor:
-    x_in, y_in = _stokes_frame(-w_i, up)
-    x_out, y_out = _stokes_frame(w_o, up)
+    x_in, y_in = stokes_frame_unchecked(-w_i, up)
+    x_out, y_out = stokes_frame_unchecked(w_o, up)
     h = _half_vector(w_i, w_o)
     cos_2phi_i, sin_2phi_i = double_angle_cos_sin(h, x_in, y_in)
     cos_2phi_o, sin_2phi_o = double_angle_cos_sin(h, x_out, y_out)
     # tilde angle = phi - pi/2: cos 2(phi - pi/2) = -cos 2 phi, sin 2(phi - pi/2) = -sin 2 phi.
-    to_plane = _rotator(-cos_2phi_i, -sin_2phi_i)  # C(varphi~_i)
-    from_plane = _rotator(-cos_2phi_o, sin_2phi_o)  # C(-varphi~_o)
+    to_plane = rotator_from_double_angle(-cos_2phi_i, -sin_2phi_i)  # C(varphi~_i)
+    from_plane = rotator_from_double_angle(-cos_2phi_o, sin_2phi_o)  # C(-varphi~_o)
     cos_theta_d = _dot(h, w_i).clamp(-1.0, 1.0)
-    fresnel = _fresnel_reflection(cos_theta_d, eta)
+    fresnel = mueller_fresnel_reflection_unchecked(cos_theta_d, eta)
     kappa = microfacet_kappa(_dot(normal, h), _dot(normal, w_i), _dot(normal, w_o), alpha, rho)
     return kappa[..., None, None] * (from_plane @ fresnel @ to_plane)
 
@@ -154,17 +155,17 @@ def pbssrdf_specular_mueller(
 
 
 def _subsurface(normal_i, w_i, normal_o, w_o, up, eta_i, eta_o, profile) -> torch.Tensor:
-    x_in, y_in = _stokes_frame(-w_i, up)
-    x_out, y_out = _stokes_frame(w_o, up)
+    x_in, y_in = stokes_frame_unchecked(-w_i, up)
+    x_out, y_out = stokes_frame_unchecked(w_o, up)
     cos_2phi_i, sin_2phi_i = double_angle_cos_sin(normal_i, x_in, y_in)
     cos_2phi_o, sin_2phi_o = double_angle_cos_sin(normal_o, x_out, y_out)
-    to_plane = _rotator(-cos_2phi_i, -sin_2phi_i)
-    from_plane = _rotator(-cos_2phi_o, sin_2phi_o)
-    entry = _fresnel_transmission(_dot(normal_i, w_i).clamp(-1.0, 1.0), eta_i)
-    exit_ = _fresnel_transmission(_dot(normal_o, w_o).clamp(-1.0, 1.0), eta_o)
+    to_plane = rotator_from_double_angle(-cos_2phi_i, -sin_2phi_i)
+    from_plane = rotator_from_double_angle(-cos_2phi_o, sin_2phi_o)
+    entry = mueller_fresnel_transmission_unchecked(_dot(normal_i, w_i).clamp(-1.0, 1.0), eta_i)
+    exit_ = mueller_fresnel_transmission_unchecked(_dot(normal_o, w_o).clamp(-1.0, 1.0), eta_o)
     zero = torch.zeros_like(profile)
-    depol = _matrix4([[profile, zero, zero, zero], [zero, zero, zero, zero],
-                      [zero, zero, zero, zero], [zero, zero, zero, zero]], profile)
+    depol = stack_matrix4([[profile, zero, zero, zero], [zero, zero, zero, zero],
+                           [zero, zero, zero, zero], [zero, zero, zero, zero]], profile)
     return from_plane @ exit_ @ depol @ entry @ to_plane
 
 
@@ -285,19 +286,19 @@ def pbssrdf_coaxial_mueller(
     _check_geometry(normal=normal, w_o=w_o, up=up)
     shape = broadcast_shape(normal.shape, w_o.shape)
     _check_params(shape, eta, alpha_s, alpha_ss, rho_s, rho_ss, rho_sss_bar)
-    x_out, y_out = _stokes_frame(w_o, up)
+    x_out, y_out = stokes_frame_unchecked(w_o, up)
     xi, zeta = double_angle_cos_sin(normal, x_out, y_out)
     cos_o = _dot(normal, w_o).clamp(-1.0, 1.0)
     kappa = (microfacet_kappa(cos_o, cos_o, cos_o, alpha_s, rho_s)
              + microfacet_kappa(cos_o, cos_o, cos_o, alpha_ss, rho_ss))
-    r_s, r_p = _amplitudes(torch.ones_like(cos_o), eta)
+    r_s, r_p = fresnel_amplitudes(torch.ones_like(cos_o), eta)
     k_r = kappa * 0.5 * (r_s * r_s + r_p * r_p)
-    terms = _terms(cos_o, eta)
+    terms = fresnel_terms_unchecked(cos_o, eta)
     r = rho_sss_bar / math.pi
     t_pp = r * terms.t_plus * terms.t_plus
     t_mp = r * terms.t_minus * terms.t_plus
     zero = torch.zeros_like(k_r + t_pp)
-    matrix = _matrix4(
+    matrix = stack_matrix4(
         [
             [k_r + t_pp, -t_mp * xi, t_mp * zeta, zero],
             [-t_mp * xi, k_r, zero, zero],
@@ -308,7 +309,7 @@ def pbssrdf_coaxial_mueller(
     )
     if keep_t_minus_squared:
         t_mm = r * terms.t_minus * terms.t_minus
-        residual = _matrix4(
+        residual = stack_matrix4(
             [
                 [zero, zero, zero, zero],
                 [zero, t_mm * xi * xi, -t_mm * zeta * xi, zero],

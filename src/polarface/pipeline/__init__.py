@@ -1,9 +1,15 @@
-"""Orchestration over folders: the reconstruct stages and checkpoints, the biophysical stage's files,
-the geometry stage (stereo -> meshes, poses, atlas), the dynamic stage (tracking, per-frame maps), the
-evaluation against ground truth,
- the description of a folder (``info``), the demo jobs, the skin
-fit of a spectra file, the IOR of a sphere capture and the polarimetric calibration of a camera.
-Commands call one function of here."""
+"""Orchestration over folders, in stage subpackages from the bottom up, and the one-command jobs.
+
+    inputs/        what a path holds (one reader per folder kind) and each stage's inputs, checked
+                   before anything is written; the import of an authors' session
+    geometry/      the geometry stage: stereo -> per-frame clouds, registration, reference mesh, atlas
+    biophysical/   the biophysical stage on a RESULT folder: chromophore maps
+    dynamic/       the dynamic stage: tracking and per-frame maps over a dynamic capture
+    reconstruct/   the static reconstruction's stages and checkpoints, resumable
+    demo, info, export, skin_fit, calibrate_polarization, ior: one-command jobs
+
+Commands call one function of here. The evaluation against ground truth is :mod:`polarface.evaluate`.
+"""
 
 from polarface.pipeline.biophysical import load_stage_inputs, run_biophysical_stage
 from polarface.pipeline.calibrate_polarization import (
@@ -16,67 +22,57 @@ from polarface.pipeline.calibrate_polarization import (
     read_polarization_frames,
 )
 from polarface.pipeline.demo import reconstruct_summary_line, run_demo_pipeline, run_sphere_demo
-from polarface.pipeline.dynamic import DynamicStageConfig, reconstruct_dynamic
-from polarface.pipeline.dynamic_imported import reconstruct_dynamic_imported
-from polarface.pipeline.evaluate import (
-    METRIC_GROUPS,
-    biophysical_metrics,
-    evaluate,
-    ground_truth_root,
-    polarimetric_metrics,
-    rerender_metrics,
-    write_figures,
-)
-from polarface.pipeline.evaluate_biophysical import evaluate_biophysical
-from polarface.pipeline.evaluate_correspondence import GeometryEvaluationConfig, texel_correspondence
-from polarface.pipeline.evaluate_dynamic import dynamic_metrics
-from polarface.pipeline.evaluate_geometry import geometry_metrics
+from polarface.pipeline.dynamic import DynamicStageConfig, reconstruct_dynamic, reconstruct_dynamic_imported
 from polarface.pipeline.export import EXPORT_JSON, export_result
-from polarface.pipeline.geometry import GEOMETRY_JSON, GeometryConfig, reconstruct_geometry
-from polarface.pipeline.geometry_frames import check_stereo_pairs, frame_stereo
-from polarface.pipeline.import_authors import import_authors
+from polarface.pipeline.geometry import GeometryConfig, frame_stereo, reconstruct_geometry
 from polarface.pipeline.info import folder_info, format_info
+from polarface.pipeline.inputs import (
+    InputFolder,
+    ReconstructInputs,
+    import_authors,
+    read_input_folder,
+    resolve_reconstruct_inputs,
+)
 from polarface.pipeline.ior import (
     ANALYZER_IMAGE_NAMES,
     estimate_ior_from_folder,
     read_analyzer_image,
     validate_ior,
 )
-from polarface.pipeline.reconstruct import STAGES, ReconstructContext, reconstruct, run_stages
-from polarface.pipeline.reconstruct_inputs import ReconstructInputs, resolve_reconstruct_inputs
+from polarface.pipeline.reconstruct import (
+    STAGES,
+    ReconstructContext,
+    ViewCheckConfig,
+    check_view_residuals,
+    flag_view_residuals,
+    reconstruct,
+    run_stages,
+)
 from polarface.pipeline.skin_fit import (
     SkinFitSummary,
     SpectraFitOptions,
     fit_spectra_file,
     read_reflectance_csv,
 )
-from polarface.pipeline.view_residuals import ViewCheckConfig, check_view_residuals, flag_view_residuals
 
 __all__ = [
     "ANALYZER_IMAGE_NAMES",
     "EXPORT_JSON",
     "FRAMES_JSON",
-    "GEOMETRY_JSON",
-    "METRIC_GROUPS",
     "POLARIZATION_FRAME_SUFFIXES",
     "STAGES",
     "DynamicStageConfig",
     "GeometryConfig",
-    "GeometryEvaluationConfig",
+    "InputFolder",
     "PolarizationFrame",
     "ReconstructContext",
     "ReconstructInputs",
     "SkinFitSummary",
     "SpectraFitOptions",
     "ViewCheckConfig",
-    "biophysical_metrics",
     "calibrate_polarization",
-    "check_stereo_pairs",
     "check_view_residuals",
-    "dynamic_metrics",
     "estimate_ior_from_folder",
-    "evaluate",
-    "evaluate_biophysical",
     "export_result",
     "fit_spectra_file",
     "flag_view_residuals",
@@ -84,13 +80,11 @@ __all__ = [
     "format_info",
     "format_polarization_table",
     "frame_stereo",
-    "geometry_metrics",
-    "ground_truth_root",
     "import_authors",
     "load_stage_inputs",
-    "polarimetric_metrics",
     "polarization_report",
     "read_analyzer_image",
+    "read_input_folder",
     "read_polarization_frames",
     "read_reflectance_csv",
     "reconstruct",
@@ -98,13 +92,10 @@ __all__ = [
     "reconstruct_dynamic_imported",
     "reconstruct_geometry",
     "reconstruct_summary_line",
-    "rerender_metrics",
     "resolve_reconstruct_inputs",
     "run_biophysical_stage",
     "run_demo_pipeline",
     "run_sphere_demo",
     "run_stages",
-    "texel_correspondence",
     "validate_ior",
-    "write_figures",
 ]

@@ -41,6 +41,9 @@ from typing import Any, Literal
 
 import numpy as np
 
+from polarface.results import layout
+from polarface.simulate.layout import ground_truth_folder
+
 __all__ = ["run_demo_pipeline", "run_sphere_demo"]
 
 _CAPTIONS = {
@@ -65,7 +68,7 @@ _TAIL_OUTPUTS = ("metrics.json", "result/report.html", "result/exports/export.js
 
 def _result_digest(out: Path) -> str:
     """SHA-256 of ``DIR/result/result.json``: it changes whenever a stage of the RESULT reruns."""
-    return hashlib.sha256((out / "result" / "result.json").read_bytes()).hexdigest()
+    return hashlib.sha256((out / "result" / layout.RESULT_JSON).read_bytes()).hexdigest()
 
 
 def _tail_up_to_date(out: Path) -> bool:
@@ -89,8 +92,8 @@ def _demo_steps(out: Path, preset: str, skin_type: str, say: Callable[[str], Non
     after the reconstruction are up to date, :func:`_tail_up_to_date`, and were not redone)."""
     from polarface.executors import LocalExecutor, ProcessExecutor
     from polarface.io import read_json_object
+    from polarface.pipeline.inputs import resolve_reconstruct_inputs
     from polarface.pipeline.reconstruct import reconstruct
-    from polarface.pipeline.reconstruct_inputs import resolve_reconstruct_inputs
     from polarface.results import ResultFolder
     from polarface.simulate.pipeline import SimulationConfig, simulate
 
@@ -154,9 +157,9 @@ def _run_demo_tail(unit: _DemoTail) -> Any:
     their :class:`polarface.report.html.ImageItem` list)."""
     sim, result = unit.out / "sim", unit.out / "result"  # each step imports only what it runs
     if unit.step == "evaluate":
+        from polarface.evaluate import evaluate
         from polarface.io import write_json_atomic
         from polarface.io.output_folder import output_folder
-        from polarface.pipeline.evaluate import evaluate
 
         # as `polarface evaluate --figures` writes it: the printed command line reruns on this folder
         with output_folder(unit.out / "figures", "evaluate", force=True, staged=True) as figures:
@@ -171,7 +174,7 @@ def _run_demo_tail(unit: _DemoTail) -> Any:
     if unit.step == "comparisons":
         from polarface.report.demo_index import write_comparisons
 
-        return write_comparisons(unit.out, result, sim / "ground_truth")
+        return write_comparisons(unit.out, result, ground_truth_folder(sim))
     from polarface.io.output_folder import output_folder
     from polarface.pipeline.export import export_result
 

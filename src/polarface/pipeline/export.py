@@ -20,7 +20,7 @@ from typing import Any
 from polarface.export import EXPORT_FORMATS, ExportOptions, ExportSource
 from polarface.io import record_path, write_json_atomic
 from polarface.io.storage import PathOrUrl
-from polarface.pipeline.dynamic_inputs import parse_frame_selection
+from polarface.pipeline.inputs import parse_frame_selection
 from polarface.results import ResultFolder
 
 __all__ = ["EXPORT_FORMAT", "EXPORT_JSON", "EXPORT_VERSION", "export_result", "write_export_viewer"]

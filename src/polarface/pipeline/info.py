@@ -15,13 +15,14 @@ import json
 from pathlib import Path
 from typing import Any
 
-from polarface.io import read_json_object, storage_path
+from polarface.capture.manifest import DERIVED_ZARR, MANIFEST_JSON, read_manifest
+from polarface.io import read_json_object
+from polarface.pipeline.inputs import IMPORTED_JSON, imported_stores_problem, read_input_folder
 from polarface.results import ResultFolder
+from polarface.simulate.layout import GROUND_TRUTH, SEQUENCE_NAMES, SIMULATION_JSON
 
 __all__ = ["folder_info", "format_info"]
 
-#: Sequences a simulation folder may hold, each a capture store.
-_SEQUENCES = ("static", "dynamic")
 
 
 def _fingerprint(*records: dict[str, Any]) -> Any:
@@ -47,9 +48,7 @@ def _cameras(rig_path: Path) -> list[dict[str, Any]]:
 
 def capture_info(root: Path) -> dict[str, Any]:
     """Frames (listed, with a completion marker), cameras and resolutions of a capture store."""
-    from polarface.capture import read_manifest
-
-    manifest = read_manifest(root / "manifest.json")
+    manifest = read_manifest(root / MANIFEST_JSON)
     frames = manifest["frames"]
     stamps = [float(f["timestamp"]) for f in frames]
     markers = sum((root / "frames" / f"{int(f['index']):06d}.json").is_file() for f in frames)
@@ -64,7 +63,7 @@ def capture_info(root: Path) -> dict[str, Any]:
         "duration_s": (max(stamps) - min(stamps)) if stamps else 0.0,
         "demosaicing": sorted({str(f.get("method")) for f in frames if f.get("method")}),
         "cameras": _cameras(root / "rig.json"),
-        "derived_store": (root / str(manifest.get("derived_store", "derived.zarr"))).is_dir(),
+        "derived_store": (root / str(manifest.get("derived_store", DERIVED_ZARR))).is_dir(),
         "fingerprint": _fingerprint(manifest),
     }
 
@@ -72,8 +71,6 @@ def capture_info(root: Path) -> dict[str, Any]:
 def imported_info(root: Path) -> dict[str, Any]:
     """Kind, frames, views, texture, cameras and state of an imported authors' session (``stores``: None
     when the import recorded no inventory or is unfinished, else ``"intact"`` or what differs)."""
-    from polarface.pipeline.import_authors import IMPORTED_JSON, imported_stores_problem
-
     record = read_json_object(root / IMPORTED_JSON)
     complete = record.get("complete") is True
     stores = None
@@ -100,7 +97,7 @@ def _map_files(maps_dir: Path) -> list[str]:
 
 def simulation_info(root: Path) -> dict[str, Any]:
     """Configuration, timings, sequences (as :func:`capture_info`) and ground-truth maps of a simulation."""
-    summary = read_json_object(root / "simulation.json") if (root / "simulation.json").is_file() else {}
+    summary = read_json_object(root / SIMULATION_JSON) if (root / SIMULATION_JSON).is_file() else {}
     timings = summary.get("timings", {})
     return {
         "kind": "simulation",
@@ -113,10 +110,10 @@ def simulation_info(root: Path) -> dict[str, Any]:
         "peak_rss_mb": summary.get("peak_rss_mb"),
         "sequences": {
             name: capture_info(root / name)
-            for name in _SEQUENCES
-            if (root / name / "manifest.json").is_file()
+            for name in SEQUENCE_NAMES
+            if (root / name / MANIFEST_JSON).is_file()
         },
-        "ground_truth_maps": _map_files(root / "ground_truth" / "maps"),
+        "ground_truth_maps": _map_files(root / GROUND_TRUTH / "maps"),
         "fingerprint": _fingerprint(summary),
     }
 
@@ -181,34 +178,29 @@ def result_info(root: Path) -> dict[str, Any]:
     }
 
 
+#: Folder kind (:data:`polarface.pipeline.inputs.INPUT_KINDS`) -> its description, in the order tried.
+_DESCRIBERS = {
+    "result": result_info,
+    "capture": capture_info,
+    "imported": imported_info,
+    "simulation": simulation_info,
+}
+
+
 def folder_info(path: str | Path) -> dict[str, Any]:
     """What ``path`` holds, as a JSON-ready dict with ``kind`` = ``capture``, ``simulation``, ``result`` or
     ``imported``.
 
-    A RESULT has ``result.json``, a capture store ``manifest.json``, a simulation folder
-    ``simulation.json`` or a ``static/``/``dynamic/`` capture store beside ``ground_truth/``, an imported
-    authors' session ``imported.json`` (a local folder).
+    The kind is :func:`polarface.pipeline.inputs.read_input_folder`'s (a RESULT has ``result.json``, a
+    capture store ``manifest.json``, an imported authors' session ``imported.json``, a simulation folder
+    ``simulation.json`` or a ``static/``/``dynamic/`` capture store beside ``ground_truth/``).
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: ``path`` is none of the three, or one of its JSON files is malformed (named).
+        ValueError: ``path`` is none of the four, or one of its JSON files is malformed (named).
     """
-    root = storage_path(path)
-    if not root.exists():
-        raise FileNotFoundError(f"argument 'PATH': '{root}' does not exist")
-    if (root / "result.json").is_file():
-        return result_info(root)
-    if (root / "manifest.json").is_file():
-        return capture_info(root)
-    if isinstance(root, Path) and (root / "imported.json").is_file():
-        return imported_info(root)
-    sequences = any((root / s / "manifest.json").is_file() for s in _SEQUENCES)
-    if (root / "simulation.json").is_file() or (sequences and (root / "ground_truth").is_dir()):
-        return simulation_info(root)
-    raise ValueError(
-        f"argument 'PATH': '{root}' is not a capture store, simulation folder or RESULT folder, nor an "
-        "imported session (no manifest.json, simulation.json, result.json or imported.json)"
-    )
+    folder = read_input_folder(path, tuple(_DESCRIBERS))
+    return _DESCRIBERS[folder.kind](folder.root)
 
 
 def _number(value: Any, unit: str = "") -> str:

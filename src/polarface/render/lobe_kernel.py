@@ -30,7 +30,8 @@ import numba
 import numpy as np
 import torch
 
-from polarface.optics.lobes import ShadowTest, _ask, add_lobes, checked_lobe_inputs
+from polarface.optics import ask_shadow_test
+from polarface.optics.lobes import ShadowTest, add_lobes, checked_lobe_inputs
 
 __all__ = ["add_lobes_fused"]
 
@@ -57,7 +58,7 @@ def _unit_or(x, y, z, fx, fy, fz, least, one):  # pragma: no cover - compiled by
 @numba.njit(inline="always", **_JIT)
 def _view(i, normal, position, centre, up, const):  # pragma: no cover - compiled by numba
     """Fragment ``i``'s view direction ``w_o``, ``cos_o`` and camera up projected on ``w_o``
-    (``polarface.optics._kernels._Viewer``)."""
+    (``polarface.optics._kernels.Viewer``)."""
     one = const[3]
     nx, ny, nz = normal[0, i], normal[1, i], normal[2, i]
     cx, cy, cz = centre[0] - position[0, i], centre[1] - position[1, i], centre[2] - position[2, i]
@@ -70,7 +71,7 @@ def _view(i, normal, position, centre, up, const):  # pragma: no cover - compile
 @numba.njit(inline="always", **_JIT)
 def _to_light(lx, ly, lz, px, py, pz, nx, ny, nz, const):  # pragma: no cover - compiled by numba
     """Unit direction from the point ``p`` with normal ``n`` to the light at ``l``, ``1 / distance^2`` and
-    ``cos_i`` (``polarface.optics._kernels._Light``): one formula for the front mask and the lobes."""
+    ``cos_i`` (``polarface.optics._kernels.Light``): one formula for the front mask and the lobes."""
     one, tiny = const[3], const[6]
     dx, dy, dz = lx - px, ly - py, lz - pz
     distance2 = max(dx * dx + dy * dy + dz * dz, tiny)
@@ -95,7 +96,7 @@ def _front(normal, position, centre, up, lights, const, front):  # pragma: no co
 @numba.njit(inline="always", **_JIT)
 def _double_angle(hx, hy, hz, dx, dy, dz, px, py, pz, const):  # pragma: no cover - compiled by numba
     """``(cos 2phi, sin 2phi)`` of ``h``'s azimuth in the Stokes frame of a ray along ``d`` with the
-    projected up ``p`` (``polarface.optics._kernels._double_angle``)."""
+    projected up ``p`` (``polarface.optics.ray_double_angle``)."""
     zero, one, two, eps4 = const[0], const[3], const[4], const[8]
     cx, cy, cz = dy * hz - dz * hy, dz * hx - dx * hz, dx * hy - dy * hx
     a = px * cx + py * cy + pz * cz
@@ -315,7 +316,7 @@ def add_lobes_fused(
     if callable(visible):
         front = np.empty((count, lights_count), bool)
         _front(normal_a, position_a, centre, up, lights, const, front)
-        lit = np.stack([_ask(visible, k, front[:, k]) for k in range(lights_count)]) \
+        lit = np.stack([ask_shadow_test(visible, k, front[:, k]) for k in range(lights_count)]) \
             if lights_count else np.zeros((0, count), bool)  # fmt: skip
     else:
         lit = np.ascontiguousarray(visible.T)

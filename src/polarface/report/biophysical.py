@@ -32,7 +32,7 @@ def biophysical_section(
     """Add the biophysical section to ``page`` for a RESULT folder; returns the section.
 
     Image paths are relative to the RESULT (the report lives at ``RESULT/report.html``). ``metrics``
-    (from :func:`polarface.pipeline.evaluate_biophysical`, or ``polarface evaluate``'s ``biophysical``
+    (from :func:`polarface.evaluate.evaluate_biophysical`, or ``polarface evaluate``'s ``biophysical``
     group, whose keys end in ``_error``) adds the error tables.
     """
     folder = result_dir if isinstance(result_dir, ResultFolder) else ResultFolder(result_dir)

@@ -20,8 +20,10 @@ from typing import Any
 
 import numpy as np
 
+from polarface.capture.manifest import MANIFEST_JSON
 from polarface.report.html import HtmlPage, ImageItem
 from polarface.results import CHROMOPHORE_MAPS, POLARIMETRIC_MAPS, RHO_SSS_BAR, ResultFolder
+from polarface.simulate.layout import ground_truth_folder
 
 __all__ = [
     "DYNAMIC_TARGETS",
@@ -152,7 +154,7 @@ def dynamic_scalars(dynamic: Mapping[str, Any]) -> dict[str, float]:
 
 
 #: The geometry error heat map under the demo folder (``evaluate(..., figures_dir=DIR / "figures")``,
-#: :data:`polarface.pipeline.evaluate_geometry.GEOMETRY_ERROR_PNG`), shown when present.
+#: :data:`polarface.evaluate.geometry.GEOMETRY_ERROR_PNG`), shown when present.
 GEOMETRY_ERROR_FIGURE = "figures/geometry_error_mm.png"
 
 #: Units of the compared parameters (scale bar labels).
@@ -341,7 +343,7 @@ def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any],
         checks.table(metric_rows(derived, DYNAMIC_TARGETS), header=("dynamic sequence", "value", "target",
                      "pass"), column_classes=("", "num", "num", ""))
     if comparisons is None:
-        comparisons = write_comparisons(out, out / "result", out / "sim" / "ground_truth")
+        comparisons = write_comparisons(out, out / "result", ground_truth_folder(out / "sim"))
     if comparisons:
         page.section(
             "Ground truth, reconstruction and error per parameter",
@@ -360,7 +362,7 @@ def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any],
         "Frame 0 of the static sequence (sim/static/, a capture store: docs/capture_store.md).",
     )
     store = out / "sim" / "static"
-    if (store / "manifest.json").is_file():
+    if (store / MANIFEST_JSON).is_file():
         frames.image_grid(write_frame_previews(out, store), columns=4)
         for camera in sorted(p.name for p in (store / "raw").iterdir() if p.is_dir()):
             raw = store / "raw" / camera / "000000.png"

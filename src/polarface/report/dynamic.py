@@ -357,7 +357,7 @@ def dynamic_section(page: HtmlPage, result_dir: str | Path | ResultFolder,
 
     Writes the animations and the chromophore plot (module docstring) into ``RESULT/previews``; image
     paths are relative to the RESULT. ``metrics`` (``polarface evaluate``'s ``dynamic`` group,
-    :func:`polarface.pipeline.evaluate_dynamic.dynamic_metrics`) adds their table. Works with failed
+    :func:`polarface.evaluate.dynamic_metrics`) adds their table. Works with failed
     frames, a single frame, or none done yet (then only the frame table).
     """
     folder = result_dir if isinstance(result_dir, ResultFolder) else ResultFolder(result_dir)

@@ -16,6 +16,7 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
+from polarface.capture.manifest import MANIFEST_JSON
 from polarface.io.storage import PathOrUrl, StoragePath, UrlPath, storage_path
 
 __all__ = [
@@ -65,7 +66,7 @@ def capture_identity(capture: PathOrUrl) -> dict[str, Any]:
     frame markers)."""
     root = storage_path(capture)
     markers = sorted((root / "frames").glob("[0-9]*.json"))
-    files = [p for p in (root / "rig.json", root / "manifest.json") if p.is_file()] + markers
+    files = [p for p in (root / "rig.json", root / MANIFEST_JSON) if p.is_file()] + markers
     return {"path": _absolute(root), "frames": len(markers), "sha256": _sha256_files(files)}
 
 

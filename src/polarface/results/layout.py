@@ -18,6 +18,7 @@ __all__ = [
     "EXPORTS_DIR",
     "FRAMES_DIR",
     "GEOMETRY_DIR",
+    "GEOMETRY_JSON",
     "MAPS_DIR",
     "POLARIMETRIC_MAPS",
     "PREVIEWS_DIR",
@@ -42,6 +43,9 @@ CHECKPOINTS_DIR = "checkpoints"
 FRAMES_DIR = "frames"
 GEOMETRY_DIR = "geometry"
 EXPORTS_DIR = "exports"
+#: The geometry stage's folder (``RESULT/geometry`` or a GEOM folder of ``polarface geometry``): its
+#: summary and marker (``polarface.pipeline.geometry.stage``); beside it ``mesh.obj`` and ``poses.json``.
+GEOMETRY_JSON = "geometry.json"
 #: The dynamic stage's geometry: per-frame stereo meshes and the tracked reference mesh.
 TRACKING_DIR = "tracking"
 #: Files under ``tracking/``: the summary and the tracked vertices (``polarface.geometry.tracking``).

@@ -1,7 +1,7 @@
 """One frame of a simulation: render, raw sensor frames, files; and the frame as an executor unit.
 
-:func:`render_frame` renders every camera of the rig for one posed or deformed head;
-:func:`write_frame` turns the render into raw frames (noise drawn from
+:func:`polarface.simulate.render.render_frame` renders every camera of the rig for one posed or
+deformed head; :func:`write_frame` turns the render into raw frames (noise drawn from
 ``numpy.random.default_rng((seed, sequence, frame, camera))``: a frame's noise depends on its index
 only, never on the frames simulated before it) and writes the frame's files: its capture-store frame,
 its ground-truth mesh (and, dynamic, its changing maps) and its observations.
@@ -11,7 +11,7 @@ its ground-truth mesh (and, dynamic, its changing maps) and its observations.
 ``rig.json``, which carries the exposure) and its configuration, renders the frame and writes its files
 itself; what frames share (the arrays' metadata, the stores' manifests, the "frame done" attributes,
 ``simulation.json``) is written by the submitting process (:func:`polarface.simulate.pipeline.simulate`).
-A worker builds the :class:`~polarface.simulate.pipeline.SimulationScene` of a configuration once and
+A worker builds the :class:`~polarface.simulate.scene.SimulationScene` of a configuration once and
 keeps it for the next frames (:func:`scene_for`); the submitting process lends its own
 (:func:`shared_scene`), so the local executor builds nothing twice.
 """
@@ -23,43 +23,33 @@ import dataclasses
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 
-from polarface._validation import trusted_inputs
 from polarface.capture.analyzers import measured_analyzer_intensities
-from polarface.capture.rig import Camera, Rig
+from polarface.capture.rig import Rig
 from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
 from polarface.capture.store import CaptureStore
 from polarface.executors.timing import StageClock
 from polarface.geometry.mesh import TriangleMesh, save_ply
-from polarface.geometry.raycast import RayCaster
-from polarface.geometry.uv_raster import UVRaster, reposition
 from polarface.io import atomic_path, write_exr
-from polarface.render.renderer import render_view, rig_lighting, shading_normals
-from polarface.render.shading import FrameTextures
-from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
 from polarface.simulate.ground_truth import AppearanceMaps
 from polarface.simulate.ground_truth_store import ObservationWriter
+from polarface.simulate.layout import GROUND_TRUTH
+from polarface.simulate.render import RenderedFrame, render_frame
+from polarface.simulate.scene import SimulationConfig, SimulationScene
 from polarface.simulate.sequences import sequence_frame
-
-if TYPE_CHECKING:
-    from polarface.simulate.pipeline import SimulationConfig, SimulationScene
 
 __all__ = [
     "FRAME_STAGES",
-    "RenderedFrame",
     "SimulationFrameUnit",
-    "exposure_from",
     "frame_counts",
-    "frame_exposure",
-    "render_frame",
+    "raw_frames",
     "run_simulation_unit",
     "scene_for",
     "shared_scene",
-    "with_exposure",
     "write_frame",
 ]
 
@@ -79,76 +69,6 @@ FRAME_STAGES = (
 _SCENES: dict[Any, SimulationScene] = {}
 
 
-def _camera_channels(camera: Camera) -> tuple[int, int, int]:
-    return tuple(camera.colour_channels[c] for c in ("R", "G", "B"))  # type: ignore[return-value]
-
-
-@dataclasses.dataclass(frozen=True)
-class RenderedFrame:
-    """The per-camera renders and the geometry of one frame (internal to the simulator)."""
-
-    mesh: TriangleMesh
-    caster: RayCaster  # Embree scene of ``mesh``, reused for the texel visibility
-    views: dict  # camera id -> ViewRender
-    raster: UVRaster
-    shading_normal: np.ndarray
-
-
-def render_frame(
-    scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps, subsurface: SubsurfaceModel,
-    timings: dict[str, float] | None = None, cameras: tuple[str, ...] | None = None,
-) -> RenderedFrame:
-    """Render every camera of the rig (or the ``cameras`` named) for one posed/deformed head (noise-free
-    radiance). A view's pixels do not depend on which other cameras are rendered.
-
-    ``timings``: adds the seconds of each stage (:data:`FRAME_STAGES`, render part) to it.
-    """
-    clock = StageClock(timings)
-    caster = RayCaster(mesh_world)
-    raster = reposition(scene.raster, mesh_world)
-    shading = shading_normals(raster, maps.displacement_mm)
-    lights, intensity = rig_lighting(scene.rig)
-    reference = scene.rig.polarimetric_cameras()[0].pinhole()
-    clock.lap("geometry_s")
-    # the scene's maps and model were checked when built, the flux is computed here: the value checks
-    # (finite, ranges) of the physics functions inside are skipped (about 0.2 s of the diffusion)
-    with trusted_inputs():
-        flux = entering_flux(caster, raster, shading, maps.eta, lights, intensity, reference.up_vector)
-        clock.lap("entering_flux_s")
-        blur = scene.config.subsurface_blur
-        exitance = texture_space_exitance(flux, subsurface, scene.calibration, blur=blur)
-        clock.lap("diffusion_s")
-    textures = FrameTextures.build(
-        {
-            "eta": maps.eta,
-            "alpha_s": maps.alpha_s,
-            "alpha_ss": maps.alpha_ss,
-            "rho_s": maps.rho_s,
-            "rho_ss": maps.rho_ss,
-        },
-        shading,
-        exitance,
-        raster.mask,
-    )
-    views = {}
-    for camera in scene.rig.cameras:
-        if cameras is not None and camera.id not in cameras:
-            continue
-        polarimetric = camera.role == "polarimetric"
-        views[camera.id] = render_view(
-            caster,
-            mesh_world,
-            camera.pinhole(),
-            textures,
-            lights,
-            intensity,
-            _camera_channels(camera) if polarimetric else tuple(range(6)),
-            polarization=polarimetric,
-        )
-        clock.lap("views_polarimetric_s" if polarimetric else "views_stereo_s")
-    return RenderedFrame(mesh_world, caster, views, raster, shading)
-
-
 def _stereo_rgb(s0: np.ndarray, rig: Rig) -> np.ndarray:
     """RGB of an unfiltered camera from the six half-band channels: mean of each colour's two halves."""
     upper, lower = rig.polarimetric_cameras()[:2]
@@ -158,7 +78,7 @@ def _stereo_rgb(s0: np.ndarray, rig: Rig) -> np.ndarray:
     return np.stack(rgb, axis=-1)
 
 
-def _raw_frames(
+def raw_frames(
     scene: SimulationScene, frame: RenderedFrame, sequence: str, index: int
 ) -> dict[str, np.ndarray]:
     """Noisy (or noise-free) integer raw frames of every camera; the polarimetric cameras' analyzer images
@@ -189,33 +109,6 @@ def _raw_frames(
     return raws
 
 
-def exposure_from(frame: RenderedFrame, scene: SimulationScene) -> float:
-    """Exposure putting the 99.5th percentile of the first polarimetric camera's co-polarized image at
-    ``exposure_fill``."""
-    camera = scene.rig.polarimetric_cameras()[0]
-    view = frame.views[camera.id]
-    values = view.images["i0"][view.mask]
-    level = float(np.percentile(values, 99.5)) if values.size else 1.0
-    return scene.config.exposure_fill / max(level, 1e-12)
-
-
-def frame_exposure(scene: SimulationScene, sequence: str, index: int) -> float:
-    """The exposure that frame ``index`` of ``sequence`` fixes (:func:`exposure_from`), from a render of
-    the one camera it reads: the same pixels as in the frame's full render, at about a quarter of its
-    cost (demo preset: geometry, subsurface light and one of ten views)."""
-    _, _, mesh, maps, subsurface = sequence_frame(scene, sequence, index)
-    first = scene.rig.polarimetric_cameras()[0].id
-    return exposure_from(render_frame(scene, mesh, maps, subsurface, cameras=(first,)), scene)
-
-
-def with_exposure(rig: Rig, exposure: float) -> Rig:
-    """The rig with every camera's exposure set (so demosaiced images come back in radiance units)."""
-    data = rig.model_dump(mode="json")
-    for camera in data["cameras"]:
-        camera["exposure"] = exposure
-    return Rig.model_validate(data)
-
-
 def frame_counts(scene: SimulationScene) -> dict[str, int]:
     """Frames of each sequence of ``scene``'s preset: ``{"static": N, "dynamic": M}``."""
     return {"static": scene.preset.static_frames, "dynamic": scene.preset.dynamic_frames}
@@ -234,9 +127,9 @@ def write_frame(scene: SimulationScene, out: Path, sequence: str, index: int, ti
     ``timings``: adds the seconds of each stage (:data:`FRAME_STAGES`, write part) to it.
     """
     clock = StageClock(timings)
-    gt = out / "ground_truth"
+    gt = out / GROUND_TRUTH
     store = CaptureStore.open_writer(out / sequence)
-    raws = _raw_frames(scene, frame, sequence, index)
+    raws = raw_frames(scene, frame, sequence, index)
     clock.lap("raw_noise_s")
     store.add_frame(index, time_s, raws, update_manifest=False)
     clock.lap("capture_store_s")
@@ -261,8 +154,6 @@ def scene_for(config: SimulationConfig, scene_file: Path | None = None) -> Simul
     only)."""
     scene = _SCENES.get(config)
     if scene is None:
-        from polarface.simulate.pipeline import SimulationScene
-
         _SCENES.clear()
         scene = _SCENES[config] = _read_scene_file(scene_file, config) or SimulationScene.build(config)
     return scene

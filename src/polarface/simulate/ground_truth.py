@@ -37,6 +37,7 @@ __all__ = [
     "AppearanceMaps",
     "blood_flow_factor",
     "build_appearance_maps",
+    "chromophore_maps",
     "chromophore_multipliers_from_albedo",
     "facial_region_weights",
     "smooth_random_field",
@@ -78,6 +79,11 @@ class AppearanceMaps:
     def replace(self, **changes: np.ndarray) -> AppearanceMaps:
         """A copy with some maps replaced (used for the per-frame blood-flow maps)."""
         return dataclasses.replace(self, **changes)
+
+
+def chromophore_maps(maps: AppearanceMaps) -> dict[str, np.ndarray]:
+    """The four chromophore maps ``(Ht, Wt)`` of ``maps``: ``c_m``, ``beta_m``, ``c_h_in``, ``c_h_out``."""
+    return {"c_m": maps.c_m, "beta_m": maps.beta_m, "c_h_in": maps.c_h_in, "c_h_out": maps.c_h_out}
 
 
 def smooth_random_field(

@@ -9,7 +9,6 @@ view mask and uv, and per texel its visibility and pixel in each polarimetric vi
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,10 +18,9 @@ from polarface.geometry.poses import save_poses
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster
 from polarface.io import write_exr, write_png
-
-if TYPE_CHECKING:
-    from polarface.simulate.frames import RenderedFrame
-    from polarface.simulate.pipeline import SimulationScene
+from polarface.simulate.layout import REST_MESH_OBJ, SEQUENCE_NAMES
+from polarface.simulate.render import RenderedFrame
+from polarface.simulate.scene import SimulationScene
 
 __all__ = ["ObservationWriter", "texel_visibility", "write_static_ground_truth"]
 
@@ -69,14 +67,14 @@ def write_static_ground_truth(root: Path, scene: SimulationScene, poses: np.ndar
         write_exr(maps_dir / f"{name}.exr", {"Y": values})
     write_exr(maps_dir / "rho_sss_bar.exr", {n: scene.maps.rho_sss_bar[..., i] for i, n in enumerate(names)})
     write_png(maps_dir / "mask.png", scene.maps.mask.astype(np.uint8) * 255)
-    save_obj(root / "mesh_rest.obj", scene.asset.mesh)
+    save_obj(root / REST_MESH_OBJ, scene.asset.mesh)
     save_poses(root / "static" / "poses.json", poses)
 
 
 def _mark_order(key: str) -> tuple[int, int, str]:
     """Sort key of a "frame done" attribute ``SEQUENCE/INDEX``: static before dynamic, then the index."""
     sequence, _, index = key.partition("/")
-    order = ("static", "dynamic")
+    order = SEQUENCE_NAMES
     return (order.index(sequence) if sequence in order else len(order),
             int(index) if index.isdigit() else -1, key)
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -21,14 +20,11 @@ from polarface.geometry.deform import ExpressionRig, dynamic_sequence_weights
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.poses import StaticSequenceConfig, static_sequence_poses
 from polarface.render.subsurface import SubsurfaceModel
-from polarface.simulate.ground_truth import AppearanceMaps, blood_flow_factor
-
-if TYPE_CHECKING:
-    from polarface.simulate.pipeline import SimulationScene
+from polarface.simulate.ground_truth import AppearanceMaps, blood_flow_factor, chromophore_maps
+from polarface.simulate.scene import SimulationScene
 
 __all__ = [
     "FRAME_RATE_HZ",
-    "chromophore_maps",
     "pressed_patch",
     "sequence_frame",
     "sequence_frames",
@@ -37,11 +33,6 @@ __all__ = [
 ]
 
 FRAME_RATE_HZ = 20.0
-
-
-def chromophore_maps(maps: AppearanceMaps) -> dict[str, np.ndarray]:
-    """The four chromophore maps ``(Ht, Wt)`` of ``maps``: ``c_m``, ``beta_m``, ``c_h_in``, ``c_h_out``."""
-    return {"c_m": maps.c_m, "beta_m": maps.beta_m, "c_h_in": maps.c_h_in, "c_h_out": maps.c_h_out}
 
 
 def sequence_frames(

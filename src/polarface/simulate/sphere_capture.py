@@ -37,6 +37,7 @@ from polarface.render.renderer import ViewRender, render_view, rig_lighting, sha
 from polarface.render.shading import FrameTextures
 from polarface.render.subsurface import entering_flux
 from polarface.simulate.analyzers import SimulatedAnalyzers
+from polarface.simulate.layout import GROUND_TRUTH, REST_MESH_OBJ
 
 __all__ = [
     "SphereCaptureConfig",
@@ -215,7 +216,8 @@ def make_sphere_capture(out: str | Path, config: SphereCaptureConfig | None = No
     """Render and store the synthetic capture (layout in the module docstring); returns a summary.
 
     Returns:
-        ``{"capture": path, "ground_truth": path, "maps": maps, "mask": mask, "rig": Rig}``.
+        ``{"capture": path, GROUND_TRUTH: path, "maps": maps, "mask": mask, "rig": Rig}`` (the ground-truth
+        folder under the key :data:`~polarface.simulate.layout.GROUND_TRUTH`, its own name).
     """
     config = config or SphereCaptureConfig()
     out = Path(out)
@@ -226,7 +228,7 @@ def make_sphere_capture(out: str | Path, config: SphereCaptureConfig | None = No
     yaws = np.radians(np.linspace(-config.yaw_range_deg, config.yaw_range_deg, config.frames))
     poses = np.stack([sphere_placement(float(yaw)) for yaw in yaws])
     rig = _store_frames(out, rig, _render_frames(mesh, raster, maps, rig, poses), config)
-    gt = out / "ground_truth"
+    gt = out / GROUND_TRUTH
     for name, value in maps.items():
         if name == "rho_sss_bar":
             names = (
@@ -236,6 +238,6 @@ def make_sphere_capture(out: str | Path, config: SphereCaptureConfig | None = No
         else:
             write_exr(gt / "maps" / f"{name}.exr", {"Y": value})
     write_png(gt / "maps" / "mask.png", raster.mask.astype(np.uint8) * 255)
-    save_obj(gt / "mesh_rest.obj", mesh)
+    save_obj(gt / REST_MESH_OBJ, mesh)
     save_poses(gt / "static" / "poses.json", poses)
-    return {"capture": out / "static", "ground_truth": gt, "maps": maps, "mask": raster.mask, "rig": rig}
+    return {"capture": out / "static", GROUND_TRUTH: gt, "maps": maps, "mask": raster.mask, "rig": rig}

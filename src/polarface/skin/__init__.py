@@ -8,6 +8,9 @@
 * :mod:`~polarface.skin.spectral` - wavelength grid, 6-channel calibration, sRGB previews.
 * :mod:`~polarface.skin.fitting` - batched fits of measured reflectance spectra.
 
+Unchecked cores for other packages' inner loops: :func:`chromophore_spectra`,
+:func:`layer_optics_unchecked` and :func:`layer_totals_unchecked` (the biophysical fit's tables).
+
 Physics only: nothing here imports :mod:`polarface.io`.
 """
 
@@ -38,9 +41,12 @@ from polarface.skin.layers import (
     LayerOptics,
     LayerTotals,
     SkinLayerConstants,
+    chromophore_spectra,
     compose_total_reflectance,
     layer_optics,
+    layer_optics_unchecked,
     layer_totals,
+    layer_totals_unchecked,
     subsurface_albedo,
 )
 from polarface.skin.multipole import (
@@ -97,6 +103,7 @@ __all__ = [
     "SoGFit",
     "SpectralCalibration",
     "SpectrumFit",
+    "chromophore_spectra",
     "cie_illuminant",
     "compose_total_reflectance",
     "default_radial_grid",
@@ -110,7 +117,9 @@ __all__ = [
     "gaussian_blur",
     "interpolate_table",
     "layer_optics",
+    "layer_optics_unchecked",
     "layer_totals",
+    "layer_totals_unchecked",
     "load_spectral_table",
     "reflectance_model",
     "render_layered_subsurface",

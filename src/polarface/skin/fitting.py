@@ -30,7 +30,12 @@ from typing import NamedTuple
 import torch
 
 from polarface._validation import as_float_tensor, check_range
-from polarface.skin.layers import PARAMETER_RANGES, SkinLayerConstants, _subsurface_albedo, subsurface_albedo
+from polarface.skin.layers import (
+    PARAMETER_RANGES,
+    SkinLayerConstants,
+    subsurface_albedo,
+    subsurface_albedo_unchecked,
+)
 
 __all__ = [
     "FIT_PARAMETER_NAMES",
@@ -104,7 +109,7 @@ def _surface_plus_diffusion(
 
 
 def _model_unchecked(parameters: torch.Tensor, wavelengths_nm: torch.Tensor, constants) -> torch.Tensor:
-    return _surface_plus_diffusion(parameters, wavelengths_nm, constants, _subsurface_albedo)
+    return _surface_plus_diffusion(parameters, wavelengths_nm, constants, subsurface_albedo_unchecked)
 
 
 def _start_design(starts: int, dtype: torch.dtype) -> torch.Tensor:

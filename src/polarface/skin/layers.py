@@ -44,7 +44,7 @@ from polarface.skin.chromophores import (
     sigma_a_pheomelanin,
     sigma_s_prime_outer,
 )
-from polarface.skin.multipole import DEFAULT_N_POLES, _closed_form_totals
+from polarface.skin.multipole import DEFAULT_N_POLES, slab_totals_unchecked
 
 __all__ = [
     "CHROMOPHORE_NAMES",
@@ -52,10 +52,14 @@ __all__ = [
     "LayerOptics",
     "LayerTotals",
     "SkinLayerConstants",
+    "chromophore_spectra",
     "compose_total_reflectance",
     "layer_optics",
+    "layer_optics_unchecked",
     "layer_totals",
+    "layer_totals_unchecked",
     "subsurface_albedo",
+    "subsurface_albedo_unchecked",
 ]
 
 
@@ -160,13 +164,14 @@ def layer_optics(
             f"argument 'wavelengths_nm' must be 1-D (L,); got shape {tuple(wavelengths_nm.shape)}"
         )
     c_m, beta_m, c_h_in, c_h_out = _check_parameters(c_m, beta_m, c_h_in, c_h_out)
-    return _layer_optics(c_m, beta_m, c_h_in, c_h_out, wavelengths_nm, constants)
+    return layer_optics_unchecked(c_m, beta_m, c_h_in, c_h_out, wavelengths_nm, constants)
 
 
-def _layer_optics(c_m, beta_m, c_h_in, c_h_out, wavelengths_nm, constants) -> LayerOptics:
-    """Unchecked core of :func:`layer_optics` (tensors in, validated by the caller)."""
+def layer_optics_unchecked(c_m, beta_m, c_h_in, c_h_out, wavelengths_nm, constants) -> LayerOptics:
+    """Unchecked core of :func:`layer_optics` (tensors in, validated by the caller): :class:`LayerOptics` of
+    ``(..., L)`` tensors in mm^-1."""
     c_m, beta_m, c_h_in, c_h_out = (p[..., None] for p in (c_m, beta_m, c_h_in, c_h_out))
-    spectra = _chromophore_spectra(wavelengths_nm, constants.gamma)
+    spectra = chromophore_spectra(wavelengths_nm, constants.gamma)
     melanin = beta_m * spectra["eumelanin"] + (1 - beta_m) * spectra["pheomelanin"]
     base = spectra["baseline"]
     sigma_a_out = c_m * melanin + c_h_out * spectra["blood"] + (1 - c_m - c_h_out) * base
@@ -177,7 +182,10 @@ def _layer_optics(c_m, beta_m, c_h_in, c_h_out, wavelengths_nm, constants) -> La
     )
 
 
-def _chromophore_spectra(wavelengths_nm: torch.Tensor, gamma: float) -> dict[str, torch.Tensor]:
+def chromophore_spectra(wavelengths_nm: torch.Tensor, gamma: float) -> dict[str, torch.Tensor]:
+    """The spectra of Eq. epi_ab at ``wavelengths_nm`` ``(L,)`` (nm), each ``(L,)`` in mm^-1: ``blood`` (oxy
+    fraction ``gamma``), ``baseline``, ``eumelanin``, ``pheomelanin`` absorption and the outer layer's
+    reduced ``scattering``."""
     blood = gamma * sigma_a_oxy_haemoglobin(wavelengths_nm) + (1 - gamma) * sigma_a_deoxy_haemoglobin(
         wavelengths_nm
     )
@@ -215,17 +223,20 @@ def layer_totals(
         check_range(value, name, 0.0)
     for name, value in (("sigma_s_prime_out", sigma_s_prime_out), ("sigma_s_prime_in", sigma_s_prime_in)):
         check_range(value, name, 0.0, low_inclusive=False)
-    return _layer_totals(sigma_a_out, sigma_a_in, sigma_s_prime_out, sigma_s_prime_in, constants)
+    return layer_totals_unchecked(sigma_a_out, sigma_a_in, sigma_s_prime_out, sigma_s_prime_in, constants)
 
 
-#: Elements per block of :func:`_layer_totals` (a multiple of every SIMD width): each of the multipole's
-#: ~150 elementwise steps then runs on a block that stays in the core's cache (0.5 MB in float64)
-#: instead of streaming the whole array through memory once per step.
+#: Elements per block of :func:`layer_totals_unchecked` (a multiple of every SIMD width): each of the
+#: multipole's ~150 elementwise steps then runs on a block that stays in the core's cache (0.5 MB in
+#: float64) instead of streaming the whole array through memory once per step.
 _TOTALS_BLOCK = 65536
 
 
-def _layer_totals(sigma_a_out, sigma_a_in, sigma_s_prime_out, sigma_s_prime_in, constants) -> LayerTotals:
-    """Unchecked core of :func:`layer_totals` (broadcasting tensors).
+def layer_totals_unchecked(
+    sigma_a_out, sigma_a_in, sigma_s_prime_out, sigma_s_prime_in, constants
+) -> LayerTotals:
+    """Unchecked core of :func:`layer_totals` (broadcasting tensors, mm^-1; :class:`LayerTotals` of their
+    broadcast shape).
 
     Large inputs go through in blocks of :data:`_TOTALS_BLOCK` elements of their broadcast shape: every
     step is elementwise, so the values are the same (test), and 240 k texels x 15 wavelengths take
@@ -247,7 +258,7 @@ def _layer_totals(sigma_a_out, sigma_a_in, sigma_s_prime_out, sigma_s_prime_in, 
 def _layer_totals_block(
     sigma_a_out, sigma_a_in, sigma_s_prime_out, sigma_s_prime_in, constants
 ) -> LayerTotals:
-    """:func:`_layer_totals` of one block (the multipole and dipole totals, elementwise)."""
+    """:func:`layer_totals_unchecked` of one block (the multipole and dipole totals, elementwise)."""
 
     def scalar(value: float) -> torch.Tensor:
         return torch.tensor(value, dtype=sigma_a_out.dtype, device=sigma_a_out.device)
@@ -258,9 +269,9 @@ def _layer_totals_block(
         scalar(constants.eta_interlayer),
     )
     n = constants.n_poles
-    r_out_f, t_out_f = _closed_form_totals(sigma_a_out, sigma_s_prime_out, d, eta_top, eta_mid, n)
-    r_out_b, t_out_b = _closed_form_totals(sigma_a_out, sigma_s_prime_out, d, eta_mid, eta_top, n)
-    r_in_f, _ = _closed_form_totals(sigma_a_in, sigma_s_prime_in, scalar(math.inf), eta_mid, eta_mid, 0)
+    r_out_f, t_out_f = slab_totals_unchecked(sigma_a_out, sigma_s_prime_out, d, eta_top, eta_mid, n)
+    r_out_b, t_out_b = slab_totals_unchecked(sigma_a_out, sigma_s_prime_out, d, eta_mid, eta_top, n)
+    r_in_f, _ = slab_totals_unchecked(sigma_a_in, sigma_s_prime_in, scalar(math.inf), eta_mid, eta_mid, 0)
     return LayerTotals(r_out_f, t_out_f, r_out_b, t_out_b, r_in_f)
 
 
@@ -304,10 +315,10 @@ def subsurface_albedo(
             f"argument 'wavelengths_nm' must be 1-D (L,); got shape {tuple(wavelengths_nm.shape)}"
         )
     c_m, beta_m, c_h_in, c_h_out = _check_parameters(c_m, beta_m, c_h_in, c_h_out)
-    return _subsurface_albedo(c_m, beta_m, c_h_in, c_h_out, wavelengths_nm, constants)
+    return subsurface_albedo_unchecked(c_m, beta_m, c_h_in, c_h_out, wavelengths_nm, constants)
 
 
-def _subsurface_albedo(c_m, beta_m, c_h_in, c_h_out, wavelengths_nm, constants) -> torch.Tensor:
+def subsurface_albedo_unchecked(c_m, beta_m, c_h_in, c_h_out, wavelengths_nm, constants) -> torch.Tensor:
     """Unchecked core of :func:`subsurface_albedo` (for inner loops of fits)."""
-    optics = _layer_optics(c_m, beta_m, c_h_in, c_h_out, wavelengths_nm, constants)
-    return _compose(*_layer_totals(*optics, constants))
+    optics = layer_optics_unchecked(c_m, beta_m, c_h_in, c_h_out, wavelengths_nm, constants)
+    return _compose(*layer_totals_unchecked(*optics, constants))

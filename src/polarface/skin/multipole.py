@@ -40,6 +40,7 @@ __all__ = [
     "slab_profiles",
     "slab_totals",
     "slab_totals_forward_backward",
+    "slab_totals_unchecked",
 ]
 
 #: Default number of pole pairs on each side of the slab (k = -n..n).
@@ -200,7 +201,7 @@ def _pole_series(x: torch.Tensor, n_poles: int) -> torch.Tensor:
     return torch.where(positive, series, torch.full_like(x, float(n_poles)))
 
 
-def _closed_form_totals(
+def slab_totals_unchecked(
     sigma_a: torch.Tensor,
     sigma_s_prime: torch.Tensor,
     thickness: torch.Tensor,
@@ -208,7 +209,8 @@ def _closed_form_totals(
     eta_bottom: torch.Tensor,
     n_poles: int,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Totals with the pole sums done as geometric series (no pole axis: cheap for big batches).
+    """Unchecked core of :func:`slab_totals` (broadcasting tensors, ``thickness`` in mm): ``(R, T)`` with the
+    pole sums done as geometric series (no pole axis: cheap for big batches).
 
     For k != 0 every pole lies on a known side of each surface (``P = 2 (d + z_b(0) + z_b(d))``
     exceeds ``l + 2 z_b(0)``, and ``l - d - 2 z_b(d) < 0``), so
@@ -277,7 +279,7 @@ def slab_totals(
     sigma_a, sigma_s_prime, thickness, eta_top, eta_bot = _prepare(
         sigma_a, sigma_s_prime, thickness_mm, eta, eta_bottom
     )
-    return _closed_form_totals(sigma_a, sigma_s_prime, thickness, eta_top, eta_bot, n_poles)
+    return slab_totals_unchecked(sigma_a, sigma_s_prime, thickness, eta_top, eta_bot, n_poles)
 
 
 @array_api("sigma_a", "sigma_s_prime", "eta_top", "eta_bottom")

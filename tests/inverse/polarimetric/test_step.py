@@ -60,7 +60,7 @@ def test_float32_steps_are_deterministic_and_lower_the_loss():
 
 def _scattered_height_gradient(values, mask, w_ht, lap_valid, lap_g, unit, slopes, stencil_u, stencil_v):
     """The height gradient as a pass that scatters each texel's terms to its neighbours (the order the
-    gathered sums of ``step._height_gradient`` follow)."""
+    gathered sums of ``_height_backward.height_gradient`` follow)."""
     rows, cols = values.shape
     g_h = np.zeros((rows, cols))
     for i in range(rows):
@@ -90,7 +90,7 @@ def _scattered_height_gradient(values, mask, w_ht, lap_valid, lap_g, unit, slope
 
 @pytest.mark.parametrize("shape", [(1, 1), (3, 4), (9, 13)])
 def test_gathered_height_gradient_equals_the_scattered_sums_bit_for_bit(shape):
-    from polarface.inverse.polarimetric.step import _height_gradient
+    from polarface.inverse.polarimetric._height_backward import height_gradient
 
     rng = np.random.default_rng(sum(shape))
     rows, cols = shape
@@ -105,7 +105,7 @@ def test_gathered_height_gradient_equals_the_scattered_sums_bit_for_bit(shape):
     stencil_u = rng.normal(size=(3, *shape)).astype(np.float32)
     stencil_v = rng.normal(size=(3, *shape)).astype(np.float32)
     inputs = (values, mask, 0.7, lap_valid, lap_g, unit, slopes, stencil_u, stencil_v)
-    gathered = _height_gradient(*inputs)
+    gathered = height_gradient(*inputs)
     scattered = _scattered_height_gradient(*inputs)
     assert gathered.dtype == np.float64 and gathered.shape == shape
     np.testing.assert_array_equal(gathered, scattered)

@@ -2,8 +2,9 @@
 
 :func:`fit_biophysical` fits the four parameters ``(c_m, beta_m, c_h_in, c_h_out)`` per texel to the
 ``rho_sss_bar`` map of the polarimetric stage with the skin-layer model of
-:mod:`~polarface.inverse.biophysical.model` (:class:`TotalsTable`, :func:`local_channel_albedo`,
-:func:`blurred_channel_albedo`). Modules: ``model`` (forward model and its Jacobian), ``local_fit``
+:mod:`~polarface.inverse.biophysical.model` (:func:`local_channel_albedo`, :func:`blurred_channel_albedo`)
+on the tables of :class:`TotalsTable`. Modules: ``totals_table`` (tabulated layer totals), ``model``
+(forward model and its Jacobian), ``local_kernel`` (its fused CPU kernel), ``local_fit``
 (bounded Levenberg-Marquardt per texel, gamut distance), ``fit`` (coarse-to-fine stages),
 ``residuals`` (re-render residuals of the fitted maps), ``warm_start`` (a previous fit as the start:
 a dynamic frame from the static result).
@@ -18,13 +19,13 @@ from polarface.inverse.biophysical.fit import (
 from polarface.inverse.biophysical.local_fit import fit_local_parameters, gamut_distance
 from polarface.inverse.biophysical.model import (
     PARAMETER_ORDER,
-    TotalsTable,
     blurred_channel_albedo,
     check_parameter_maps,
     local_channel_albedo,
     local_channel_albedo_with_jacobian,
 )
 from polarface.inverse.biophysical.residuals import per_texel_relative_residual, relative_rmse
+from polarface.inverse.biophysical.totals_table import TotalsTable
 from polarface.inverse.biophysical.warm_start import BiophysicalStart, start_parameters
 
 __all__ = [

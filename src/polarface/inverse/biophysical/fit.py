@@ -1,7 +1,7 @@
 """Biophysical inverse: chromophore maps and layer diffusion profiles from the six-channel ``rho_sss_bar``.
 
 Paper Sec. 5.3 and supplement "Optimization of Biophysically-based Parameters Details". Physics and
-optimisation only (no file I/O; the RESULT-folder stage is :mod:`polarface.pipeline.biophysical`).
+optimisation only (no file I/O; the RESULT-folder stage is :mod:`polarface.pipeline.biophysical.stage`).
 
 Stages (:func:`fit_biophysical`):
 
@@ -52,11 +52,12 @@ import torch
 
 from polarface._validation import as_float_tensor, check_range
 from polarface.inverse.biophysical.local_fit import fit_local_parameters, gamut_screen
-from polarface.inverse.biophysical.model import TotalsTable, blurred_channel_albedo, local_channel_albedo
+from polarface.inverse.biophysical.model import blurred_channel_albedo, local_channel_albedo
 from polarface.inverse.biophysical.resample import downsample_masked, upsampled_coarse
+from polarface.inverse.biophysical.totals_table import TotalsTable
 from polarface.inverse.biophysical.warm_start import BiophysicalStart, start_parameters
+from polarface.skin import SkinLayerConstants, layer_optics_unchecked
 from polarface.skin.heterogeneous import ProfileShapes, fit_layer_shapes
-from polarface.skin.layers import SkinLayerConstants, _layer_optics
 from polarface.skin.sog import default_radial_grid
 
 __all__ = ["BiophysicalConfig", "BiophysicalFit", "fit_biophysical", "median_shapes"]
@@ -171,7 +172,7 @@ def median_shapes(
     valid = parameters[mask.bool()].detach().double().cpu()
     median = valid.median(dim=0).values if valid.shape[0] else torch.tensor([0.05, 0.1, 0.03, 0.05]).double()
     grid = table.wavelengths_nm
-    optics = _layer_optics(*(median[i].reshape(1) for i in range(4)), grid, table.constants)
+    optics = layer_optics_unchecked(*(median[i].reshape(1) for i in range(4)), grid, table.constants)
     shapes = fit_layer_shapes(optics, table.constants, r_mm=default_radial_grid(count=801))
     shapes = ProfileShapes(*(w[0] for w in shapes[:5]), relative_error=shapes.relative_error[:, 0])
     return shapes, median

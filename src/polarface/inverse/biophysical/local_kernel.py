@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 if TYPE_CHECKING:
-    from polarface.inverse.biophysical.model import TotalsTable
+    from polarface.inverse.biophysical.totals_table import TotalsTable
 
 __all__ = ["fused_local_albedo", "fused_local_fit"]
 

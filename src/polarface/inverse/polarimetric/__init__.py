@@ -9,10 +9,9 @@ The re-render of a view in texture space from parameter maps is :func:`polarface
 
 Modules: ``config`` (options, reparameterisation), ``model`` (per-sample forward model), ``losses``,
 ``init`` (closed-form starts), ``problem`` (a patch's samples and loss), ``fused``/``kernel``/
-``kernel_math``/``step`` (the numba engine), ``engines`` (registry), ``optimise`` (L-BFGS, or the
-first-order optimisers), ``refine`` (Levenberg-Marquardt on the lobe maps), ``fit`` (the patch loop),
-``bench``
-(throughput benchmark), ``dynamic`` (the per-frame fit of a dynamic sequence,
+``_kernel_math``/``_height_backward``/``step`` (the numba engine), ``engines`` (registry), ``optimise``
+(L-BFGS, or the first-order optimisers), ``refine`` (Levenberg-Marquardt on the lobe maps), ``fit`` (the
+patch loop), ``bench`` (throughput benchmark), ``dynamic`` (the per-frame fit of a dynamic sequence,
 :func:`fit_dynamic_frame`).
 
 Maps follow ``SIM/ground_truth/maps`` conventions: ``eta, alpha_s, alpha_ss, rho_s, rho_ss,

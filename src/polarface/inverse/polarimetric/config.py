@@ -21,6 +21,7 @@ __all__ = [
     "PARAMETER_NAMES",
     "PolarimetricConfig",
     "device_fit_options",
+    "fit_maps_from_raw",
     "initial_raw",
     "maps_from_raw",
     "raw_from_maps",
@@ -47,7 +48,7 @@ class PolarimetricConfig:
         weights: :class:`LossWeights`.
         optimizer: ``lbfgs`` (default: converges the lobe maps and with them eta,
             :mod:`polarface.inverse.polarimetric.optimise`), ``rmsprop`` (the paper's, 150 iterations; what
-            :func:`polarface.pipeline.reconstruct` uses with stereo geometry, docs/reconstruct.md) or
+            :func:`polarface.pipeline.reconstruct.stages` uses with stereo geometry, docs/reconstruct.md) or
             ``adam``; iterations: optimiser iterations per patch;
             lr: learning rate on the raw variables, lr_final_fraction: cosine decay to this fraction of
             lr, warmup: linear learning-rate warm-up steps (rmsprop and adam only).
@@ -207,6 +208,20 @@ def raw_from_maps(maps: dict[str, np.ndarray], config: PolarimetricConfig) -> di
         "rho_sss_bar": _logit(maps["rho_sss_bar"]),
         "displacement_mm": np.asarray(maps["displacement_mm"], dtype=np.float64) / config.h_scale_mm,
     }
+
+
+def fit_maps_from_raw(raw: dict[str, np.ndarray], config: PolarimetricConfig) -> dict[str, np.ndarray]:
+    """The physical maps of a fit (:func:`maps_from_raw` of numpy raw variables, in float64): name ->
+    ``(Ht, Wt)`` float32, ``rho_sss_bar`` ``(Ht, Wt, 6)`` (the layout of ``PolarimetricFit.maps``)."""
+    with torch.no_grad():
+        maps = maps_from_raw(
+            {k: torch.from_numpy(np.asarray(v, dtype=np.float64)) for k, v in raw.items()}, config
+        )
+    out = {}
+    for k, v in maps.items():
+        array = v.numpy().astype(np.float32)
+        out[k] = array if k == "rho_sss_bar" else array[..., 0]
+    return out
 
 
 def initial_raw(resolution: tuple[int, int], config: PolarimetricConfig) -> dict[str, np.ndarray]:

@@ -36,6 +36,7 @@ from tqdm import tqdm
 from polarface.inverse.polarimetric.config import (
     PARAMETER_NAMES,
     PolarimetricConfig,
+    fit_maps_from_raw,
     initial_raw,
     raw_from_maps,
 )
@@ -49,8 +50,7 @@ from polarface.inverse.polarimetric.dynamic_step import optimise_dynamic_patch_f
 from polarface.inverse.polarimetric.engines import PolarimetricEngine, resolve_engine
 from polarface.inverse.polarimetric.fit import (
     PolarimetricFit,
-    _coverage,
-    _to_maps,
+    fit_coverage,
     haloed_slices,
     torch_fit_settings,
 )
@@ -350,7 +350,7 @@ def _fit_frame(
     if not scale > 0:
         raise ValueError("argument 'unwrap': no texel is visible in any fitting view")
     counts = unwrap.visible_count()
-    mask_seen, view_count = _coverage(unwrap, counts, config)
+    mask_seen, view_count = fit_coverage(unwrap, counts, config)
     state = _FrameState(_raw_maps(start, config), _raw_maps(static, config))
     grid = list(unwrap.patches(patch_side(counts, config)))
     patches = frame_patches(grid, view_count > 0, seen_margin)
@@ -360,7 +360,7 @@ def _fit_frame(
         halo_rows, halo_cols, _ = haloed_slices(*patch, config.halo, unwrap.resolution)
         texel_count = max(int(atlas[halo_rows, halo_cols].sum()), 1)
         _fit_patch(unwrap, rows, cols, fitting, engine, config, weights, scale, device, state, texel_count)
-    out = _to_maps(state.start, config)
+    out = fit_maps_from_raw(state.start, config)
     throughput = state.work / state.optimise_s if state.optimise_s > 0 else 0.0
     timings = {"fit_s": time.perf_counter() - started, "optimise_s": state.optimise_s}
     return PolarimetricFit(

@@ -21,6 +21,7 @@ import numba
 import numpy as np
 import torch
 
+from polarface.inverse.polarimetric._height_backward import height_gradient, laplacian, normal_slopes
 from polarface.inverse.polarimetric.config import NO_LOBE_RAW, PolarimetricConfig
 from polarface.inverse.polarimetric.dynamic_loss import (
     DYNAMIC_VARIABLES,
@@ -28,18 +29,16 @@ from polarface.inverse.polarimetric.dynamic_loss import (
     DynamicPatchProblem,
 )
 from polarface.inverse.polarimetric.step import (
-    _JIT,
     FusedObjective,
-    _channels_of,
-    _height_gradient,
-    _laplacian,
-    _normal_slopes,
     pack_raw,
+    raw_channels,
     rmsprop_steps,
     unpack_raw,
 )
 
 __all__ = ["FusedDynamicObjective", "optimise_dynamic_patch_fused"]
+
+_JIT = {"cache": True, "error_model": "numpy", "nogil": True}  # as step.py's numba functions
 
 
 @numba.njit(**_JIT)
@@ -79,11 +78,11 @@ def _backward_dynamic(
                     total += w_sss * w_t * delta * delta
                     g_rho[i, j, 2 + c] = 2.0 * w_sss * w_t * delta
             if lap_valid[i, j]:
-                lap = _laplacian(change, i, j)
+                lap = laplacian(change, i, j)
                 lap_g[i, j] = 2.0 * w_hl * lap
                 total += w_hl * lap * lap
-            _normal_slopes(i, j, unit, data_grad, per_dh_dv, per_dh_du, slopes)
-    g_h = _height_gradient(change, mask, w_ht, lap_valid, lap_g, unit, slopes, stencil_u, stencil_v)
+            normal_slopes(i, j, unit, data_grad, per_dh_dv, per_dh_du, slopes)
+    g_h = height_gradient(change, mask, w_ht, lap_valid, lap_g, unit, slopes, stencil_u, stencil_v)
     # chain rule to the raw variables (every term carries the loss's 1 / texel_count)
     for i in range(rows):
         for j in range(cols):
@@ -124,7 +123,7 @@ class FusedDynamicObjective(FusedObjective):
             [reference["rho_s"][..., None], reference["rho_ss"][..., None], reference["rho_sss_bar"],
              reference["displacement_mm"][..., None]], axis=-1))  # fmt: skip
         frozen = [name for name in config.frozen_variables if name in DYNAMIC_VARIABLES]
-        self.frozen_channels = _channels_of((*FIXED_VARIABLES, *frozen))
+        self.frozen_channels = raw_channels((*FIXED_VARIABLES, *frozen))
 
     def _backward(self, packed: np.ndarray, grad_out: np.ndarray, data_grad: np.ndarray, data_loss: float,
                   height: np.ndarray, unit: np.ndarray) -> float:

@@ -53,7 +53,11 @@ from scipy import ndimage
 from tqdm import tqdm
 
 from polarface.executors import Executor, LocalExecutor, UnitOutcome
-from polarface.inverse.polarimetric.config import PolarimetricConfig, initial_raw, maps_from_raw
+from polarface.inverse.polarimetric.config import (
+    PolarimetricConfig,
+    fit_maps_from_raw,
+    initial_raw,
+)
 from polarface.inverse.polarimetric.engines import resolve_engine
 from polarface.inverse.polarimetric.patch_units import (
     PatchResult,
@@ -68,7 +72,7 @@ from polarface.inverse.polarimetric.patch_units import (
 )
 from polarface.texture import UnwrapStore
 
-__all__ = ["PolarimetricFit", "fit_polarimetric"]
+__all__ = ["PolarimetricFit", "fit_coverage", "fit_polarimetric"]
 
 LOGGER = logging.getLogger(__name__)
 
@@ -305,8 +309,8 @@ class _Tally:
             self.seen[rows, cols] |= result.seen
 
 
-def _coverage(unwrap: UnwrapStore, counts: np.ndarray, config: PolarimetricConfig
-              ) -> tuple[np.ndarray, np.ndarray]:
+def fit_coverage(unwrap: UnwrapStore, counts: np.ndarray, config: PolarimetricConfig
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """``(mask, view_count)`` of :class:`PolarimetricFit` from the store's ``counts``
     (:meth:`UnwrapStore.visible_count`; so it also counts the texels of patches fitted before a resume)."""
     view_count = counts * np.asarray(unwrap.root["texel/mask"][...])
@@ -417,10 +421,10 @@ def _fit(
         raise _lost_patch_error(failed, patches, len(state.done), ckpt)
     if len(state.done) < len(patches):  # stopped after stop_after_patches
         return PolarimetricFit(
-            _to_maps(state.raw, config), tally.seen, state.curve, {}, 0.0, tally.samples,
+            fit_maps_from_raw(state.raw, config), tally.seen, state.curve, {}, 0.0, tally.samples,
             len(patches), complete=False, units=state.units, fronts=fronts,
         )  # fmt: skip
-    mask_seen, view_count = _coverage(unwrap, counts, config)
+    mask_seen, view_count = fit_coverage(unwrap, counts, config)
     curve_mean = [v / max(len(patches), 1) for v in state.curve]
     timings = {
         "fit_s": time.perf_counter() - started, "optimise_s": tally.optimise_s, "refine_s": tally.refine_s,
@@ -428,18 +432,6 @@ def _fit(
     }  # fmt: skip
     throughput = tally.work / tally.optimise_s if tally.optimise_s > 0 else 0.0
     return PolarimetricFit(
-        _to_maps(state.raw, config), mask_seen, curve_mean, timings, throughput, tally.samples, len(patches),
-        view_count=view_count.astype(np.int32), units=state.units, fronts=fronts,
+        fit_maps_from_raw(state.raw, config), mask_seen, curve_mean, timings, throughput, tally.samples,
+        len(patches), view_count=view_count.astype(np.int32), units=state.units, fronts=fronts,
     )  # fmt: skip
-
-
-def _to_maps(raw: dict[str, np.ndarray], config: PolarimetricConfig) -> dict[str, np.ndarray]:
-    with torch.no_grad():
-        maps = maps_from_raw(
-            {k: torch.from_numpy(np.asarray(v, dtype=np.float64)) for k, v in raw.items()}, config
-        )
-    out = {}
-    for k, v in maps.items():
-        array = v.numpy().astype(np.float32)
-        out[k] = array if k == "rho_sss_bar" else array[..., 0]
-    return out

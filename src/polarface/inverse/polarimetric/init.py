@@ -17,7 +17,7 @@ import torch
 from polarface.inverse.polarimetric.config import PolarimetricConfig, maps_from_raw
 from polarface.inverse.polarimetric.fused import FusedSamples
 from polarface.inverse.polarimetric.kernel_starts import fused_albedo_starts, fused_eta_costs
-from polarface.inverse.polarimetric.model import SampleBatch, _cos2_sin2, _transmission, render_samples
+from polarface.inverse.polarimetric.model import SampleBatch, cos2_sin2, render_samples, transmission_terms
 
 __all__ = ["apply_closed_form_starts", "init_albedos", "init_eta", "nan_median_filter"]
 
@@ -134,10 +134,10 @@ def init_eta(
         cos_o, a_o, b_o = torch.einsum("sjc,sc->sj", batch.view_vectors, n).unbind(-1)
         cos_i = torch.einsum("skc,sc->sk", batch.light_vectors[:, :, 0], n)
         lit = ((cos_i > 0.0) & (batch.light_weight.sum(-1) > 0.0)).any(-1) & (cos_o > 0.0)
-        xi_o, zeta_o = _cos2_sin2(a_o, b_o)
+        xi_o, zeta_o = cos2_sin2(a_o, b_o)
         cos_o = cos_o.clamp(-1.0, 1.0)
         for g, value in enumerate(grid):
-            t_plus, t_minus = _transmission(cos_o, value)
+            t_plus, t_minus = transmission_terms(cos_o, value)
             ratio = torch.where(lit, zeta_o * t_minus / (t_plus + xi_o * t_minus).clamp_min(1e-30), 0.0)
             costs[g].index_add_(0, texel, (weight * (ratio[:, None] - ratio_obs) ** 2).sum(-1))
         best = grid[costs.argmin(dim=0)]

@@ -31,7 +31,7 @@ last scalar loop adds each sample's gradient into its texel's float64 sums. Vect
 rather than across the lights also vectorises the per-sample work (exit Fresnel, losses);
 docs/reconstruct.md gives the measured effect.
 
-Each light's physics (:func:`_light`, with its partial derivatives) is evaluated once per iteration: the
+Each light's physics (:func:`light_terms`, with its partial derivatives) is evaluated once per iteration: the
 forward loop keeps the 22 values per light and sample that the reverse loop needs (channel-weighted
 irradiance, Fresnel Stokes and their eta derivatives, lobe and entry partials) in a second scratch array,
 ``saved[22 k + r, i]``, and the reverse loop reads them back instead of evaluating the light again. On a
@@ -55,15 +55,15 @@ import types
 import numba
 import numpy as np
 
-from polarface.inverse.polarimetric.kernel_math import (  # noqa: F401 (compiled by _compile)
-    _INV_PI,
+from polarface.inverse.polarimetric._kernel_math import (  # noqa: F401 (compiled by _compile)
+    INV_PI,
     F,
-    _cos2_sin2,
-    _double_angle,
-    _fresnel,
-    _g1_over_cos,
-    _ggx,
-    _light,
+    cos2_sin2,
+    double_angle,
+    fresnel,
+    g1_over_cos,
+    ggx,
+    light_terms,
 )
 
 if "NUMBA_THREADING_LAYER" not in os.environ:
@@ -152,8 +152,8 @@ def _view_terms(work, count, tiny):
         eta = work[_EN, i]
         alpha_s, alpha_ss = work[_AS1, i], work[_ASS1, i]
         alpha2_s, alpha2_ss = alpha_s * alpha_s, alpha_ss * alpha_ss
-        gs_o, gs_o_dc, gs_o_da = _g1_over_cos(cos_o, alpha_s, alpha2_s)
-        gss_o, gss_o_dc, gss_o_da = _g1_over_cos(cos_o, alpha_ss, alpha2_ss)
+        gs_o, gs_o_dc, gs_o_da = g1_over_cos(cos_o, alpha_s, alpha2_s)
+        gss_o, gss_o_dc, gss_o_da = g1_over_cos(cos_o, alpha_ss, alpha2_ss)
         work[_OX, i], work[_OY, i], work[_OZ, i] = ox, oy, oz
         work[_POX, i], work[_POY, i], work[_POZ, i] = pox, poy, poz
         work[_AOX, i], work[_AOY, i], work[_AOZ, i] = aox, aoy, aoz
@@ -176,8 +176,8 @@ def _zero_rows(work, first, last, count):
 
 
 def _current_light(work, i, tiny):
-    """:func:`_light` of sample ``i`` for the light loaded by :func:`_load_light`."""
-    return _light(
+    """:func:`light_terms` of sample ``i`` for the light loaded by :func:`_load_light`."""
+    return light_terms(
         work[_LIGHT, i], work[_LIGHT + 1, i], work[_LIGHT + 2, i], work[_LIGHT + 6, i],
         _geometry(work, i), _texel(work, i), _exit_terms(work, i), tiny,
     )  # fmt: skip
@@ -230,7 +230,7 @@ def _channel(work, i, j, exit_terms, constants):
     w_sss, w_s, w_phi, w_psi, inv_scale, floor = constants
     spec_0, spec_1, spec_2 = work[_SPEC + 3 * j, i], work[_SPEC + 3 * j + 1, i], work[_SPEC + 3 * j + 2, i]
     flux_j, rho_c, front = work[_FLUX + j, i], work[_RHOC + j, i], work[_FRONT, i]
-    exitance = rho_c * flux_j * F(_INV_PI) * front
+    exitance = rho_c * flux_j * F(INV_PI) * front
     s1 = spec_1 - exitance * xi_o * t_minus_o
     i_sss = spec_0 + exitance * t_plus_o - s1
     i_zeta = -(spec_2 - exitance * zeta_o * t_minus_o)
@@ -265,8 +265,8 @@ def _channel(work, i, j, exit_terms, constants):
     work[_GSPEC + 3 * j + 1, i] = g_s1 + w_psi * (-g_xi_pred + F(2.0) * e2 * inv_do)
     work[_GSPEC + 3 * j + 2, i] = g_s2
     g_exit = (g_isss * t_plus_o - (g_s1 * xi_o + g_s2 * zeta_o) * t_minus_o) * front
-    work[_GRHO + j, i] = g_exit * flux_j * F(_INV_PI)
-    work[_GFLUX + j, i] = g_exit * rho_c * F(_INV_PI)
+    work[_GRHO + j, i] = g_exit * flux_j * F(INV_PI)
+    work[_GFLUX + j, i] = g_exit * rho_c * F(INV_PI)
     return (
         loss, l_sss, l_s, l_phi, l_psi, g_isss * exitance, -(g_s1 * xi_o + g_s2 * zeta_o) * exitance,
         -g_s1 * exitance * t_minus_o, -g_s2 * exitance * t_minus_o,
@@ -277,10 +277,10 @@ def _losses(work, count, constants, tiny):
     """Exit Fresnel, predictions, losses and their reverse pass per sample; vectorised over samples."""
     for i in range(count):
         cos_o, eta, inv_eta, inv_eta2 = work[_COSO, i], work[_EN, i], work[_IEN, i], work[_IEN2, i]
-        to_s, to_p, dtos_dc, dtos_de, dtop_dc, dtop_de = _fresnel(cos_o, eta, inv_eta, inv_eta2)
+        to_s, to_p, dtos_dc, dtos_de, dtop_dc, dtop_de = fresnel(cos_o, eta, inv_eta, inv_eta2)
         t_plus_o = F(1.0) - F(0.5) * (to_s * to_s + to_p * to_p)
         t_minus_o = -F(0.5) * (to_s * to_s - to_p * to_p)
-        xi_o, zeta_o, dxi_da, dxi_db, dzeta_da, dzeta_db = _cos2_sin2(work[_A_O, i], work[_B_O, i], tiny)
+        xi_o, zeta_o, dxi_da, dxi_db, dzeta_da, dzeta_db = cos2_sin2(work[_A_O, i], work[_B_O, i], tiny)
         exit_terms = (t_plus_o, t_minus_o, xi_o, zeta_o)
         a = _channel(work, i, 0, exit_terms, constants)
         b = _channel(work, i, 1, exit_terms, constants)
@@ -418,7 +418,7 @@ def _compile(float_type) -> numba.core.registry.CPUDispatcher:
     namespace = dict(globals())
     namespace["F"] = float_type
     helpers = (
-        "_fresnel", "_ggx", "_g1_over_cos", "_cos2_sin2", "_double_angle", "_light", "_geometry",
+        "fresnel", "ggx", "g1_over_cos", "cos2_sin2", "double_angle", "light_terms", "_geometry",
         "_texel", "_exit_terms", "_view_terms", "_load_light", "_zero_rows", "_current_light",
         "_forward_lights", "_channel", "_losses", "_reverse_lights",
     )  # fmt: skip

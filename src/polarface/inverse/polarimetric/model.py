@@ -10,7 +10,7 @@ directions, the half vectors, the inverse-square falloff times the radiant inten
 rotations of the specular lobes (they depend on the half vector only), and the vectors whose dot
 products with the normal give the entry/exit polarization azimuths
 (``a = n . (P x d)``, ``b = n . P`` with ``P`` the camera up projected orthogonal to the ray ``d``;
-see ``polarface.optics._kernels._double_angle``). Per iteration only four dot products per light, the
+see :func:`polarface.optics.ray_double_angle`). Per iteration only four dot products per light, the
 Fresnel amplitudes, GGX D and Smith G1 remain (:func:`render_samples`). Positions are those of the base
 mesh: the displacement H only turns the normal (its sub-millimetre shift of the point changes the
 directions to lights and camera at 1 m by < 1e-4 rad).
@@ -29,9 +29,12 @@ import math
 import numpy as np
 import torch
 
-from polarface.optics._kernels import _double_angle
-from polarface.optics.fresnel import _amplitudes
-from polarface.optics.microfacet import _g1_over_cos, _ggx_d
+from polarface.optics import (
+    fresnel_amplitudes,
+    ggx_d_unchecked,
+    ray_double_angle,
+    smith_g1_over_cos_unchecked,
+)
 
 __all__ = ["SampleBatch", "SamplePrediction", "precompute_samples", "render_samples"]
 
@@ -146,8 +149,8 @@ def _sample_geometry(
     a_i = torch.linalg.cross(w_i, entry_up)  # n . (P x (-w_i)) = n . (w_i x P)
     a_o = torch.linalg.cross(p_o, w_o)  # n . (P x w_o)
     spec_up = _project(up[:, None].expand_as(w_i), w_i)
-    c_i, s_i = _double_angle(_split(half), _split(-w_i), _split(spec_up))
-    c_o, s_o = _double_angle(
+    c_i, s_i = ray_double_angle(_split(half), _split(-w_i), _split(spec_up))
+    c_o, s_o = ray_double_angle(
         _split(half),
         _split(w_o[:, None].expand_as(w_i)),
         _split(_project(up[:, None].expand_as(w_i), w_o[:, None].expand_as(w_i))),
@@ -224,7 +227,7 @@ def precompute_samples(
     )
 
 
-def _cos2_sin2(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def cos2_sin2(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(cos 2phi, sin 2phi)`` from ``a = |P| sin``-like and ``b`` components (degenerate -> (1, 0))."""
     r2 = a * a + b * b
     small = r2 <= torch.finfo(r2.dtype).eps ** 4
@@ -235,8 +238,10 @@ def _cos2_sin2(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     )
 
 
-def _transmission(cos: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    r_s, r_p = _amplitudes(cos, eta)
+def transmission_terms(cos: torch.Tensor, eta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(T+, T-)`` of the Fresnel transmission at air angle ``cos`` (clamped to [0, 1]) and index ``eta``
+    (broadcasting tensors; unchecked)."""
+    r_s, r_p = fresnel_amplitudes(cos, eta)
     r_s2, r_p2 = r_s * r_s, r_p * r_p
     return 1.0 - 0.5 * (r_s2 + r_p2), -0.5 * (r_s2 - r_p2)
 
@@ -273,7 +278,7 @@ def render_samples(
     shading = cos_i.clamp_min(0.0)
     eta_k = eta[:, None]
     # specular + single scattering (Fresnel at the microfacet angle theta_d)
-    r_s, r_p = _amplitudes(batch.cos_d, eta_k)
+    r_s, r_p = fresnel_amplitudes(batch.cos_d, eta_k)
     r_s2, r_p2 = r_s * r_s, r_p * r_p
     r_plus, r_minus, r_cross = 0.5 * (r_s2 + r_p2), 0.5 * (r_s2 - r_p2), r_s * r_p
     u1, u2, c_out, s_out = batch.spec_rotation.unbind(-1)
@@ -281,21 +286,24 @@ def render_samples(
     v1 = r_minus + r_plus * u1
     v2 = r_cross * u2
     cos_o_k = cos_o[:, None]
-    lobes = rho_s[:, None] * _ggx_d(cos_h, alpha_s[:, None]) * _g1_over_cos(
-        cos_i, alpha_s[:, None]
-    ) * _g1_over_cos(cos_o_k, alpha_s[:, None]) + rho_ss[:, None] * _ggx_d(
-        cos_h, alpha_ss[:, None]
-    ) * _g1_over_cos(cos_i, alpha_ss[:, None]) * _g1_over_cos(cos_o_k, alpha_ss[:, None])
+    lobes = (
+        rho_s[:, None] * ggx_d_unchecked(cos_h, alpha_s[:, None])
+        * smith_g1_over_cos_unchecked(cos_i, alpha_s[:, None])
+        * smith_g1_over_cos_unchecked(cos_o_k, alpha_s[:, None])
+        + rho_ss[:, None] * ggx_d_unchecked(cos_h, alpha_ss[:, None])
+        * smith_g1_over_cos_unchecked(cos_i, alpha_ss[:, None])
+        * smith_g1_over_cos_unchecked(cos_o_k, alpha_ss[:, None])
+    )
     lobes = torch.where(lit_front, 0.25 * shading * lobes, 0.0)
     spec = torch.stack([v0, c_out * v1 - s_out * v2, s_out * v1 + c_out * v2], dim=-1) * lobes[..., None]
     spec = torch.einsum("skc,skj->scj", batch.light_weight, spec)  # (S, 3 channels, 3 Stokes)
     # subsurface: entry flux with the entry Fresnel polarization term, local albedo, exit Fresnel
-    t_plus_i, t_minus_i = _transmission(cos_i, eta_k)
-    cos_2i, _ = _cos2_sin2(a_i, b_i)
+    t_plus_i, t_minus_i = transmission_terms(cos_i, eta_k)
+    cos_2i, _ = cos2_sin2(a_i, b_i)
     entry = shading * (t_plus_i - t_minus_i * cos_2i)
     flux = torch.einsum("skc,sk->sc", batch.light_weight, entry)
-    t_plus_o, t_minus_o = _transmission(cos_o, eta)
-    xi_o, zeta_o = _cos2_sin2(a_o, b_o)
+    t_plus_o, t_minus_o = transmission_terms(cos_o, eta)
+    xi_o, zeta_o = cos2_sin2(a_o, b_o)
     exitance = torch.where((cos_o > 0.0)[:, None], rho_sss_bar * flux / math.pi, 0.0)
     s0 = spec[..., 0] + exitance * t_plus_o[:, None]
     s1_sss = -exitance * (xi_o * t_minus_o)[:, None]

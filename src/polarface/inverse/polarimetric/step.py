@@ -25,11 +25,20 @@ import numba
 import numpy as np
 import torch
 
+from polarface.inverse.polarimetric._height_backward import height_gradient, laplacian, normal_slopes
 from polarface.inverse.polarimetric.config import PARAMETER_NAMES, PolarimetricConfig
 from polarface.inverse.polarimetric.fused import fused_loss_and_grad
 from polarface.inverse.polarimetric.losses import laplacian_support
 
-__all__ = ["RAW_LAYOUT", "FusedObjective", "optimise_patch_fused", "pack_raw", "rmsprop_steps", "unpack_raw"]
+__all__ = [
+    "RAW_LAYOUT",
+    "FusedObjective",
+    "optimise_patch_fused",
+    "pack_raw",
+    "raw_channels",
+    "rmsprop_steps",
+    "unpack_raw",
+]
 
 #: Channels of the packed raw array ``(h, w, 12)``.
 RAW_LAYOUT = PARAMETER_NAMES
@@ -136,75 +145,6 @@ def _smoothness(values, mask, count, weight, grad):
     return weight * total
 
 
-@numba.njit(inline="always", **_JIT)
-def _laplacian(values, i, j):
-    """4-neighbour Laplacian of ``values`` at interior texel ``(i, j)``."""
-    return values[i - 1, j] + values[i + 1, j] + values[i, j - 1] + values[i, j + 1] - 4.0 * values[i, j]
-
-
-@numba.njit(inline="always", **_JIT)
-def _normal_slopes(i, j, unit, data_grad, per_dh_dv, per_dh_du, slopes):
-    """Texel ``(i, j)``'s data gradient of its unit normal carried back to its height slopes: unit normal
-    -> ``n~`` -> ``(dH/du, dH/dv)``, into ``slopes[i, j]``; nothing where the base normal is kept
-    (``unit[i, j, 3] == 0``)."""
-    inv = unit[i, j, 3]
-    if inv == 0.0:
-        return
-    t = i * slopes.shape[1] + j
-    nx, ny, nz = unit[i, j, 0], unit[i, j, 1], unit[i, j, 2]
-    gx, gy, gz = data_grad[t, 0], data_grad[t, 1], data_grad[t, 2]
-    along = nx * gx + ny * gy + nz * gz
-    gx, gy, gz = (gx - along * nx) * inv, (gy - along * ny) * inv, (gz - along * nz) * inv  # d/dn~
-    slopes[i, j, 0] = gx * per_dh_du[i, j, 0] + gy * per_dh_du[i, j, 1] + gz * per_dh_du[i, j, 2]
-    slopes[i, j, 1] = gx * per_dh_dv[i, j, 0] + gy * per_dh_dv[i, j, 1] + gz * per_dh_dv[i, j, 2]
-
-
-@numba.njit(**_JIT)
-def _height_gradient(values, mask, w_ht, lap_valid, lap_g, unit, slopes, stencil_u, stencil_v):
-    """``(h, w)`` gradient with respect to the heights of ``w_ht sum_mask values^2``, the Laplacian term
-    (``lap_g = 2 w_hl Laplacian(values)`` at its valid texels, 0 elsewhere) and the data terms through the
-    normals (``slopes``, :func:`_normal_slopes`; the transposed stencils carry them to the heights).
-
-    Each texel gathers what its neighbours and itself contribute, in the order in which a pass over the
-    texels that scatters each texel's terms to its neighbours would add them (so the sums are the same
-    to the last bit). The scattering pass chained read-modify-writes from one texel to the next: two
-    thirds of a per-frame patch's backward pass (docs/performance.md).
-    """
-    rows, cols = values.shape
-    g_h = np.empty((rows, cols))
-    for i in range(rows):
-        for j in range(cols):
-            acc = 0.0
-            if i > 0:
-                if lap_valid[i - 1, j]:
-                    acc += lap_g[i - 1, j]
-                if unit[i - 1, j, 3] != 0.0:
-                    acc += stencil_v[0, i - 1, j] * slopes[i - 1, j, 1]
-            if j > 0:
-                if lap_valid[i, j - 1]:
-                    acc += lap_g[i, j - 1]
-                if unit[i, j - 1, 3] != 0.0:
-                    acc += stencil_u[0, i, j - 1] * slopes[i, j - 1, 0]
-            if mask[i, j]:
-                acc += 2.0 * w_ht * values[i, j]
-            if lap_valid[i, j]:
-                acc -= 4.0 * lap_g[i, j]
-            if unit[i, j, 3] != 0.0:
-                acc += stencil_u[1, i, j] * slopes[i, j, 0] + stencil_v[1, i, j] * slopes[i, j, 1]
-            if j < cols - 1:
-                if lap_valid[i, j + 1]:
-                    acc += lap_g[i, j + 1]
-                if unit[i, j + 1, 3] != 0.0:
-                    acc += stencil_u[2, i, j + 1] * slopes[i, j + 1, 0]
-            if i < rows - 1:
-                if lap_valid[i + 1, j]:
-                    acc += lap_g[i + 1, j]
-                if unit[i + 1, j, 3] != 0.0:
-                    acc += stencil_v[2, i + 1, j] * slopes[i + 1, j, 1]
-            g_h[i, j] = acc
-    return g_h
-
-
 @numba.njit(**_JIT)
 def _backward(
     raw, grad_out, params, sigmoids, data_grad, data_loss, height, unit, mask, count, lap_valid, reg_weights,
@@ -232,11 +172,11 @@ def _backward(
             if mask[i, j]:
                 total += w_ht * height[i, j] * height[i, j]
             if lap_valid[i, j]:
-                lap = _laplacian(height, i, j)
+                lap = laplacian(height, i, j)
                 lap_g[i, j] = 2.0 * w_hl * lap
                 total += w_hl * lap * lap
-            _normal_slopes(i, j, unit, data_grad, per_dh_dv, per_dh_du, slopes)
-    g_h = _height_gradient(height, mask, w_ht, lap_valid, lap_g, unit, slopes, stencil_u, stencil_v)
+            normal_slopes(i, j, unit, data_grad, per_dh_dv, per_dh_du, slopes)
+    g_h = height_gradient(height, mask, w_ht, lap_valid, lap_g, unit, slopes, stencil_u, stencil_v)
     # chain rule to the raw variables (every term carries the loss's 1 / texel_count)
     for i in range(rows):
         for j in range(cols):
@@ -311,7 +251,7 @@ class FusedObjective:
         self.scale = problem.scale
         self.params = np.empty((rows * cols, 14), dtype=dtype)
         self.sigmoids = np.empty((rows * cols, 11))  # _forward's logistics, read by the backward pass
-        self.frozen_channels = _channels_of(config.frozen_variables)
+        self.frozen_channels = raw_channels(config.frozen_variables)
 
     def __call__(self, packed: np.ndarray, grad_out: np.ndarray) -> float:
         """Total loss at ``packed`` (``(h, w, 12)`` raw variables, :data:`RAW_LAYOUT`); its gradient is
@@ -339,7 +279,7 @@ class FusedObjective:
         )  # fmt: skip
 
 
-def _channels_of(names: Sequence[str]) -> list[int]:
+def raw_channels(names: Sequence[str]) -> list[int]:
     """Channels of the packed raw array that hold the variables ``names``."""
     starts = np.cumsum((0, *_CHANNELS))
     return [c for i, name in enumerate(RAW_LAYOUT) if name in names for c in range(starts[i], starts[i + 1])]

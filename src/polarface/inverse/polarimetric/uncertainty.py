@@ -7,7 +7,7 @@ displaced rest mesh (:func:`polarface.render.texel_shading_normals`), float64:
 
 * **per view** (all views, held-out included): sums of squared residuals of ``I_sss`` and ``I_s`` over
   the three channels, the sum of observed ``I_sss`` and the sample count
-  (:mod:`polarface.pipeline.view_residuals` turns them into relative residuals and flags);
+  (:mod:`polarface.pipeline.reconstruct.view_check` turns them into relative residuals and flags);
 * **per texel** (fitting views only): a Gauss-Newton (Laplace) covariance of its 13 unknowns
   ``p = (eta, alpha_s, alpha_ss, rho_s, rho_ss, rho_sss_bar[6], tilt_u, tilt_v)`` (the two tilts turn the
   shading normal in its tangent plane, standing in for the displacement map's local slope):

@@ -1,0 +1,56 @@
+"""The dynamic stage's configuration (the bottom module of :mod:`polarface.pipeline.dynamic`)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Literal
+
+from polarface.geometry.registration import RegistrationConfig
+from polarface.geometry.tracking import TrackingConfig
+from polarface.inverse.polarimetric.dynamic import DynamicConfig
+from polarface.io import json_values
+from polarface.pipeline.geometry import GeometryConfig
+
+__all__ = ["DynamicStageConfig"]
+
+
+@dataclasses.dataclass(frozen=True)
+class DynamicStageConfig:
+    """Options of the dynamic stage (defaults: the paper's weights, module docstring).
+
+    Attributes:
+        geometry: the per-frame stereo and meshing (only its ``stereo``, ``frame_voxel_mm`` and
+            ``frame_poisson`` are used).
+        alignment: ICP of the reference mesh onto the first frame's stereo surface.
+        min_alignment_fitness: fraction of the first frame's stereo surface within the finest ICP
+            distance of the aligned reference mesh; below it the alignment is refused (another subject,
+            or the subject far from where the static capture had them). Measured: 0.98 (demo), 0.60 (tiny);
+            median distance of the reference to the truth after alignment 0.31 mm (1.38 mm before).
+        tracking: :class:`polarface.geometry.tracking.TrackingConfig`.
+        fit: :class:`polarface.inverse.polarimetric.dynamic.DynamicConfig`.
+        biophysical: run the chromophore fit per frame.
+        biophysical_start: where a frame's chromophore fit starts. ``"static"`` (default): from the
+            static RESULT's maps (chromophores and SoG shapes), which also regularise it, with no
+            coarse search (paper, main text: over a short sequence mainly the haemoglobin changes;
+            ``polarface.inverse.biophysical.warm_start``); ``"scratch"``: the static stage's full fit
+            of each frame (coarse multi-start search, shape rounds). Recorded per frame in
+            ``frames/NNNN/result.json`` (``stages.biophysical.start``). Measured in docs/dynamic.md.
+    """
+
+    geometry: GeometryConfig = dataclasses.field(default_factory=GeometryConfig)
+    alignment: RegistrationConfig = dataclasses.field(default_factory=RegistrationConfig)
+    min_alignment_fitness: float = 0.4
+    tracking: TrackingConfig = dataclasses.field(default_factory=TrackingConfig)
+    fit: DynamicConfig = dataclasses.field(default_factory=DynamicConfig)
+    biophysical: bool = True
+    biophysical_start: Literal["static", "scratch"] = "static"
+
+    def __post_init__(self) -> None:
+        if self.biophysical_start not in ("static", "scratch"):
+            raise ValueError(
+                f"biophysical_start must be 'static' or 'scratch'; got {self.biophysical_start!r}"
+            )
+
+    def to_json(self) -> dict[str, Any]:
+        """The configuration as plain JSON values."""
+        return json_values(dataclasses.asdict(self))
