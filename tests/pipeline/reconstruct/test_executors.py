@@ -34,13 +34,13 @@ from ray_fixtures import RAY_CPUS, ray_instance, ray_worker_running_a_unit  # no
 
 pytestmark = pytest.mark.slow
 
-SRC = Path(__file__).resolve().parents[2] / "src"
+SRC = Path(__file__).resolve().parents[3] / "src"
 ITERATIONS = 20
 _LOCAL_STAGE = """
 import sys
 from pathlib import Path
 sys.path.insert(0, sys.argv[3])
-from test_static_executors import context
+from test_executors import context
 from polarface.pipeline import run_stages
 from polarface.pipeline.reconstruct.stages import stage_polarimetric
 if sys.argv[4] == "warm-up":  # compiles the fused kernel into numba's cache if it is not there
@@ -71,7 +71,7 @@ def tiny(tiny_sim, tmp_path_factory):
     prepared.mkdir()
     run_stages(context(sim, prepared), [("prepare", stage_prepare)])
     shutil.copytree(prepared, local)
-    paths = [str(SRC), str(Path(__file__).parents[1]), os.environ.get("PYTHONPATH", "")]  # src, tests
+    paths = [str(SRC), str(Path(__file__).parents[2]), os.environ.get("PYTHONPATH", "")]  # src, tests
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
     for step in ("warm-up", "stage"):  # two interpreters: the second loads the kernel from the cache
         subprocess.run([sys.executable, "-c", _LOCAL_STAGE, str(sim), str(local), str(Path(__file__).parent),

@@ -17,7 +17,7 @@ import pytest
 
 from polarface.simulate.pipeline import SimulationConfig, simulate
 
-SRC = Path(__file__).resolve().parents[2] / "src"
+SRC = Path(__file__).resolve().parents[3] / "src"
 _SCRIPT = """
 import sys
 from polarface.simulate.pipeline import SimulationConfig, simulate

@@ -67,9 +67,9 @@ def reconstruct_dynamic_imported(
     all_frames = list(range(len(record["frames"])))
     selected = parse_frame_selection(frames, all_frames)
     static = load_static_inputs(folder)
-    if list(static[1].shape) != list(record["texture_resolution"]):
+    if list(static.mask.shape) != list(record["texture_resolution"]):
         raise ValueError(f"'{imported}' has texture {record['texture_resolution']} but the static maps of "
-                         f"'{folder.root}' are {list(static[1].shape)}: import the sessions of one subject")
+                         f"'{folder.root}' are {list(static.mask.shape)}: import the sessions of one subject")
     resolved = resolve_device(device)
     identity = np.eye(4)
     previous = folder.stage_record("dynamic").get("timings", {}).get("frames", {})
