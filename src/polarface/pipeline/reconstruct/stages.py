@@ -1,4 +1,5 @@
-"""Static polarimetric inverse rendering of a capture into a RESULT folder (paper Sec. 5).
+"""The stages of a static reconstruction into a RESULT folder (paper Sec. 5), run in order by
+:func:`run_stages` (:func:`polarface.pipeline.reconstruct.run.reconstruct` checks the inputs first).
 
 The run is a sequence of stages over the RESULT folder (:data:`STAGES`); each reads and writes the
 documented artifacts (``docs/result_folder.md``) through :class:`polarface.results.ResultFolder`,
@@ -21,7 +22,8 @@ run starts; a resumed run whose inputs or options differ is refused
 * ``report``: ``report.html`` (:mod:`polarface.report`).
 
 Bad input (no poses, mismatched UV atlas, all-invisible texels, NaN observations) raises ValueError
-before anything is written, or :func:`reconstruct` removes the RESULT folder this run created.
+before anything is written, or :func:`~polarface.pipeline.reconstruct.run.reconstruct` removes the RESULT
+folder this run created.
 """
 
 from __future__ import annotations
