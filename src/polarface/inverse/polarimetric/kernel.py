@@ -90,6 +90,24 @@ _JIT = {
     "cache": True,
     "error_model": "numpy",
 }
+# How _compile hands each helper to numba. numba's ``inline="always"`` copies a helper's IR into every
+# call site before typing, so the prange body that numba types and analyses holds all of them: compiling
+# that took 40-45 s per float type (cold cache; paid by every process with a new cache folder). Only
+# these helpers are inlined so: the loops over a block's rows (compiled as functions of their own, LLVM
+# vectorised them worse without the caller's scratch arrays: the kernel ran 5x slower), and cos2_sin2,
+# double_angle and _channel, which LLVM rounds differently in the last bit when it optimises them on their
+# own before inlining them (fast-math ``contract``/``arcp``). The others (scalar, branch-free) are compiled
+# once per variant as functions of their own that LLVM always inlines (``forceinline``). Measured (numba
+# 0.68, 2-core machine), with biophysical/local_kernel.py done alike: a cold-cache ``polarface reconstruct``
+# of the tiny preset with known geometry 175 -> 137 s, every map the same to the bit. (The same split in
+# kernel_starts.py changed the maps in the last bits, so it keeps numba's inlining.)
+_NUMBA_INLINED = frozenset({
+    "cos2_sin2", "double_angle", "_channel", "_view_terms", "_load_light", "_zero_rows", "_forward_lights",
+    "_losses", "_reverse_lights",
+})  # fmt: skip
+# The others' options: no on-disk cache, as each _compile clones them with its own ``F`` and numba keys a
+# cached function by its bytecode and argument types, not its globals (a cached kernel holds their code).
+_FORCE_INLINED = {**_JIT, "cache": False, "forceinline": True}
 # Rows of the per-block scratch array ``work[row, i]`` (``i``: sample of the block; SoA, so that every
 # loop over a block's samples reads and writes unit-stride rows of one array and LLVM vectorises it).
 _B = 32  # samples per block
@@ -425,7 +443,8 @@ def _compile(float_type) -> numba.core.registry.CPUDispatcher:
     for name in helpers:
         source = globals()[name]
         clone = types.FunctionType(source.__code__, namespace, name)
-        namespace[name] = numba.njit(inline="always", **_JIT)(clone)
+        options = {**_JIT, "inline": "always"} if name in _NUMBA_INLINED else _FORCE_INLINED
+        namespace[name] = numba.njit(**options)(clone)
     return numba.njit(parallel=True, **_JIT)(types.FunctionType(_kernel.__code__, namespace, "_kernel"))
 
 
