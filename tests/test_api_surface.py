@@ -218,6 +218,10 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "build_views", "footprint_sees_surface", "sample_view", "texel_geometry", "unwrap_capture",
         "grid_mesh", "texel_geometry_from_maps", "texture_view_samples", "write_texture_unwrap",
     ),
+    "polarface.texture.photometric": (
+        "ROLES", "PhotoConsistency", "SurfaceRefinement", "SurfaceRefinementConfig", "TexelGrid", "ViewSampling",
+        "photo_consistency_volume", "refine_surface",
+    ),
 }
 
 

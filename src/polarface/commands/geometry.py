@@ -1,8 +1,9 @@
-"""``polarface geometry CAPTURE --out GEOM [--frame-meshes]``: mesh, poses and per-frame stereo clouds
-(and meshes) from the capture's stereo pairs (paper Sec. "Geometry Reconstruction and Tracking";
-layout in ``docs/geometry.md``, "Geometry from stereo"). ``reconstruct`` runs the same stage by default
-(without frame meshes); ``reconstruct --geometry GEOM`` reuses this command's output. Rerunning on the
-same output resumes at the first unfinished frame. ``--executor ray [--ray-address ADDR] [--workers
+"""``polarface geometry CAPTURE --out GEOM [--frame-meshes] [--no-surface-refinement]``: mesh, poses and
+per-frame stereo clouds (and meshes) from the capture's stereo pairs (paper Sec. "Geometry Reconstruction
+and Tracking"; layout in ``docs/geometry.md``, "Geometry from stereo"), the reference mesh refined
+photometrically against the views (step 5 there). ``reconstruct`` runs the same stage by default (without
+frame meshes); ``reconstruct --geometry GEOM`` reuses this command's output. Rerunning on the same output
+resumes at the first unfinished frame. ``--executor ray [--ray-address ADDR] [--workers
 N]`` runs the frames' stereo as Ray tasks (``docs/cluster.md``); an unreachable address is refused
 before anything is written.
 """
@@ -40,6 +41,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--frame-meshes", action="store_true",
         help="also write each frame's own Poisson mesh (GEOM/frames/NNNNNN.ply; about 2 s per frame)",
     )
+    parser.add_argument(
+        "--no-surface-refinement", action="store_true",
+        help="keep the stereo reference mesh as it is: no photometric refinement against the views "
+             "(docs/geometry.md, step 5; about 1 min on the demo preset)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     add_executor_arguments(parser, "frames")
     add_force_argument(parser, "GEOM")
@@ -55,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
     config = GeometryConfig(
         texture_resolution=inputs.texture_resolution, reference_frame=args.reference_frame,
         frame_meshes=args.frame_meshes,
+        **({"surface_refinement": None} if args.no_surface_refinement else {}),
     )
     owned = json_manifest(GEOMETRY_JSON, format="polarface-geometry")
     with executor_from_args(args) as executor:

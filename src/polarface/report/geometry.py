@@ -1,6 +1,7 @@
 """The geometry stage's report page ``GEOM/report.html``: depth and confidence of the reference frame's
-stereo pairs, renders of the reference mesh from the polarimetric cameras, and the per-frame
-registration residuals (``docs/geometry.md``, "Geometry from stereo")."""
+stereo pairs, renders of the reference mesh from the polarimetric cameras, the per-frame
+registration residuals and what the photometric surface refinement changed (``docs/geometry.md``,
+"Geometry from stereo")."""
 
 from __future__ import annotations
 
@@ -61,11 +62,41 @@ def _residual_plot(path: Path, summary: dict[str, Any]) -> None:
     write_figure_png(path, fig)  # atomically, the folder made if missing
 
 
+def _refinement_section(page: HtmlPage, previews: Path, record: dict[str, Any] | None,
+                        offset_mm: np.ndarray | None, seen: np.ndarray | None) -> None:
+    section = page.section(
+        "Surface refinement",
+        "The reference mesh moved along its normals to where the views of every frame agree "
+        "(polarface.texture.photometric.refine_surface): the offset per texel of the atlas (mm, + outwards; "
+        "black: not seen by enough views), and its statistics.",
+    )
+    if record is None:
+        section.text("Off (GeometryConfig.surface_refinement is None).")
+        return
+    if offset_mm is not None:
+        colormap_png(previews / "surface_refinement_offset_mm.png", offset_mm, vmin=-1.0, vmax=1.0,
+                     cmap="RdBu_r", mask=seen, label="offset along the normal (mm)")
+        section.plot("previews/surface_refinement_offset_mm.png")
+    flat = {}
+    for key, value in record.items():
+        if key == "frame_scores":  # one per frame: geometry.json has them
+            continue
+        if isinstance(value, dict):
+            flat.update({f"{key}.{k}": v for k, v in value.items()})
+        else:
+            flat[key] = value
+    section.table(flat)
+
+
 def write_geometry_report(out: Path, summary: dict[str, Any], mesh: TriangleMesh, poses: np.ndarray,
-                          rig: Rig, all_frames: list[int]) -> Path:
+                          rig: Rig, all_frames: list[int], *, surface_offset_mm: np.ndarray | None = None,
+                          surface_seen: np.ndarray | None = None) -> Path:
     """Write ``out/report.html`` (and its previews) for a finished geometry stage; returns its path.
 
-    ``poses`` ``(F, 4, 4)`` are the model -> world poses of the capture frames ``all_frames``."""
+    ``poses`` ``(F, 4, 4)`` are the model -> world poses of the capture frames ``all_frames``;
+    ``surface_offset_mm`` ``(H, W)`` and ``surface_seen`` ``(H, W)`` bool are the surface refinement's
+    offset map and the texels seen by enough views
+    (:class:`polarface.texture.photometric.SurfaceRefinement`)."""
     out = Path(out)
     previews = out / "previews"
     page = HtmlPage("polarface geometry", subtitle=f"reference frame {summary['reference_frame']}")
@@ -94,6 +125,7 @@ def write_geometry_report(out: Path, summary: dict[str, Any], mesh: TriangleMesh
     rejected = summary.get("rejected_frames", {})
     section.table([[frame, reason] for frame, reason in rejected.items()] or [["-", "no frame rejected"]],
                   header=["rejected frame", "reason"])
+    _refinement_section(page, previews, summary.get("surface_refinement"), surface_offset_mm, surface_seen)
     page.section("Texture atlas", "Cylindrical atlas (seam at the back).").table(
         {k: v for k, v in summary["atlas"].items() if not isinstance(v, list | dict)}
     )

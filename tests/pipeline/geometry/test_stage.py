@@ -45,7 +45,12 @@ def test_geometry_stage_recovers_mesh_and_poses(sim, geom):
     assert all(set(entry) == {"points", "pairs", "seconds"} for entry in summary["frames"].values())
     assert len(list((out / "previews").glob("depth_*.png"))) >= 1  # written in a thread beside the units
     parts = ("stereo_and_frame_meshes_s", "registration_s", "fusion_s", "reference_mesh_and_atlas_s",
-             "report_s")
+             "surface_refinement_s", "report_s")
+    refinement = summary["surface_refinement"]  # tiny's frames do not resolve the surface: kept as it is
+    assert refinement["applied"] is False and "min_measured_fraction" in refinement["not_applied_reason"]
+    assert refinement["frames_used"] == 4 and refinement["flagged_frames"] == []
+    assert (out / "previews" / "surface_refinement_offset_mm.png").is_file()
+    assert "Surface refinement" in (out / "report.html").read_text()
     timings = json.loads((out / "geometry.json").read_text())["timings"]
     assert all(timings[name] > 0 for name in parts)
     assert sum(timings[name] for name in parts) <= timings["total_s"] + 1e-6
@@ -78,9 +83,13 @@ def test_geometry_stage_resumes_without_redoing_frames(sim, geom):
     assert {p.name: p.stat().st_mtime_ns for p in (copy / "clouds").glob("*.npz")} == stamps
     assert np.allclose(load_poses(copy / "poses.json"), load_poses(out / "poses.json"))
     assert again["reference_frame"] == summary["reference_frame"]
-    # another atlas resolution reuses the frames; another stereo configuration is refused
-    other = reconstruct_geometry(sim / "static", copy, GeometryConfig(texture_resolution=128), progress=False)
+    # another atlas resolution (or no surface refinement) reuses the frames; another stereo configuration
+    # is refused
+    config = GeometryConfig(texture_resolution=128, surface_refinement=None)
+    other = reconstruct_geometry(sim / "static", copy, config, progress=False)
     assert other["config"]["texture_resolution"] == 128
+    assert other["config"]["surface_refinement"] is None and other["surface_refinement"] is None
+    assert "timings" in other and "surface_refinement_s" not in other["timings"]
     assert {p.name: p.stat().st_mtime_ns for p in (copy / "clouds").glob("*.npz")} == stamps
     with pytest.raises(ValueError, match=r"configuration.*config\.stereo\.block_size: recorded 5, now 7"):
         reconstruct_geometry(sim / "static", copy, GeometryConfig(stereo=StereoConfig(block_size=7)),

@@ -10,6 +10,7 @@ from polarface.geometry.fusion import PoissonConfig
 from polarface.geometry.registration import RegistrationConfig
 from polarface.geometry.stereo import StereoConfig
 from polarface.io import json_values
+from polarface.texture.photometric import SurfaceRefinementConfig
 
 __all__ = ["GeometryConfig"]
 
@@ -37,6 +38,9 @@ class GeometryConfig:
             instead of ~1.1 mm): the base mesh carries the shape, the displacement map the detail, and
             the coarser mesh's normals are closer to the truth (demo preset, measured: median normal
             error 3.5 deg instead of 4.9 deg, surface distance 0.338 instead of 0.335 mm).
+        surface_refinement: the reference mesh moved along its normals to where the views agree
+            (:mod:`polarface.texture.photometric`; None: off). Demo preset, measured: the reference
+            surface 0.307 -> 0.174 mm median from the truth, for 32 s on an idle 2-core machine.
         texture_resolution: side of the reference mesh's UV atlas, texels.
         reference_frame: the capture frame whose rig world is the model frame (None: the middle frame).
     """
@@ -49,6 +53,9 @@ class GeometryConfig:
     reference_voxel_mm: float = 0.5
     reference_poisson: PoissonConfig = dataclasses.field(
         default_factory=lambda: PoissonConfig(resolution_mm=3.0)
+    )
+    surface_refinement: SurfaceRefinementConfig | None = dataclasses.field(
+        default_factory=SurfaceRefinementConfig
     )
     texture_resolution: int = 512
     reference_frame: int | None = None

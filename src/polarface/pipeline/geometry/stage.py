@@ -7,7 +7,8 @@ sequence, the reference mesh fused from all frames with a cylindrical texture at
     GEOM/
       geometry.json          configuration, capture identity, reference frame, rejected frames (with
                              reasons), registration residuals, atlas, timings, peak memory
-      mesh.obj               reference mesh with its cylindrical UVs; model frame = the rig world at the
+      mesh.obj               reference mesh with its cylindrical UVs, refined photometrically
+                             (GeometryConfig.surface_refinement); model frame = the rig world at the
                              reference frame, mm
       poses.json             model -> rig world 4x4 per capture frame (polarface.geometry.poses format)
       frames/NNNNNN.ply      each frame's fused stereo mesh, rig world, mm (only with
@@ -33,6 +34,7 @@ than 16 confident points (or, meshed, without a surface), and retried by the nex
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import resource
@@ -69,6 +71,7 @@ from polarface.pipeline.geometry.frames import (
 )
 from polarface.results.fingerprint import RecordMismatchError, fingerprint_differences, same_input
 from polarface.results.layout import GEOMETRY_JSON
+from polarface.texture.photometric import refine_surface
 
 __all__ = ["reconstruct_geometry"]
 
@@ -172,11 +175,23 @@ def reconstruct_geometry(
     fused = fuse_registered(usable, load, registration, config.reference_voxel_mm)
     clock.lap("fusion_s")
     atlas = _reference_atlas(store, poses, frames.index(reference), fused, config)
+    clock.lap("reference_mesh_and_atlas_s")
+    refinement = None
+    if config.surface_refinement is not None:
+        accepted = {f: poses[row] for row, f in enumerate(frames)
+                    if f in usable and f not in registration.rejected}
+        refinement = refine_surface(store, atlas.mesh, accepted, config.surface_refinement,
+                                    resolution=config.texture_resolution, progress=progress)
+        atlas = dataclasses.replace(atlas, mesh=refinement.mesh)
+        clock.lap("surface_refinement_s")
     save_obj(out / "mesh.obj", atlas.mesh)
     save_poses(out / "poses.json", poses)
-    clock.lap("reference_mesh_and_atlas_s")
     timings["total_s"] = time.perf_counter() - started  # the report page shows this one
-    rejected = {str(f): reason for f, reason in {**failed, **registration.rejected}.items()}
+    flagged = {} if refinement is None else {
+        f: f"surface refinement: its views agree on no surface (score {refinement.frame_scores[f]:.3f}, "
+           f"below min_frame_score x the median frame's): a wrong pose" for f in refinement.flagged_frames
+    }
+    rejected = {str(f): reason for f, reason in {**failed, **registration.rejected, **flagged}.items()}
     summary = {
         **header,
         "complete": True,
@@ -184,6 +199,7 @@ def reconstruct_geometry(
         "rejected_frames": rejected,
         "registration": registration.to_json(),
         "atlas": atlas.to_json(),
+        "surface_refinement": refinement.to_json() if refinement is not None else None,
         "mesh": {"vertices": atlas.mesh.vertex_count, "faces": atlas.mesh.face_count},
         "timings": timings,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
@@ -191,7 +207,10 @@ def reconstruct_geometry(
     }
     from polarface.report.geometry import write_geometry_report
 
-    write_geometry_report(out, summary, atlas.mesh, poses, store.rig, frames)
+    write_geometry_report(out, summary, atlas.mesh, poses, store.rig, frames,
+                          surface_offset_mm=None if refinement is None else refinement.offset_mm,
+                          surface_seen=None if refinement is None else
+                          refinement.views >= config.surface_refinement.min_views)
     clock.lap("report_s")
     timings["total_s"] = time.perf_counter() - started  # with the report
     write_json_atomic(out / GEOMETRY_JSON, summary)
