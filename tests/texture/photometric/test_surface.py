@@ -1,7 +1,7 @@
 """The photometric surface refinement (polarface.texture.photometric): the sweep finds a region pushed off
 the truth, the gate keeps a surface that the images cannot resolve better unchanged, bad options and
 inputs are refused naming the argument. The recovery itself at the demo preset's resolution (a pushed
-forehead pulled back to 0.03 mm) is measured by ``benchmarks/bench_surface_refinement.py``: the tiny
+forehead pulled back to 0.02 mm) is measured by ``benchmarks/bench_surface_refinement.py``: the tiny
 preset's 256 x 212 px frames do not resolve 0.5 mm."""
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ def test_a_forced_refinement_moves_a_pushed_region_back_and_keeps_topology(truth
     core = distance < 20.0
     residual = np.einsum("ij,ij->i", result.mesh.vertices[core] - vertices[core], mesh.normals[core])
     assert abs(np.median(residual)) < 0.35, np.median(residual)  # moved back from 0.5 mm
-    raster = rasterize_uv(pushed, 256)
+    raster = rasterize_uv(pushed, result.offset_mm.shape[0])  # the sweep's texture: 1.5 x 256
     texels = raster.mask & (np.linalg.norm(raster.position - forehead, axis=-1) < 20.0) & result.measured
     assert np.median(result.offset_mm[texels]) < -0.15  # the sweep sees the push (its sign and size)
 
@@ -75,6 +75,7 @@ def test_a_forced_refinement_moves_a_pushed_region_back_and_keeps_topology(truth
         (lambda: SurfaceRefinementConfig(min_measured_fraction=1.5), "min_measured_fraction"),
         (lambda: SurfaceRefinementConfig(min_frame_score=-0.1), "min_frame_score"),
         (lambda: ViewSampling(patch_texels=4), "patch_texels"),
+        (lambda: ViewSampling(scale=0.0), "scale"),
         (lambda: ViewSampling(cos_view_min=1.0), "cos_view_min"),
         (lambda: ViewSampling(roles=("thermal",)), "roles"),
         (lambda: ViewSampling(resolution=8), "resolution"),
@@ -84,6 +85,12 @@ def test_a_forced_refinement_moves_a_pushed_region_back_and_keeps_topology(truth
 def test_bad_options_name_the_field(make, field):
     with pytest.raises(ValueError, match=field):
         make()
+
+
+def test_the_sampling_is_finer_than_the_atlas_unless_set():
+    assert ViewSampling().texture_size(512) == 768 and ViewSampling().texture_size(None) == 768
+    assert ViewSampling(scale=1.0).texture_size(255) == 256  # even
+    assert ViewSampling(resolution=300).texture_size(512) == 300
 
 
 def test_offsets_are_symmetric_steps():

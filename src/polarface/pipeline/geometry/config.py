@@ -40,7 +40,7 @@ class GeometryConfig:
             error 3.5 deg instead of 4.9 deg, surface distance 0.338 instead of 0.335 mm).
         surface_refinement: the reference mesh moved along its normals to where the views agree
             (:mod:`polarface.texture.photometric`; None: off). Demo preset, measured: the reference
-            surface 0.307 -> 0.174 mm median from the truth, for 32 s on an idle 2-core machine.
+            surface 0.307 -> 0.127 mm median from the truth, for about 60 s on an idle 2-core machine.
         texture_resolution: side of the reference mesh's UV atlas, texels.
         reference_frame: the capture frame whose rig world is the model frame (None: the middle frame).
     """

@@ -9,17 +9,17 @@ skin's texture (albedo, stubble, pores at the pixel scale) lines up across the c
 depth. This module measures that, in the manner of the multi-view refinement of Beeler et al. 2010 but in
 the texture space of the reference mesh:
 
-1. every valid texel ``t`` of the atlas (position ``X_t``, unit normal ``n_t``, model frame) is moved to
-   ``X_t + d n_t`` for ``d`` in ``-search_mm .. +search_mm`` every ``step_mm``;
+1. every valid texel ``t`` of the atlas, rasterised ``ViewSampling.scale`` times finer than the atlas
+   (position ``X_t``, unit normal ``n_t``, model frame), is moved to ``X_t + d n_t`` for ``d`` in
+   ``-search_mm .. +search_mm`` every ``step_mm``;
 2. in every accepted frame ``f`` (pose ``P_f``: model -> rig world) and every camera ``c`` of
-   ``ViewSampling.roles`` that sees the texel (facing it by more than ``cos_view_min``, and
-   the first hit of its ray, at the unrefined surface; :class:`ViewSampling`), the camera's grey image
-   is sampled there (the
-   polarimetric cameras' cross-polarized ``I_sss = 2 I90`` averaged over colours; the stereo cameras'
-   black-level-corrected raw frames), as a texture ``g_{f,c}(t, d)``;
+   ``ViewSampling.roles`` that sees the texel (facing it by more than ``cos_view_min``, and the first
+   hit of its ray, at the unrefined surface; :class:`ViewSampling`), the camera's grey image is sampled
+   there (the polarimetric cameras' cross-polarized ``I_sss = 2 I90`` averaged over colours; the stereo
+   cameras' black-level-corrected raw frames), as a texture ``g_{f,c}(t, d)``;
 3. each texture is normalised locally (zero mean, unit variance over a ``patch_texels`` square window,
-   :func:`polarface.texture.photometric.views.locally_normalised`:
-   the shading, the colour channel and the camera's gain drop out) to ``z_{f,c}``; the photo-consistency
+   :func:`polarface.texture.photometric.views.locally_normalised`: the shading, the colour channel and
+   the camera's gain drop out) to ``z_{f,c}``; the photo-consistency
    of the frame is the sum over camera pairs of their windowed correlation,
    ``box((sum_c z_c)^2 - sum_c z_c^2) / 2``, and the cost volume ``C(d, t)`` sums it over the frames;
 4. the cost volume is aggregated with a Gaussian of ``smoothing_texels`` across the atlas (one texel
@@ -36,10 +36,10 @@ A frame whose cameras agree on no surface (a wrong pose; its score, the mean bes
 of its views, below ``min_frame_score`` times the median frame's) is flagged and left out of the volume,
 so it cannot bend the surface (:class:`PhotoConsistency`).
 
-Memory: the cost volume is two ``(offsets, H, W)`` float32 halves (2 x 17 x 512^2 x 4 B = 36 MB at the
-demo's texture and the default steps), plus per frame three more of one half's size (the sums of the
-normalised textures and of their squares, the frame's consistency), independent of the number of frames
-and cameras (frames and cameras are streamed).
+Memory: the cost volume is two ``(offsets, H, W)`` float32 halves (2 x 17 x 768^2 x 4 B = 80 MB for the
+demo's 512^2 atlas, sampled 1.5 x finer, and the default steps), plus per frame three more of one half's
+size (the sums of the normalised textures and of their squares, the frame's consistency), independent
+of the number of frames and cameras (frames and cameras are streamed).
 
 References: T. Beeler, B. Bickel, P. Beardsley, B. Sumner, M. Gross, "High-quality single-shot capture of
 facial geometry", ACM TOG 29(4), 2010 (photometric refinement of a stereo face surface);
@@ -49,8 +49,10 @@ the plane sweep: R. T. Collins, "A space-sweep approach to true multi-image matc
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -70,7 +72,13 @@ from polarface.texture.photometric.views import (
     visible_texels,
 )
 
-__all__ = ["PhotoConsistency", "SurfaceRefinement", "photo_consistency_volume", "refine_surface"]
+__all__ = [
+    "SWEEP_THREADS",
+    "PhotoConsistency",
+    "SurfaceRefinement",
+    "photo_consistency_volume",
+    "refine_surface",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,6 +143,33 @@ class SurfaceRefinement:
         }
 
 
+#: Threads that sample the offsets of one camera side by side (OpenCV and NumPy release the GIL).
+SWEEP_THREADS = min(4, os.cpu_count() or 1)
+
+
+def _add_view(
+    image: np.ndarray,
+    weight: np.ndarray,
+    maps: tuple[np.ndarray, np.ndarray],
+    config: SurfaceRefinementConfig,
+    sums: tuple[np.ndarray, np.ndarray],
+    pool: ThreadPoolExecutor,
+) -> None:
+    """Add one view's locally normalised textures ``z`` at every offset to ``sums`` = ``(sum z, sum z^2)``
+    ``(J, H, W)``; ``maps`` = ``(pixel, pixel per mm along the normal)`` ``(2, H, W)`` float32 each."""
+    size = config.sampling.patch_texels
+    window = np.maximum(box_mean(weight, size), 1e-6)
+    (pixel_map, per_mm_map), (z_sum, z_squares) = maps, sums
+
+    def add(j: int) -> None:
+        texture = sample_image(image, pixel_map + np.float32(config.offsets[j]) * per_mm_map)
+        z = locally_normalised(texture, weight, size, window)
+        z_sum[j] += z
+        z_squares[j] += z * z
+
+    list(pool.map(add, range(len(z_sum))))
+
+
 def _frame_consistency(
     store: CaptureStore,
     frame: int,
@@ -142,9 +177,10 @@ def _frame_consistency(
     caster: RayCaster,
     grid: TexelGrid,
     config: SurfaceRefinementConfig,
+    pool: ThreadPoolExecutor,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(C (J, H, W) float32, views (H, W) float32)``: one frame's pairwise photo-consistency per offset
-    (module docstring, step 3) and its number of views per texel."""
+    (module docstring, step 3) and its number of views per texel; the offsets in ``pool``'s threads."""
     offsets, sampling = config.offsets, config.sampling
     size = sampling.patch_texels
     rotation, translation = pose[:3, :3], pose[:3, 3]
@@ -168,13 +204,12 @@ def _frame_consistency(
         pixel, _ = pinhole.project(points)
         # the projection is linear in d to ~1e-6 px over +-search_mm at the rig's distances
         per_mm = pinhole.project(points + normals)[0] - pixel
+        pixel_map = np.stack([grid.image(pixel[:, 0]), grid.image(pixel[:, 1])])
+        per_mm_map = np.stack([grid.image(per_mm[:, 0]), grid.image(per_mm[:, 1])])
         image = grey_image(store, frame, camera)
-        for j, offset in enumerate(offsets):
-            z, _ = locally_normalised(sample_image(image, grid, pixel + offset * per_mm), weight, size)
-            z_sum[j] += z
-            z_squares[j] += z * z
-    consistency = np.stack([box_mean(z_sum[j] * z_sum[j] - z_squares[j], size) for j in range(len(offsets))])
-    return 0.5 * consistency, views
+        _add_view(image, weight, (pixel_map, per_mm_map), config, (z_sum, z_squares), pool)
+    consistency = pool.map(lambda j: box_mean(z_sum[j] * z_sum[j] - z_squares[j], size), range(len(offsets)))
+    return 0.5 * np.stack(list(consistency)), views
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,17 +282,18 @@ def photo_consistency_volume(
     from tqdm import tqdm
 
     order = sorted(poses)
-    for row, frame in enumerate(tqdm(order, desc="geometry: surface refinement", disable=not progress)):
-        consistency, seen = _frame_consistency(store, frame, poses[frame], caster, grid, config)
-        volume[row % 2] += consistency
-        views += seen
-        scores[frame] = _frame_score(consistency, seen)
-    median = float(np.median(list(scores.values())))
-    flagged = tuple(f for f in order if median > 0 and scores[f] < config.min_frame_score * median)
-    for frame in flagged:  # rare: recomputed and taken out, rather than every frame's volume kept
-        consistency, seen = _frame_consistency(store, frame, poses[frame], caster, grid, config)
-        volume[order.index(frame) % 2] -= consistency
-        views -= seen
+    with ThreadPoolExecutor(SWEEP_THREADS) as pool:
+        for row, frame in enumerate(tqdm(order, desc="geometry: surface refinement", disable=not progress)):
+            consistency, seen = _frame_consistency(store, frame, poses[frame], caster, grid, config, pool)
+            volume[row % 2] += consistency
+            views += seen
+            scores[frame] = _frame_score(consistency, seen)
+        median = float(np.median(list(scores.values())))
+        flagged = tuple(f for f in order if median > 0 and scores[f] < config.min_frame_score * median)
+        for frame in flagged:  # rare: recomputed and taken out, rather than every frame's volume kept
+            consistency, seen = _frame_consistency(store, frame, poses[frame], caster, grid, config, pool)
+            volume[order.index(frame) % 2] -= consistency
+            views -= seen
     return PhotoConsistency(volume, np.rint(views).astype(np.int32), scores, flagged)
 
 
@@ -340,8 +376,9 @@ def refine_surface(
     Args:
         store: the capture; mesh: the reference surface with its atlas UVs (model frame, mm);
         frame_poses: ``{frame: (4, 4) model -> rig world}`` of the frames to use;
-        config: the options (None: defaults); resolution: the sweep's texture resolution when
-            ``config.sampling.resolution`` is None (None: 512).
+        config: the options (None: defaults); resolution: the resolution of ``mesh``'s atlas, which the
+            sweep's texture side is ``config.sampling.scale`` times (unless ``config.sampling.resolution``
+            is set; None: 512).
 
     Returns:
         :class:`SurfaceRefinement` (the refined mesh: same faces and UVs).

@@ -97,22 +97,24 @@ def visible_texels(
     return visible
 
 
-def sample_image(image: np.ndarray, grid: TexelGrid, pixels: np.ndarray) -> np.ndarray:
-    """``(H, W)`` float32 texture: ``image`` bilinearly sampled at ``pixels`` ``(N, 2)`` (one per valid
-    texel; pixel centres on integers; clamped at the border)."""
+def sample_image(image: np.ndarray, pixel_map: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float32 texture: ``image`` bilinearly sampled at ``pixel_map`` ``(2, H, W)`` float32 (x and
+    y of each texel's pixel, pixel centres on integers; clamped at the border)."""
     import cv2
 
-    map_x, map_y = grid.image(pixels[:, 0]), grid.image(pixels[:, 1])
-    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.remap(image, pixel_map[0], pixel_map[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-def locally_normalised(texture: np.ndarray, weight: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(z, scale)``: ``texture`` with its ``size``-window mean removed and divided by the window's standard
-    deviation (``scale``, with a floor of 1 % of the mean), 0 where ``weight`` is 0; ``weight`` ``(H, W)``
-    float32 in {0, 1} marks the texels the view sees."""
-    window = np.maximum(box_mean(weight, size), 1e-6)
+def locally_normalised(
+    texture: np.ndarray, weight: np.ndarray, size: int, window: np.ndarray | None = None
+) -> np.ndarray:
+    """``texture`` with its ``size``-window mean removed and divided by the window's standard deviation
+    (with a floor of 1 % of the mean), 0 where ``weight`` is 0; ``weight`` ``(H, W)`` float32 in {0, 1}
+    marks the texels the view sees; ``window``: its ``box_mean`` (floored at 1e-6), when known."""
+    if window is None:
+        window = np.maximum(box_mean(weight, size), 1e-6)
     sampled = texture * weight
     mean = box_mean(sampled, size) / window
     variance = np.maximum(box_mean(sampled * sampled, size) / window - mean * mean, 0.0)
     scale = np.sqrt(variance + (0.01 * mean) ** 2 + 1e-12)
-    return (sampled - mean) / scale * weight, scale
+    return (sampled - mean) / scale * weight
