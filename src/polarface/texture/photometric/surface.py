@@ -61,7 +61,7 @@ from polarface.capture.store import CaptureStore
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.poses import check_rigid, invert_rigid
 from polarface.geometry.raycast import RayCaster
-from polarface.geometry.uv_raster import rasterize_uv
+from polarface.geometry.uv_raster import rasterize_uv, sample_texture
 from polarface.texture.photometric.config import SurfaceRefinementConfig
 from polarface.texture.photometric.views import (
     TexelGrid,
@@ -352,16 +352,6 @@ def _filled(offset: np.ndarray, measured: np.ndarray, sigma: float) -> np.ndarra
     return np.where(measured, offset, fill * fade).astype(np.float32)
 
 
-def _vertex_offsets(mesh: TriangleMesh, offset: np.ndarray) -> np.ndarray:
-    """``(N,)`` the offset map bilinearly sampled at the vertices' UVs (``docs/geometry.md`` texel layout)."""
-    import cv2
-
-    height, width = offset.shape
-    x = (mesh.uv[:, 0] * width - 0.5).astype(np.float32)[None]
-    y = ((1.0 - mesh.uv[:, 1]) * height - 0.5).astype(np.float32)[None]
-    return cv2.remap(offset, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0].astype(np.float64)
-
-
 def refine_surface(
     store: CaptureStore,
     mesh: TriangleMesh,
@@ -413,7 +403,7 @@ def refine_surface(
             time.perf_counter() - started,
         )
     offset = _filled(offset, measured, config.fill_texels)
-    moved = _vertex_offsets(mesh, offset)
+    moved = np.asarray(sample_texture(offset, mesh.uv), np.float64)  # at the vertices' UVs
     refined = mesh.with_vertices(mesh.vertices + moved[:, None] * mesh.normals)
     return SurfaceRefinement(
         refined, offset, measured, views, moved, fraction, *frames, True, None, time.perf_counter() - started

@@ -36,8 +36,8 @@ class TexelGrid:
 
     @classmethod
     def from_raster(cls, raster: UVRaster) -> TexelGrid:
+        # the raster's normals are unit already (interpolated and normalised per texel)
         normals = raster.normal[raster.mask].astype(np.float64)
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
         return cls(raster.mask, raster.position[raster.mask].astype(np.float64), normals)
 
     @property
