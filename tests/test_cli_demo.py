@@ -115,10 +115,10 @@ def test_the_readme_main_job_as_a_user_types_it(tmp_path):
     assert {"polarimetric", "rerender", "biophysical"} <= set(metrics)
     assert metrics["polarimetric"]["eta"]["median_abs_error"] < 0.1
     assert metrics["biophysical"]["c_m"]["median_abs_error"] < 0.02
-    # stereo geometry: the paper's RMSprop for 150 iterations (docs/reconstruct.md, "Optimiser and geometry")
+    # stereo geometry: the same L-BFGS as known geometry (docs/reconstruct.md, "Optimiser and geometry")
     record = json.loads((out / "result" / "result.json").read_text(encoding="utf-8"))
     options = record["fingerprint"]["options"]
-    assert (options["optimizer"], options["iterations"]) == ("rmsprop", 150)
+    assert (options["optimizer"], options["iterations"]) == ("lbfgs", 400)
     # paths inside the RESULT are recorded relative to it, inputs outside it absolute
     prepare = record["stages"]["prepare"]
     assert (prepare["poses"], prepare["mesh"], prepare["geometry"]) == (

@@ -3,7 +3,7 @@
 Times one demo-sized patch (default 48 x 48 texels of a head-sized cap, 24 frames x 2 polarimetric
 cameras = 48 views, 8 LED modules): the fused objective evaluation that the default L-BFGS fit calls
 (numba forward, fused kernel with analytic gradients, regularisers; the headline rate), the fused
-kernel alone, whole fused RMSprop steps (the stereo-geometry default) and the torch autograd objective,
+kernel alone, whole fused RMSprop steps (`--optimizer rmsprop`) and the torch autograd objective,
 each for about ``--seconds`` over ``--repeats`` repeats (median and spread), and a short eager per-texel
 baseline of the same losses; prints the rates, the speed-up over the baseline, the paper's A100 rate
 (150 epochs x 2048^2 texels x 200 frames in 180 min = 1.2e7 /s), the load average and the peak RSS.

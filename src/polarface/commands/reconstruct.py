@@ -70,15 +70,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--iterations", type=int, default=None,
-        help="optimiser iterations per patch (default 400 for lbfgs, 150 for rmsprop with stereo geometry)",
+        help="optimiser iterations per patch (default 400; the paper used 150 with rmsprop)",
     )
     parser.add_argument("--lr", type=float, default=None, help="learning rate (default 0.03)")
     parser.add_argument(
         "--optimizer",
         choices=("lbfgs", "rmsprop", "adam"),
         default=None,
-        help="lbfgs (default with known geometry: converges the lobes and eta) or the paper's rmsprop "
-        "(default with stereo geometry, 150 iterations; see docs/reconstruct.md)",
+        help="lbfgs (default: converges the lobes, eta and the displacement map) or the paper's rmsprop "
+        "(with --iterations 150 as in the paper); see docs/reconstruct.md, 'Optimiser and geometry'",
     )
     parser.add_argument(
         "--lobes",

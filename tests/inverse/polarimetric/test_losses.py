@@ -90,4 +90,6 @@ def test_regulariser_shape_errors_and_weights():
         laplacian_penalty(torch.zeros(3, 3), torch.ones(2, 3, dtype=torch.bool))
     with pytest.raises(ValueError, match=r"weights\.eta"):
         LossWeights(eta=-1.0)
-    assert LossWeights().psi == 0.002 and LossWeights().h_laplacian == 1000.0
+    # the paper's data weights; the displacement map's regularisers in mm (docs/reconstruct.md)
+    assert (LossWeights().psi, LossWeights().eta) == (0.002, 400.0)
+    assert (LossWeights().h_temporal, LossWeights().h_laplacian) == (0.01, 10.0)

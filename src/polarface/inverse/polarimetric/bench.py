@@ -14,7 +14,7 @@ with observations rendered by the model itself. :func:`run_benchmark` times the 
 * ``fused_kernel_only``: the fused kernel alone
   (:func:`~polarface.inverse.polarimetric.fused.fused_loss_and_grad`, data loss and its gradient; the
   number benchmarks/bench_roofline.py sets against this CPU's bounds);
-* ``fused_rmsprop_step``: whole RMSprop steps as the stereo-geometry default runs them
+* ``fused_rmsprop_step``: whole RMSprop steps as ``--optimizer rmsprop`` runs them
   (:func:`~polarface.inverse.polarimetric.optimise.optimise_patch` with ``optimizer="rmsprop"``);
 * ``torch_objective``: loss and autograd backward of the vectorised torch reference (what L-BFGS calls
   on non-CPU devices);

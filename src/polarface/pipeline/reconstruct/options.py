@@ -1,7 +1,7 @@
-"""The fit options a reconstruction runs with (:func:`polarface.pipeline.reconstruct.stages.reconstruct`): the
-user's :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides, over the paper's optimiser
-when the geometry comes from the stereo pairs, over the patch grid that the device (or a resumed
-RESULT) chooses."""
+"""The fit options a reconstruction runs with (:func:`polarface.pipeline.reconstruct.run.reconstruct`): the
+user's :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides over the patch grid that the
+device (or a resumed RESULT) chooses. The optimiser is the same whatever the geometry's source
+(docs/reconstruct.md, "Optimiser and geometry")."""
 
 from __future__ import annotations
 
@@ -11,11 +11,6 @@ from typing import Any
 from polarface.results import ResultFolder
 
 __all__ = ["resolve_fit_options"]
-
-#: Fit options used with geometry reconstructed from the stereo pairs unless given: the paper's RMSprop
-#: for 150 iterations. A converged L-BFGS fit moves eta and rho_s to the stereo geometry's biased minimum
-#: (demo: eta 0.043 -> 0.055, rho_s 42 % -> 61 %); docs/reconstruct.md, "Optimiser and geometry".
-_STEREO_FIT_DEFAULTS = {"optimizer": "rmsprop", "iterations": 150}
 
 _PATCH_GRID = ("patch", "sample_budget")  # the fit options that a device chooses (device_fit_options)
 
@@ -45,12 +40,8 @@ def _patch_grid(device: str, executor: Any, out: Path, resume: bool) -> dict[str
     return device_fit_options(resolve_device(device), units_per_gpu=_units_per_gpu(executor))
 
 
-def resolve_fit_options(fit_options: dict[str, Any] | None, stereo: bool, device: str, executor: Any,
-                        out: Path, resume: bool) -> dict[str, Any]:
-    """``fit_options`` (None: none) over :data:`_STEREO_FIT_DEFAULTS` when ``stereo`` (geometry from the
-    stereo pairs) and no ``optimizer`` is given, over :func:`_patch_grid` of ``device``, ``executor`` and
-    the RESULT folder ``out`` (``resume``)."""
-    options = dict(fit_options or {})
-    if stereo and "optimizer" not in options:
-        options = {**_STEREO_FIT_DEFAULTS, **options}
-    return {**_patch_grid(device, executor, out, resume), **options}
+def resolve_fit_options(fit_options: dict[str, Any] | None, device: str, executor: Any, out: Path,
+                        resume: bool) -> dict[str, Any]:
+    """``fit_options`` (None: none) over :func:`_patch_grid` of ``device``, ``executor`` and the RESULT
+    folder ``out`` (``resume``)."""
+    return {**_patch_grid(device, executor, out, resume), **(fit_options or {})}

@@ -49,9 +49,7 @@ def reconstruct(
     Args:
         inputs: :func:`polarface.pipeline.inputs.static.resolve_reconstruct_inputs`.
         out: the RESULT folder (must be empty or absent unless ``resume``).
-        fit_options: :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides; with stereo
-            geometry (no mesh in ``inputs``) ``optimizer`` and ``iterations`` default to the paper's
-            RMSprop for 150 iterations (neither applies when ``optimizer`` is given); ``patch`` and
+        fit_options: :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides; ``patch`` and
             ``sample_budget`` default to larger patches on a CUDA device and, on a resume, to the
             RESULT's own (:func:`polarface.pipeline.reconstruct.options.resolve_fit_options`).
         holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
@@ -82,7 +80,7 @@ def reconstruct(
         raise ValueError(f"argument '--holdout-every' must be 0 or >= 2; got {holdout_every}")
     check_thread_count(threads)  # '--threads' >= 1, refused before anything is written
     stereo = inputs.mesh_path is None
-    options = resolve_fit_options(fit_options, stereo, device, executor, out, resume)
+    options = resolve_fit_options(fit_options, device, executor, out, resume)
     geometry_folder = ResultFolder(out).geometry_dir if stereo else inputs.geometry_folder
     ctx = ReconstructContext(
         inputs.capture, out,
