@@ -163,9 +163,10 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "resolve_dynamic_capture", "resolve_reconstruct_inputs", "selection_note",
     ),
     "polarface.pipeline.reconstruct": (
-        "ETA_STD", "ReconstructContext", "STAGES", "VIEW_RESIDUALS_JSON", "ViewCheckConfig",
-        "check_fingerprint", "check_view_residuals", "flag_view_residuals", "input_fingerprint",
-        "reconstruct", "resolve_fit_options", "run_stages", "write_result_report",
+        "ETA_STD", "ReconstructContext", "STAGES", "UNVERIFIED_SURFACE_FIT_OPTIONS", "VIEW_RESIDUALS_JSON",
+        "ViewCheckConfig", "check_fingerprint", "check_view_residuals", "flag_view_residuals",
+        "input_fingerprint", "reconstruct", "resolve_fit_options", "run_stages", "surface_fit_options",
+        "write_result_report",
     ),
     "polarface.render": (
         "DemoParameters", "DemoRender", "FragmentMaterial", "FragmentRecord", "FrameTextures",
@@ -219,8 +220,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "grid_mesh", "texel_geometry_from_maps", "texture_view_samples", "write_texture_unwrap",
     ),
     "polarface.texture.photometric": (
-        "ROLES", "PhotoConsistency", "SurfaceRefinement", "SurfaceRefinementConfig", "TexelGrid", "ViewSampling",
-        "photo_consistency_volume", "refine_surface",
+        "ROLES", "PhotoConsistency", "SurfaceRefinement", "SurfaceRefinementConfig", "TexelGrid",
+        "ViewSampling", "photo_consistency_volume", "refine_surface",
     ),
 }
 

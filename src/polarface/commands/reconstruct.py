@@ -70,15 +70,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--iterations", type=int, default=None,
-        help="optimiser iterations per patch (default 400; the paper used 150 with rmsprop)",
+        help="optimiser iterations per patch (default 400; 150 when rmsprop is chosen for an unrefined "
+        "stereo surface)",
     )
     parser.add_argument("--lr", type=float, default=None, help="learning rate (default 0.03)")
     parser.add_argument(
         "--optimizer",
         choices=("lbfgs", "rmsprop", "adam"),
         default=None,
-        help="lbfgs (default: converges the lobes, eta and the displacement map) or the paper's rmsprop "
-        "(with --iterations 150 as in the paper); see docs/reconstruct.md, 'Optimiser and geometry'",
+        help="lbfgs (default with known geometry or a stereo surface refined against the images: converges "
+        "the lobes, eta and the displacement map) or the paper's rmsprop (default, 150 steps, on a stereo "
+        "surface the images could not refine, e.g. the tiny preset's); see docs/reconstruct.md, "
+        "'Optimiser and geometry'",
     )
     parser.add_argument(
         "--lobes",

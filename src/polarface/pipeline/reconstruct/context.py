@@ -16,7 +16,9 @@ class ReconstructContext:
     """What the stages share: inputs, options and the RESULT folder; ``executor`` runs the geometry stage's
     frames, the polarimetric stage's patches and the dynamic stage's frames
     (:class:`polarface.executors.Executor`; None: in this process). ``geometry_folder`` is the GEOM folder
-    the run uses (``RESULT/geometry`` with stereo geometry, a given one, or None: known geometry)."""
+    the run uses (``RESULT/geometry`` with stereo geometry, a given one, or None: known geometry).
+    ``optimizer_given``: the user chose the optimiser in ``fit_options``; otherwise the polarimetric stage
+    chooses it from the geometry (:func:`polarface.pipeline.reconstruct.options.surface_fit_options`)."""
 
     capture: Path
     out: Path
@@ -36,6 +38,7 @@ class ReconstructContext:
     frames: str | None = None
     executor: Any = None
     view_check: bool = False
+    optimizer_given: bool = False
 
     @property
     def folder(self) -> ResultFolder:

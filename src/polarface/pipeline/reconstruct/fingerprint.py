@@ -14,7 +14,8 @@ __all__ = ["check_fingerprint", "input_fingerprint"]
 
 
 def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
-    """What changes the result: capture, mesh, poses, texture resolution, hold-out and fit options.
+    """What changes the result: capture, mesh, poses, texture resolution, hold-out, fit options and whether
+    the optimiser was given.
 
     The device and the thread count are left out (they change float rounding only, not what is
     fitted), but not the patch grid a device chooses (``patch``, ``sample_budget``: a resume keeps the
@@ -46,6 +47,8 @@ def input_fingerprint(ctx: ReconstructContext) -> dict[str, Any]:
             {k: v for k, v in dataclasses.asdict(PolarimetricConfig(**ctx.fit_options)).items()
              if k != "unwrap_cache_mb"}
         ),
+        # without it the stage chooses the optimiser from the geometry (options.surface_fit_options)
+        "optimizer_given": bool(ctx.optimizer_given),
     }
 
 

@@ -49,7 +49,9 @@ def reconstruct(
     Args:
         inputs: :func:`polarface.pipeline.inputs.static.resolve_reconstruct_inputs`.
         out: the RESULT folder (must be empty or absent unless ``resume``).
-        fit_options: :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides; ``patch`` and
+        fit_options: :class:`polarface.inverse.polarimetric.PolarimetricConfig` overrides; without
+            ``optimizer``, the polarimetric stage chooses it from the geometry
+            (:func:`polarface.pipeline.reconstruct.options.surface_fit_options`); ``patch`` and
             ``sample_budget`` default to larger patches on a CUDA device and, on a resume, to the
             RESULT's own (:func:`polarface.pipeline.reconstruct.options.resolve_fit_options`).
         holdout_every: hold out every n-th frame for evaluation (0: none, else >= 2).
@@ -88,6 +90,7 @@ def reconstruct(
         geometry_folder / layout.POSES_JSON if stereo else inputs.poses_path,
         inputs.texture_resolution, device, resume, progress, holdout_every, options, threads=threads,
         geometry_folder=geometry_folder, stereo=stereo, view_check=view_check,
+        optimizer_given="optimizer" in (fit_options or {}),
     )
     if dynamic is not None:
         ctx.dynamic = resolve_dynamic_capture(dynamic)

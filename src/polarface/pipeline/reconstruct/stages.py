@@ -44,6 +44,7 @@ from polarface.pipeline.geometry import GeometryConfig, reconstruct_geometry
 from polarface.pipeline.inputs import is_imported_session, parse_frame_selection, prepare_imported
 from polarface.pipeline.reconstruct.context import ReconstructContext
 from polarface.pipeline.reconstruct.fingerprint import check_fingerprint
+from polarface.pipeline.reconstruct.options import surface_fit_options
 from polarface.pipeline.reconstruct.view_check import check_view_residuals
 from polarface.results import ResultFolder, default_channel_names, layout
 
@@ -171,7 +172,9 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
     started = time.perf_counter()
     folder = ctx.folder
     device = resolve_device(ctx.device)
-    config = PolarimetricConfig(**ctx.fit_options)
+    geometry_record = _geometry_summary(ctx)
+    options, optimizer_choice = surface_fit_options(ctx.fit_options, ctx.optimizer_given, geometry_record)
+    config = PolarimetricConfig(**options)
     executor = ctx.executor or LocalExecutor()
     fit = fit_polarimetric(
         UnwrapStore.open(folder.unwrap_path),
@@ -194,6 +197,7 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
     return {
         **record,
         "config": json_values(dataclasses.asdict(config)),
+        "optimizer_choice": optimizer_choice,
         "device": str(device),
         "patches": fit.patches,
         "samples": fit.sample_count,
