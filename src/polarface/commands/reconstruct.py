@@ -62,6 +62,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--poses", type=local_path, default=None, help="model -> rig-world 4x4 per frame (.json/.npy)"
     )
+    _add_fit_arguments(parser)
+    parser.add_argument(
+        "--holdout-every",
+        type=int,
+        default=4,
+        help="hold out every n-th frame for evaluation (0: none; default 4)",
+    )
+    parser.add_argument(
+        "--device", default=None, help="cpu, cuda or auto (default: POLARFACE_DEVICE or auto)"
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch threads of the fit (default 1: fastest on a busy 2-core CPU; try 2+ on an idle one)",
+    )
+    parser.add_argument(
+        "--dynamic",
+        type=store_location,
+        default=None,
+        metavar="DYNAMIC",
+        help="also reconstruct a dynamic capture of the same rig frame by frame (a capture store, or a "
+        "simulation folder: SIM/dynamic) into RESULT/frames (docs/dynamic.md)",
+    )
+    parser.add_argument(
+        "--frames", default=None, help="dynamic frames whose maps are fitted, e.g. '0-4,7' (default: all)"
+    )
+    add_executor_arguments(parser, "geometry frames, polarimetric patches and dynamic frames")
+    parser.add_argument("--resume", action="store_true", help="continue an interrupted run in RESULT")
+    add_force_argument(parser, "RESULT")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+
+def _add_fit_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the texture-space polarimetric fit (docs/reconstruct.md)."""
     parser.add_argument(
         "--texture-resolution",
         type=int,
@@ -118,36 +154,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "residuals stand out (a miscalibrated camera, a wrong head pose); also writes the eta uncertainty "
         "map maps/eta_std.exr (docs/reconstruct.md, 'Per-view residual check and eta uncertainty')",
     )
-    parser.add_argument(
-        "--holdout-every",
-        type=int,
-        default=4,
-        help="hold out every n-th frame for evaluation (0: none; default 4)",
-    )
-    parser.add_argument(
-        "--device", default=None, help="cpu, cuda or auto (default: POLARFACE_DEVICE or auto)"
-    )
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="torch threads of the fit (default 1: fastest on a busy 2-core CPU; try 2+ on an idle one)",
-    )
-    parser.add_argument(
-        "--dynamic",
-        type=store_location,
-        default=None,
-        metavar="DYNAMIC",
-        help="also reconstruct a dynamic capture of the same rig frame by frame (a capture store, or a "
-        "simulation folder: SIM/dynamic) into RESULT/frames (docs/dynamic.md)",
-    )
-    parser.add_argument(
-        "--frames", default=None, help="dynamic frames whose maps are fitted, e.g. '0-4,7' (default: all)"
-    )
-    add_executor_arguments(parser, "geometry frames, polarimetric patches and dynamic frames")
-    parser.add_argument("--resume", action="store_true", help="continue an interrupted run in RESULT")
-    add_force_argument(parser, "RESULT")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
