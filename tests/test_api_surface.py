@@ -45,7 +45,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
     ),
     "polarface.evaluate.dynamic": (
         "DYNAMIC_METRIC_KEYS", "DynamicEvaluationConfig", "DynamicInputs", "dynamic_group", "dynamic_metrics",
-        "fit_recovery_time_constant", "load_dynamic_inputs", "material_point_errors", "pressed_patch_weight",
+        "fit_recovery_time_constant", "load_dynamic_inputs", "material_point_errors",
+        "material_point_tracking", "pressed_patch_weight",
     ),
     "polarface.executors": (
         "EXECUTOR_NAMES", "Executor", "LocalExecutor", "ProcessExecutor", "RayExecutor", "ThreadSettings",
@@ -81,7 +82,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "register_pair_starts", "register_sequence",
     ),
     "polarface.geometry.tracking": (
-        "TrackedSequence", "TrackingConfig", "TrackingFrame", "track_mesh",
+        "TrackedSequence", "TrackingConfig", "TrackingFrame", "track_mesh", "tracking_support",
     ),
     "polarface.inverse": (
         "BiophysicalConfig", "BiophysicalFit", "DynamicConfig", "IorResult", "POLARIMETRIC_ENGINES",
@@ -147,7 +148,8 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
     "polarface.pipeline.dynamic": (
         "DynamicStageConfig", "FRAME_RATE_HZ", "FrameUnit", "StaticInputs", "TrackingFolder",
         "align_reference", "frame_done", "load_static_inputs", "process_frame", "reconstruct_dynamic",
-        "reconstruct_dynamic_imported", "run_frame_unit", "stereo_pass", "track_sequence",
+        "reconstruct_dynamic_imported", "run_frame_unit", "stereo_pass", "texel_tracking_confidence",
+        "track_sequence",
     ),
     "polarface.pipeline.geometry": (
         "FrameGeometry", "GeometryConfig", "StereoFrameUnit", "frame_geometry", "frame_stereo",

@@ -132,3 +132,95 @@ def test_median_over_cameras_is_numpys_nanmedian():
         assert np.isnan(got[np.isnan(values).all(axis=(0, 2))]).all()
     two = np.array([[[1.0, 2.0, 3.0]], [[2.0, 4.0, 5.0]]])
     assert _median_over_cameras(two).tolist() == [[1.5, 3.0, 4.0]]
+
+
+def test_window_ncc_of_equal_inverted_unrelated_and_flat_windows():
+    from polarface.geometry.tracking.images import window_ncc
+
+    image = _texture(np.zeros(2))
+    other = _texture(np.zeros(2), seed=5)
+    pixels = _grid(40, 40, 280, 200, step=11.0)
+    np.testing.assert_allclose(window_ncc(image, pixels, image, pixels, 3), 1.0, atol=1e-6)
+    np.testing.assert_allclose(window_ncc(image, pixels, 255 - image, pixels, 3), -1.0, atol=1e-6)
+    assert abs(float(np.median(window_ncc(image, pixels, other, pixels, 3)))) < 0.2
+    flat = np.full_like(image, 77)
+    assert np.all(window_ncc(image, pixels, flat, pixels, 3) == 0.0)
+    shifted = _texture(SHIFT)  # the content moved by SHIFT: its windows match at the moved pixels
+    assert np.median(window_ncc(image, pixels, shifted, pixels + SHIFT, 3)) > 0.95
+
+
+def _sheet(count: int = 30, step: float = 2.0):
+    from polarface.geometry import TriangleMesh
+
+    xs = np.arange(count) * step
+    gx, gy = np.meshgrid(xs, xs)
+    vertices = np.stack([gx, gy, 0.05 * (gx - 30.0) ** 2 / 10.0], -1).reshape(-1, 3)
+    index = np.arange(count * count).reshape(count, count)
+    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, 1:], index[1:, :-1]
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    return TriangleMesh.from_arrays(vertices, faces, vertices[:, :2] / xs[-1])
+
+
+def test_untracked_vertices_follow_the_rigid_motion_of_the_tracked_ones():
+    """A curved sheet turned by 4 deg and moved by 5 mm; a third of it (one side: extrapolation) was not
+    tracked. The screened fill puts it where the rigid motion takes it; the harmonic fill of the
+    displacement (fill_screening 0) leaves the far side behind by millimetres."""
+    from scipy.spatial.transform import Rotation
+
+    from polarface.geometry.tracking.regularisation import MeshGraph, regularise
+
+    mesh = _sheet()
+    rotation = Rotation.from_euler("z", 4.0, degrees=True).as_matrix()
+    moved = mesh.vertices @ rotation.T + np.array([5.0, -2.0, 1.0])
+    tracked = mesh.vertices[:, 0] < 38.0
+    estimate = np.where(tracked[:, None], moved, np.nan)
+    graph = MeshGraph(mesh)
+    config = TrackingConfig(smoothing_iterations=0)
+    filled = regularise(estimate, tracked, mesh.vertices, graph, mesh, config)
+    np.testing.assert_allclose(filled, moved, atol=1e-6)
+    harmonic = regularise(estimate, tracked, mesh.vertices, graph, mesh,
+                          TrackingConfig(smoothing_iterations=0, fill_screening=0.0))
+    assert np.abs(harmonic - moved)[~tracked].max() > 1.0
+
+
+def test_the_rigid_motion_ignores_an_expression_and_the_residual_fades():
+    """Tracked: the sheet still but one corner lifted 6 mm (an expression). The rigid part stays the
+    identity (trimmed fit), and the lift carried into the untracked rest fades within ~10 edges."""
+    from polarface.geometry.tracking.regularisation import MeshGraph, regularise
+
+    mesh = _sheet()
+    lifted = mesh.vertices.copy()
+    corner = (mesh.vertices[:, 0] < 10.0) & (mesh.vertices[:, 1] < 10.0)
+    lifted[corner, 2] += 6.0
+    tracked = mesh.vertices[:, 1] < 20.0
+    estimate = np.where(tracked[:, None], lifted, np.nan)
+    config = TrackingConfig(smoothing_iterations=0)
+    filled = regularise(estimate, tracked, mesh.vertices, MeshGraph(mesh), mesh, config)
+    far = mesh.vertices[:, 1] > 44.0  # 12 edges beyond the tracked rows
+    assert np.abs(filled - mesh.vertices)[far].max() < 0.1
+    np.testing.assert_allclose(filled[tracked], lifted[tracked], atol=1e-9)
+
+
+def test_tracking_support_keeps_a_lone_miss_and_empties_a_wide_untracked_region():
+    from polarface.geometry.tracking import tracking_support
+
+    mesh = _sheet()
+    confidence = np.ones(len(mesh.vertices))
+    lone = 15 * 30 + 15
+    centre = np.linalg.norm(mesh.vertices[:, :2] - np.array([44.0, 44.0]), axis=1)
+    confidence[lone] = 0.0
+    confidence[centre < 12.0] = 0.0
+    support = tracking_support(mesh, confidence, 4)
+    assert support[lone] > 0.5
+    assert np.all(support[centre < 4.0] < 0.05)
+    np.testing.assert_array_equal(tracking_support(mesh, confidence, 0), confidence)
+    with pytest.raises(ValueError, match="confidence"):
+        tracking_support(mesh, confidence[:-1], 4)
+
+
+@pytest.mark.parametrize("field, value", [("min_window_ncc", 1.0), ("min_window_ncc", True),
+                                          ("ncc_radius_px", 0), ("ncc_radius_px", 2.5),
+                                          ("fill_screening", -0.1)])
+def test_bad_check_and_fill_settings_are_refused(field, value):
+    with pytest.raises(ValueError, match=field):
+        TrackingConfig(**{field: value})

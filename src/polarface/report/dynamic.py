@@ -331,14 +331,24 @@ def _frame_rows(folder: ResultFolder, record: dict[str, Any], shown: list[int]) 
     completed = {int(t) for t in record.get("completed", [])}
     timings = (record.get("timings") or {}).get("frames") or {}
     rows = []
-    for t in sorted({*(int(f) for f in record.get("frames", [])), *folder.frame_indices()}):
+    present = set(folder.frame_indices())
+    for t in sorted({*(int(f) for f in record.get("frames", [])), *present}):
         if str(t) in failed:
             status = f"failed: {failed[str(t)]}"
         else:
             status = "done" if t in completed or (not record and t in shown) else "pending"
         seconds = (timings.get(str(t)) or {}).get("total_s") if isinstance(timings, dict) else None
-        rows.append((t, stamps.get(t, "?"), status, seconds if seconds is not None else "?"))
+        flagged = _flagged(folder.frame(t)) if t in present else "-"
+        rows.append((t, stamps.get(t, "?"), status, seconds if seconds is not None else "?", flagged))
     return rows
+
+
+def _flagged(frame: ResultFolder) -> str:
+    """The share of a frame's texels its tracking could not follow (``stages.polarimetric.tracking`` of
+    its ``result.json``), as a percentage; "-" when not recorded."""
+    tracking = frame.stage_record("polarimetric").get("tracking") or {}
+    fraction = tracking.get("flagged_fraction")
+    return f"{100.0 * fraction:.1f}" if isinstance(fraction, int | float) else "-"
 
 
 def _metric_rows(metrics: dict[str, Any]) -> list[tuple[str, Any]]:
@@ -375,7 +385,8 @@ def dynamic_section(page: HtmlPage, result_dir: str | Path | ResultFolder,
     else:
         section.text("No frame has maps yet.")
     section.table(_frame_rows(folder, record, frames.indices),
-                  header=("frame", "time (s)", "status", "seconds"), column_classes=("num", "num", "", "num"))
+                  header=("frame", "time (s)", "status", "seconds", "untracked texels (%)"),
+                  column_classes=("num", "num", "", "num", "num"))
     summary = {k: record[k] for k in ("seconds_per_frame", "anchors") if k in record}
     if summary:
         section.table(summary)

@@ -68,6 +68,7 @@ RHO_SSS_BAR = "rho_sss_bar"
 #: Texel mask ``maps/mask.png`` (8-bit, 255 = valid) and fitting views per texel ``maps/view_count.exr``.
 MASK = "mask"
 VIEW_COUNT = "view_count"
+TRACKING_CONFIDENCE = "tracking_confidence"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,6 +94,11 @@ class DiagnosticMap:
 DIAGNOSTIC_MAPS: dict[str, DiagnosticMap] = {
     VIEW_COUNT: DiagnosticMap(
         "fitting views per texel", "fitting views per texel (mask: >= {min_views})", shown="positive"
+    ),
+    TRACKING_CONFIDENCE: DiagnosticMap(
+        "tracking confidence per texel",
+        "a dynamic frame's tracking confidence per texel (texels below the stage's min_tracking_confidence "
+        "are flagged: not in the frame's mask)",
     ),
 }
 

@@ -10,6 +10,7 @@ from polarface.evaluate.dynamic.inputs import DynamicInputs, load_dynamic_inputs
 from polarface.evaluate.dynamic.measures import (
     fit_recovery_time_constant,
     material_point_errors,
+    material_point_tracking,
     pressed_patch_weight,
 )
 from polarface.evaluate.dynamic.metrics import (
@@ -28,5 +29,6 @@ __all__ = [
     "fit_recovery_time_constant",
     "load_dynamic_inputs",
     "material_point_errors",
+    "material_point_tracking",
     "pressed_patch_weight",
 ]

@@ -11,7 +11,9 @@ import numpy as np
 
 from polarface.geometry.raycast import closest_surface_points
 
-__all__ = ["fit_recovery_time_constant", "material_point_errors", "pressed_patch_weight"]
+__all__ = [
+    "fit_recovery_time_constant", "material_point_errors", "material_point_tracking", "pressed_patch_weight",
+]
 
 
 def pressed_patch_weight(static_c_h_out: np.ndarray, first_c_h_out: np.ndarray, pressed_fraction: float = 0.8
@@ -72,6 +74,16 @@ def material_point_errors(tracked_mm: np.ndarray, confidence: np.ndarray, truth_
     Returns:
         T arrays of errors (mm), one per frame, of the counted vertices.
     """
+    return [errors for errors, _ in material_point_tracking(
+        tracked_mm, confidence, truth_vertices_mm, truth_faces, max_distance_mm)]
+
+
+def material_point_tracking(tracked_mm: np.ndarray, confidence: np.ndarray, truth_vertices_mm: np.ndarray,
+                            truth_faces: np.ndarray, max_distance_mm: float = 5.0
+                            ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`material_point_errors` (same arguments) with each counted point's true motion: per tracked
+    frame ``(errors (M_t,) mm, motion (M_t,) mm)``, ``motion`` the distance the material point truly
+    moved from frame 0 (rig world)."""
     tracked = np.asarray(tracked_mm, np.float64)
     truth = np.asarray(truth_vertices_mm, np.float64)
     if tracked.ndim != 3 or truth.ndim != 3 or len(tracked) != len(truth):
@@ -82,10 +94,12 @@ def material_point_errors(tracked_mm: np.ndarray, confidence: np.ndarray, truth_
     faces = np.asarray(truth_faces, np.int64)
     closest = closest_surface_points(truth[0], faces, tracked[0])
     on_surface = closest.distance <= max_distance_mm
-    errors = []
+    start = np.einsum("nk,nkc->nc", closest.barycentric, truth[0][faces[closest.face]])
+    results = []
     for t in range(len(tracked)):
         where = np.einsum("nk,nkc->nc", closest.barycentric, truth[t][faces[closest.face]])
         counted = on_surface & (np.asarray(confidence[t]) > 0)
-        errors.append(np.linalg.norm(tracked[t][counted] - where[counted], axis=1))
-    return errors
+        results.append((np.linalg.norm(tracked[t][counted] - where[counted], axis=1),
+                        np.linalg.norm(where[counted] - start[counted], axis=1)))
+    return results
 

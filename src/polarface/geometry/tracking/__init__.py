@@ -17,7 +17,9 @@ One propagation ``a -> b`` (source positions known):
    (vertex normal . unit direction to the camera > ``min_facing``) and is not occluded (Embree shadow
    ray to the camera centre on the source mesh).
 3. Forward flow ``a -> b`` moves its pixel; the backward flow ``b -> a`` must bring it back within
-   ``forward_backward_px`` (reliability ``r = facing (1 - e_fb / forward_backward_px)``). Both flows
+   ``forward_backward_px`` (reliability ``r = facing (1 - e_fb / forward_backward_px)``), and the
+   normalised images' windows at the source and the flowed pixel must match (``r`` scaled by their
+   correlation above ``min_window_ncc``). Both flows
    are computed only on the crop of the camera's images to its visible vertices' pixels plus
    ``flow_crop_margin_px`` (a bound on the motion); a pixel flowed out of the crop is untracked, as one
    flowed out of the image.
@@ -30,8 +32,10 @@ One propagation ``a -> b`` (source positions known):
    surfaces are not trusted more: their error (~0.3 mm along the normal, with noisy normals) moved the
    points along the surface whenever it was used to fix the depth (module measurements below).
 5. The merged estimates give displacements from ``frames[0]`` for the tracked vertices; untracked
-   vertices get a harmonic interpolation of the displacement over the (seam-welded) mesh graph and
-   confidence 0; ``smoothing_iterations`` of neighbour averaging remove flow noise; with
+   vertices (confidence 0) follow the tracked vertices' rigid motion (trimmed least squares) plus
+   their non-rigid residual interpolated over the (seam-welded) mesh graph with a screening that makes
+   it fade over ~10 edges (``fill_screening``); ``smoothing_iterations`` of neighbour averaging remove flow
+   noise; with
    ``snap_to_surface`` the tracked vertices are first moved to the surface (closest point, Open3D).
 
 Anchors: the similarity of frame ``t`` to ``frames[0]`` is the normalised cross-correlation of the
@@ -85,6 +89,7 @@ This package's face re-exports the public names.
 
 from polarface.geometry.tracking.config import TrackingConfig
 from polarface.geometry.tracking.frame import TrackingFrame
+from polarface.geometry.tracking.regularisation import tracking_support
 from polarface.geometry.tracking.track import TrackedSequence, track_mesh
 
 __all__ = [
@@ -92,4 +97,5 @@ __all__ = [
     "TrackingConfig",
     "TrackingFrame",
     "track_mesh",
+    "tracking_support",
 ]

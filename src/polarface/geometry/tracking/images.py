@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["bilinear", "normalise_image"]
+__all__ = ["bilinear", "normalise_image", "window_ncc"]
 
 
 def normalise_image(image: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -39,3 +39,23 @@ def bilinear(field: np.ndarray, points: np.ndarray) -> np.ndarray:
     top = field[y0, x0] * (1 - fx) + field[y0, x1] * fx
     bottom = field[y1, x0] * (1 - fx) + field[y1, x1] * fx
     return top * (1 - fy) + bottom * fy
+
+
+def window_ncc(image_a: np.ndarray, pixels_a: np.ndarray, image_b: np.ndarray, pixels_b: np.ndarray,
+               radius: int) -> np.ndarray:
+    """``(M,)`` normalised cross-correlation of the ``(2 radius + 1)^2`` windows of ``image_a`` ``(H, W)``
+    about ``pixels_a`` ``(M, 2)`` and of ``image_b`` about ``pixels_b`` (x, y; bilinear samples at whole
+    pixel offsets, clamped to the images), in [-1, 1]; 0 where a window is flat."""
+    offsets = np.arange(-radius, radius + 1, dtype=np.float64)
+    grid = np.stack(np.meshgrid(offsets, offsets), axis=-1).reshape(-1, 2)  # (K, 2)
+    count = len(pixels_a)
+
+    def windows(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        points = (pixels[:, None, :] + grid[None]).reshape(-1, 2)
+        values = bilinear(image.astype(np.float32)[..., None], points)[:, 0].reshape(count, len(grid))
+        return values - values.mean(axis=1, keepdims=True)
+
+    a, b = windows(image_a, pixels_a), windows(image_b, pixels_b)
+    denominator = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(denominator > 0, (a * b).sum(axis=1) / denominator, 0.0)

@@ -20,6 +20,7 @@ from polarface.geometry.raycast import RayCaster
 from polarface.geometry.tracking.config import DIS_PRESETS, TrackingConfig
 from polarface.geometry.tracking.flow import FLOW_THREADS, sampled_flow
 from polarface.geometry.tracking.frame import PreparedFrame
+from polarface.geometry.tracking.images import window_ncc
 
 __all__ = ["Propagator", "merge_cameras", "visibility"]
 
@@ -181,6 +182,11 @@ class Propagator:
             camera = self.cameras[camera_id]
             moved, error, inside = flowed[camera_id]
             reliability = facing[seen] * np.clip(1.0 - error / threshold, 0.0, 1.0) * inside
+            if self.config.min_window_ncc is not None:
+                ncc = window_ncc(source.images[camera_id], visibility[camera_id][0][seen],
+                                 target.images[camera_id], moved, self.config.ncc_radius_px)
+                least = self.config.min_window_ncc
+                reliability *= np.clip((ncc - least) / (1.0 - least), 0.0, 1.0)
             keep = reliability > 0
             if not keep.any():
                 continue

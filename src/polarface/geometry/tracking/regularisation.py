@@ -15,7 +15,7 @@ from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.raycast import closest_surface_points
 from polarface.geometry.tracking.config import TrackingConfig
 
-__all__ = ["MeshGraph", "regularise"]
+__all__ = ["MeshGraph", "regularise", "tracking_support"]
 
 
 class MeshGraph:
@@ -44,14 +44,18 @@ class MeshGraph:
         """Per-vertex ``(N, k)`` -> per-node mean ``(M, k)``."""
         return self._gather @ values
 
-    def fill(self, values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    def fill(self, values: np.ndarray, known: np.ndarray, screening: float = 0.0) -> np.ndarray:
         """Harmonic interpolation of node values ``(M, k)`` from the ``known`` ``(M,)`` nodes; nodes of
-        components without a known node get 0."""
+        components without a known node get 0. ``screening`` > 0 adds ``screening * x`` to the graph
+        Laplacian's equations (screened interpolation): the filled values decay towards 0 over about
+        ``1 / sqrt(screening)`` edges from the known nodes instead of carrying their border's values
+        across every unknown region."""
         unknown = ~known
         if not unknown.any() or not known.any():
             return np.where(known[:, None], values, 0.0)
         laplacian = scipy.sparse.diags(self.degree) - self.adjacency
-        block = laplacian[unknown][:, unknown] + scipy.sparse.identity(int(unknown.sum())) * 1e-9
+        diagonal = scipy.sparse.identity(int(unknown.sum())) * (1e-9 + screening)
+        block = laplacian[unknown][:, unknown] + diagonal
         rhs = self.adjacency[unknown][:, known] @ values[known]
         solved = scipy.sparse.linalg.spsolve(block.tocsc(), rhs)
         out = values.copy()
@@ -77,6 +81,50 @@ def regularise(estimate: np.ndarray, tracked: np.ndarray, rest: np.ndarray, grap
     node_weight = graph.to_nodes(tracked.astype(np.float64)[:, None])[:, 0]
     node_values = graph.to_nodes(displacement) / np.maximum(node_weight, 1e-12)[:, None]
     node_known = node_weight > 0.5
-    node_values = graph.fill(np.where(node_known[:, None], node_values, 0.0), node_known)
+    if config.fill_screening > 0 and node_known.sum() >= 3:
+        rest_nodes = graph.to_nodes(rest)
+        rigid = _rigid_motion(rest_nodes[node_known], node_values[node_known])
+        moved_rigidly = rest_nodes @ rigid[:3, :3].T + rigid[:3, 3] - rest_nodes
+        residual = np.where(node_known[:, None], node_values - moved_rigidly, 0.0)
+        node_values = moved_rigidly + graph.fill(residual, node_known, config.fill_screening)
+    else:
+        node_values = graph.fill(np.where(node_known[:, None], node_values, 0.0), node_known)
     node_values = graph.smooth(node_values, config.smoothing_iterations)
     return rest + node_values[graph.node]
+
+
+def _rigid_motion(points: np.ndarray, displacement: np.ndarray, rounds: int = 3) -> np.ndarray:
+    """``(4, 4)`` rigid transform that best moves ``points`` ``(M, 3)`` by ``displacement`` ``(M, 3)`` (mm):
+    least squares (scipy's ``Rotation.align_vectors`` about the centroids), refitted ``rounds`` times on
+    the points whose residual is at most twice the median's (at least 0.5 mm), so that an expression's
+    motion (brows, jaw) does not tilt the head's rigid motion."""
+    from scipy.spatial.transform import Rotation
+
+    targets = points + displacement
+    kept = np.ones(len(points), bool)
+    transform = np.eye(4)
+    for _ in range(rounds):
+        source, target = points[kept], targets[kept]
+        source_mean, target_mean = source.mean(axis=0), target.mean(axis=0)
+        rotation, _ = Rotation.align_vectors(target - target_mean, source - source_mean)
+        transform[:3, :3] = rotation.as_matrix()
+        transform[:3, 3] = target_mean - transform[:3, :3] @ source_mean
+        residual = np.linalg.norm(points @ transform[:3, :3].T + transform[:3, 3] - targets, axis=1)
+        limit = max(2.0 * float(np.median(residual)), 0.5)
+        if (residual <= limit).sum() < 3:
+            break
+        kept = residual <= limit
+    return transform
+
+
+def tracking_support(reference: TriangleMesh, confidence: np.ndarray, rings: int) -> np.ndarray:
+    """``(N,)`` float64 the tracking confidence ``(N,)`` of ``reference``'s vertices averaged over their
+    neighbourhoods (``rings`` passes of neighbour averaging over the seam-welded mesh graph, about that many
+    rings of edges): high where the vertex or most of its neighbours were tracked, 0 inside an untracked
+    region wider than ``rings`` edges, whose positions the regulariser only guessed (step 5: the head's
+    rigid motion plus a decaying fill)."""
+    values = np.asarray(confidence, dtype=np.float64).reshape(-1)
+    if values.shape != (len(reference.vertices),):
+        raise ValueError(f"argument 'confidence' must be ({len(reference.vertices)},); got {values.shape}")
+    graph = MeshGraph(reference)
+    return graph.smooth(graph.to_nodes(values[:, None]), int(rings))[:, 0][graph.node]

@@ -3,7 +3,8 @@
 
     config     :class:`DynamicStageConfig` (the stage's options; the bottom module)
     tracking   the sequence's geometry: per-frame stereo, the reference mesh aligned and tracked
-    frames     one frame's unwrap, fit, chromophores and render (:class:`FrameUnit`, :func:`process_frame`)
+    frames     one frame's unwrap, fit, chromophores and render (:class:`FrameUnit`, :func:`process_frame`),
+               the texels its tracking could not follow (:func:`texel_tracking_confidence`)
     imported   the frames of an imported authors' session (their unwrap stores given)
     stage      :func:`reconstruct_dynamic`: the stage over a RESULT folder, resumable per step and frame
 """
@@ -16,6 +17,7 @@ from polarface.pipeline.dynamic.frames import (
     load_static_inputs,
     process_frame,
     run_frame_unit,
+    texel_tracking_confidence,
 )
 from polarface.pipeline.dynamic.imported import FRAME_RATE_HZ, reconstruct_dynamic_imported
 from polarface.pipeline.dynamic.stage import reconstruct_dynamic
@@ -35,5 +37,6 @@ __all__ = [
     "reconstruct_dynamic_imported",
     "run_frame_unit",
     "stereo_pass",
+    "texel_tracking_confidence",
     "track_sequence",
 ]

@@ -35,6 +35,14 @@ class DynamicStageConfig:
             ``polarface.inverse.biophysical.warm_start``); ``"scratch"``: the static stage's full fit
             of each frame (coarse multi-start search, shape rounds). Recorded per frame in
             ``frames/NNNN/result.json`` (``stages.biophysical.start``). Measured in docs/dynamic.md.
+        min_tracking_confidence: a frame's texels whose tracking confidence (the smallest of its
+            triangle's vertices' :class:`~polarface.geometry.tracking.TrackedSequence` confidences, in
+            [0, 1]; 0 where no camera tracked a vertex and its motion was interpolated) is below this are
+            flagged: left out of the frame's mask and shown in its ``tracking_confidence`` map
+            (docs/dynamic.md, "Texels the tracking could not follow"). 0 flags nothing.
+        tracking_support_rings: the vertex confidences are averaged over this many rings of neighbours
+            first (:func:`polarface.geometry.tracking.tracking_support`), so that a vertex missed amid
+            tracked ones is kept and an untracked region wider than the rings is flagged.
     """
 
     geometry: GeometryConfig = dataclasses.field(default_factory=GeometryConfig)
@@ -44,8 +52,16 @@ class DynamicStageConfig:
     fit: DynamicConfig = dataclasses.field(default_factory=DynamicConfig)
     biophysical: bool = True
     biophysical_start: Literal["static", "scratch"] = "static"
+    min_tracking_confidence: float = 0.05
+    tracking_support_rings: int = 4
 
     def __post_init__(self) -> None:
+        value = self.min_tracking_confidence
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
+            raise ValueError(f"min_tracking_confidence must be a number in [0, 1]; got {value!r}")
+        rings = self.tracking_support_rings
+        if isinstance(rings, bool) or not isinstance(rings, int) or rings < 0:
+            raise ValueError(f"tracking_support_rings must be an integer >= 0; got {rings!r}")
         if self.biophysical_start not in ("static", "scratch"):
             raise ValueError(
                 f"biophysical_start must be 'static' or 'scratch'; got {self.biophysical_start!r}"

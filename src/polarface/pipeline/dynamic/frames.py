@@ -9,14 +9,17 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from polarface.capture.store import CaptureStore
 from polarface.device import resolve_device
+from polarface.geometry import rasterize_uv
 from polarface.geometry.mesh import TriangleMesh
 from polarface.geometry.poses import invert_rigid
 from polarface.geometry.tracked_file import load_tracked
+from polarface.geometry.tracking import tracking_support
 from polarface.inverse.polarimetric import PolarimetricConfig
 from polarface.inverse.polarimetric.dynamic import fit_dynamic_frame
 from polarface.io import write_exr
@@ -26,7 +29,8 @@ from polarface.render import linear_rgb_from_channels, render_result_view
 from polarface.results import ResultAppearance, ResultFolder, layout
 from polarface.texture import UnwrapConfig, unwrap_capture
 
-__all__ = ["FrameUnit", "StaticInputs", "frame_done", "load_static_inputs", "process_frame", "run_frame_unit"]
+__all__ = ["FrameUnit", "StaticInputs", "frame_done", "load_static_inputs", "process_frame", "run_frame_unit",
+           "texel_tracking_confidence"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,9 +84,35 @@ def _render_frame(frame_folder: ResultFolder, alignment: np.ndarray) -> None:
               .astype(np.float32), ["R", "G", "B"])
 
 
+def texel_tracking_confidence(mesh: TriangleMesh, vertex_confidence: np.ndarray, resolution: tuple[int, int],
+                              rings: int = 0) -> np.ndarray:
+    """``(Ht, Wt)`` float32 tracking confidence per texel of ``mesh``'s atlas: the smallest, over its
+    triangle's three vertices, of the vertex confidences ``(N,)`` (in [0, 1], the tracking's, 0 where no
+    camera followed a vertex) averaged over ``rings`` rings of neighbours
+    (:func:`polarface.geometry.tracking.tracking_support`; 0: the vertices' own); 0 outside the atlas.
+    The minimum, not the interpolation: a texel is as reliable as the least reliable corner that places
+    it."""
+    confidence = tracking_support(mesh, vertex_confidence, rings).astype(np.float32)
+    raster = rasterize_uv(mesh, resolution)
+    texels = np.zeros(raster.mask.shape, np.float32)
+    texels[raster.mask] = confidence[mesh.faces[raster.face_id[raster.mask]]].min(axis=1)
+    return texels
+
+
+def _flag_untracked(mask: np.ndarray, confidence: np.ndarray, config: DynamicStageConfig) -> dict[str, Any]:
+    """Take the texels whose tracking ``confidence`` ``(Ht, Wt)`` is below the stage's threshold out of the
+    frame's ``mask`` (in place); what was flagged, for ``stages.polarimetric.tracking``."""
+    flagged = mask & (confidence < config.min_tracking_confidence)
+    fraction = float(flagged.sum() / max(int(mask.sum()), 1))
+    mask &= ~flagged
+    return {"min_confidence": config.min_tracking_confidence, "support_rings": config.tracking_support_rings,
+            "flagged_texels": int(flagged.sum()), "flagged_fraction": round(fraction, 6)}
+
+
 def process_frame(store: CaptureStore | None, folder: ResultFolder, frame: int, frames: list[int],
                   mesh: TriangleMesh, alignment: np.ndarray, static: StaticInputs, config: DynamicStageConfig,
-                  device, threads: int | None) -> dict[str, float]:
+                  device, threads: int | None, vertex_confidence: np.ndarray | None = None
+                  ) -> dict[str, float]:
     """Unwrap, polarimetric fit, chromophores and a render of one frame into ``frames/NNNN`` (steps
     recorded complete are skipped); seconds per step.
 
@@ -91,6 +121,11 @@ def process_frame(store: CaptureStore | None, folder: ResultFolder, frame: int, 
             imported session's).
         mesh: the frame's tracked mesh in the static model frame (mm); alignment: ``(4, 4)`` model ->
             the capture's rig world; static: :func:`load_static_inputs`.
+        vertex_confidence: ``(N,)`` the tracking's confidence per vertex of ``mesh`` at this frame
+            (None: no tracking, e.g. an imported session's given meshes: nothing is flagged). Texels
+            whose :func:`texel_tracking_confidence` is below ``config.min_tracking_confidence`` are
+            flagged: left out of the frame's mask (their maps are not the frame's) and written as the
+            diagnostic map ``tracking_confidence``.
     """
     timings: dict[str, float] = {}
     frame_folder = folder.frame(frame)
@@ -110,14 +145,21 @@ def process_frame(store: CaptureStore | None, folder: ResultFolder, frame: int, 
         started = time.perf_counter()
         fit = fit_dynamic_frame(unwrap, static_maps, static_mask, config.fit, static_config=static_config,
                                 device=device, threads=threads)
+        diagnostics = {layout.VIEW_COUNT: fit.view_count}
+        tracking = {}
+        if vertex_confidence is not None:
+            confidence = texel_tracking_confidence(mesh, vertex_confidence, resolution,
+                                                   config.tracking_support_rings)
+            tracking = {"tracking": _flag_untracked(fit.mask, confidence, config)}
+            diagnostics[layout.TRACKING_CONFIDENCE] = confidence
         geometry = unwrap.geometry()
         sizes = 0.5 * (geometry.texel_size_u + geometry.texel_size_v)
         frame_folder.write_result_header(folder.channel_names(), list(resolution),
                                          float(np.median(sizes[geometry.mask])))
-        frame_folder.write_polarimetric_maps(fit.maps, fit.mask, {"view_count": fit.view_count})
+        frame_folder.write_polarimetric_maps(fit.maps, fit.mask, diagnostics)
         timings["polarimetric_s"] = time.perf_counter() - started
         frame_folder.record_stage("polarimetric", {
-            "texels": int(fit.mask.sum()), "samples": fit.sample_count,
+            "texels": int(fit.mask.sum()), "samples": fit.sample_count, **tracking,
             "final_loss": fit.loss_curve[-1] if fit.loss_curve else None,
             "throughput_texel_view_iterations_per_s": fit.throughput,
             "timings": {**fit.timings, **timings},
@@ -183,7 +225,7 @@ def run_frame_unit(unit: FrameUnit) -> dict[str, float]:
     mesh = folder.read_mesh().with_vertices(vertices)
     timings = process_frame(store, folder, unit.frame, list(unit.frames), mesh, unit.alignment,
                             load_static_inputs(folder), unit.config, resolve_device(unit.device),
-                            unit.threads)
+                            unit.threads, tracked.confidence[row])
     timestamp = next(record.timestamp for record in store.frames if record.index == unit.frame)
     folder.frame(unit.frame).update_result({"frame": unit.frame, "timestamp_s": float(timestamp)})
     return timings
