@@ -97,3 +97,27 @@ def test_animations_do_not_depend_on_what_is_held(tmp_path, monkeypatch):
     dynamic_section(HtmlPage("test"), again)
     for name in ("dynamic_rho_sss_bar.gif", "dynamic_c_h_out.gif", "dynamic_subsurface_srgb.gif"):
         assert (held / "previews" / name).read_bytes() == (again / "previews" / name).read_bytes()
+
+
+def test_tracking_confidence_is_animated_and_the_flagged_share_listed(tmp_path):
+    """Frames whose dynamic stage wrote a tracking confidence map and the flagged share: the section
+    animates the map on one 0..1 scale and lists the share per frame."""
+    root = write_dynamic_result(tmp_path / "result", frames=3)
+    folder = ResultFolder(root)
+    for t in range(3):
+        confidence = np.ones((RES, RES), np.float32)
+        confidence[: 4 * (t + 1)] = 0.0  # a growing untracked band
+        folder.frame(t).write_scalar_map("tracking_confidence", confidence)
+        folder.frame(t).record_stage("polarimetric", {"tracking": {"flagged_fraction": 0.0125 * (t + 1)}})
+    page = HtmlPage("test")
+    dynamic_section(page, root)
+    html = page.render()
+    assert "previews/dynamic_tracking_confidence.gif" in html
+    frames = _gif_frames(root / "previews" / "dynamic_tracking_confidence.gif")
+    assert len(frames) == 3
+    # viridis(0) is dark purple, viridis(1) yellow: the band grows frame by frame
+    dark = [int((frame[:, RES // 2].sum(-1) < 200).sum()) for frame in frames]
+    assert dark[0] < dark[1] < dark[2]
+    for share in ("1.2", "2.5", "3.8"):
+        assert f">{share}<" in html
+    assert "untracked texels (%)" in html

@@ -35,7 +35,7 @@ from polarface.io import agg_figure, atomic_path, storage_path, write_figure_png
 from polarface.render.colour import encode_srgb
 from polarface.report.html import HtmlPage, Section
 from polarface.report.streamed import streamed_percentiles, streamed_std
-from polarface.results import CHROMOPHORE_MAPS, CHROMOPHORE_PREVIEWS, RHO_SSS_BAR, ResultFolder
+from polarface.results import CHROMOPHORE_MAPS, CHROMOPHORE_PREVIEWS, RHO_SSS_BAR, ResultFolder, layout
 
 __all__ = [
     "FRAMES_PER_SECOND", "REGION_PERCENTILE", "changing_region", "dynamic_section", "write_animation",
@@ -252,7 +252,25 @@ def _animations(folder: ResultFolder, frames: _Frames) -> list[tuple[str, str]]:
           "maps, unpolarized: I0 + I90; sRGB, one exposure for all frames)")
     write("dynamic_subsurface_srgb.gif", _subsurface_images(folder, frames),
           "Rendered subsurface albedo per frame (sRGB, D65)")
+    write("dynamic_tracking_confidence.gif", _tracking_images(folder, frames),
+          "Tracking confidence per frame (0 .. 1, viridis, on the static result's texels): texels below "
+          "the stage's min_tracking_confidence are flagged, left out of the frame's maps")
     return items
+
+
+def _tracking_images(folder: ResultFolder, frames: _Frames) -> Iterator[np.ndarray] | None:
+    """The frames' ``tracking_confidence`` maps on one 0..1 scale over the static result's mask (all texels
+    without one); None unless every shown frame has one."""
+    from matplotlib import colormaps
+
+    name = layout.TRACKING_CONFIDENCE
+    if not frames.indices or not all(folder.frame(t).has_map(name) for t in frames.indices):
+        return None
+    first = frames.map(0, name)
+    static = folder.read_mask() if folder.has_map("mask", ".png") else np.ones(first.shape, bool)
+    colours = colormaps["viridis"]
+    confidence = (np.clip(frames.map(f, name), 0.0, 1.0) for f in range(len(frames.indices)))
+    return (np.where(static[..., None], colours(values)[..., :3], 0.0) for values in confidence)
 
 
 # ---- chromophores over time ----------------------------------------------------------------------

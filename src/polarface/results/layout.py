@@ -26,6 +26,7 @@ __all__ = [
     "RESULT_VERSION",
     "RHO_SSS_BAR",
     "TRACKED_NPZ",
+    "TRACKING_CONFIDENCE",
     "TRACKING_DIR",
     "TRACKING_JSON",
     "DiagnosticMap",
