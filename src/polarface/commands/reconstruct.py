@@ -95,7 +95,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
-
 def _add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of the texture-space polarimetric fit (docs/reconstruct.md)."""
     parser.add_argument(

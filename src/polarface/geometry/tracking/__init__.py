@@ -34,9 +34,9 @@ One propagation ``a -> b`` (source positions known):
 5. The merged estimates give displacements from ``frames[0]`` for the tracked vertices; untracked
    vertices (confidence 0) follow the tracked vertices' rigid motion (trimmed least squares) plus
    their non-rigid residual interpolated over the (seam-welded) mesh graph with a screening that makes
-   it fade over ~10 edges (``fill_screening``); ``smoothing_iterations`` of neighbour averaging remove flow
-   noise; with
-   ``snap_to_surface`` the tracked vertices are first moved to the surface (closest point, Open3D).
+   it fade over ~10 edges (``fill_screening``); ``smoothing_iterations`` of neighbour averaging remove
+   flow noise; with ``snap_to_surface`` the tracked vertices are first moved to the surface (closest
+   point, Open3D).
 
 Anchors: the similarity of frame ``t`` to ``frames[0]`` is the normalised cross-correlation of the
 normalised images sampled at the pixels of the vertices visible at ``frames[0]`` (mean over cameras);

@@ -35,11 +35,13 @@ class DynamicStageConfig:
             ``polarface.inverse.biophysical.warm_start``); ``"scratch"``: the static stage's full fit
             of each frame (coarse multi-start search, shape rounds). Recorded per frame in
             ``frames/NNNN/result.json`` (``stages.biophysical.start``). Measured in docs/dynamic.md.
-        min_tracking_confidence: a frame's texels whose tracking confidence (the smallest of its
-            triangle's vertices' :class:`~polarface.geometry.tracking.TrackedSequence` confidences, in
-            [0, 1]; 0 where no camera tracked a vertex and its motion was interpolated) is below this are
-            flagged: left out of the frame's mask and shown in its ``tracking_confidence`` map
-            (docs/dynamic.md, "Texels the tracking could not follow"). 0 flags nothing.
+        min_tracking_confidence: a frame's texels whose tracking confidence (the smallest over its
+            triangle's corners of the :class:`~polarface.geometry.tracking.TrackedSequence` vertex
+            confidences, in [0, 1], 0 where no camera tracked a vertex, averaged over
+            ``tracking_support_rings`` rings; :func:`polarface.pipeline.dynamic.texel_tracking_confidence`)
+            is below this are flagged: left out of the frame's mask and shown in its
+            ``tracking_confidence`` map (docs/dynamic.md, "Texels the tracking could not follow"). 0 flags
+            nothing.
         tracking_support_rings: the vertex confidences are averaged over this many rings of neighbours
             first (:func:`polarface.geometry.tracking.tracking_support`), so that a vertex missed amid
             tracked ones is kept and an untracked region wider than the rings is flagged.
