@@ -139,6 +139,31 @@ def test_flows_on_image_crops_track_as_flows_on_whole_images():
     assert cropped.anchors == whole.anchors
 
 
+def test_rays_that_miss_a_hole_in_the_surface_still_track_the_vertices():
+    """The frames' surfaces have a hole of 12 mm radius under the middle of the tracked patch (a stereo
+    mesh's hole at saturated or specular pixels). The flowed rays that miss it still triangulate the
+    vertices (``off_surface_rays``, default): tracked as well as elsewhere; dropping them leaves the
+    middle untracked."""
+    amplitudes = [0.0, 1.0, 2.0]
+    reference, cameras, load, truth = _plane_sequence(amplitudes)
+    full = load(0).surface
+    centroids = full.vertices[full.faces].mean(axis=1)
+    kept = np.linalg.norm(centroids[:, :2], axis=1) > 12.0
+    holed = TriangleMesh.from_arrays(full.vertices, full.faces[kept], full.uv)
+
+    def load_holed(index: int) -> TrackingFrame:
+        frame = load(index)
+        return dataclasses.replace(frame, surface=holed) if index > 0 else frame
+
+    middle = np.linalg.norm(reference.vertices[:, :2], axis=1) < 8.0
+    tracked = track_mesh(reference, cameras, load_holed, range(3))
+    errors = _errors(tracked, truth)
+    assert middle.sum() > 30 and (tracked.confidence[2][middle] > 0).mean() > 0.95
+    assert np.median(errors[2][middle]) < 0.1 * MM_PER_PX
+    dropped = track_mesh(reference, cameras, load_holed, range(3), TrackingConfig(off_surface_rays=False))
+    assert (dropped.confidence[2][middle] > 0).mean() < 0.05
+
+
 def test_snapping_puts_the_tracked_vertices_on_the_surface():
     """``snap_to_surface``: the tracked vertices are moved to the closest point of the frame's surface (the
     plane, whose depth ``truth`` keeps) before the smoothing, and still follow the deformation."""

@@ -75,6 +75,11 @@ class TrackingConfig:
             displacement itself interpolated harmonically, which carried the tracked border's errors
             across the unseen head (demo: the untracked vertices moved 4.9-7.4 mm median where nothing
             moved; with the default 1.1-1.9 mm).
+        off_surface_rays: a flowed ray that misses the frame's surface (a hole in its stereo mesh) still
+            counts, at its point nearest the vertex's source position (its depth along the ray kept).
+            False: such a ray is dropped, as it was. Demo: the stereo cameras' grey saturates on the
+            pressed forehead patch in the first frames, the stereo meshes have a hole there, and 68 % of
+            the patch's vertices went untracked in frame 1 (with the rays kept: 6 %).
     """
 
     flow_preset: str = "medium"
@@ -93,6 +98,7 @@ class TrackingConfig:
     snap_to_surface: bool = False
     min_tracked_fraction: float = 0.3
     fill_screening: float = 0.01
+    off_surface_rays: bool = True
     min_window_ncc: float | None = 0.3
     ncc_radius_px: int = 3
 

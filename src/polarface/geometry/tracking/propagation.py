@@ -16,7 +16,7 @@ import numpy as np
 
 from polarface.geometry.camera import PinholeCamera
 from polarface.geometry.mesh import TriangleMesh
-from polarface.geometry.raycast import RayCaster
+from polarface.geometry.raycast import RayCaster, RayHits
 from polarface.geometry.tracking.config import DIS_PRESETS, TrackingConfig
 from polarface.geometry.tracking.flow import FLOW_THREADS, sampled_flow
 from polarface.geometry.tracking.frame import PreparedFrame
@@ -112,6 +112,24 @@ def _median_over_cameras(values: np.ndarray) -> np.ndarray:
     return median
 
 
+def _off_surface_hits(hits: RayHits, origins: np.ndarray, directions: np.ndarray, sources: np.ndarray,
+                      config: TrackingConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The target points of one camera's flowed rays ``(M, 3)`` origins and unit directions: the target
+    surface's first hits and their normals; with ``config.off_surface_rays`` a ray that misses the surface
+    (a hole in the frame's stereo mesh: saturated or specular pixels, an occluder) gets the point of
+    the ray nearest to the vertex's source position ``sources`` ``(M, 3)`` with the ray itself as its
+    normal, so that the rays still triangulate the vertex and the weak surface term keeps the source
+    depth along the ray. ``(points (M, 3), normals (M, 3), used (M,) bool)``."""
+    points, normals, used = hits.point.copy(), hits.geometric_normal.copy(), hits.hit.copy()
+    if config.off_surface_rays:
+        missed = ~hits.hit
+        along = np.einsum("nk,nk->n", sources[missed] - origins[missed], directions[missed])
+        points[missed] = origins[missed] + along[:, None] * directions[missed]
+        normals[missed] = -directions[missed]
+        used[:] = True
+    return points, normals, used
+
+
 class Propagator:
     """Carries vertex positions from a source frame to a target frame (package docstring, steps 2-4)."""
 
@@ -194,11 +212,13 @@ class Propagator:
             precision[k] = (self.config.flow_noise_floor_px / noise) ** 2
             origins, ray_directions = camera.pixel_rays(moved[keep])
             hits = target_caster.first_hits(origins, ray_directions)
-            index = seen[keep][hits.hit]
-            points[k, index] = hits.point[hits.hit]
-            normals[k, index] = hits.geometric_normal[hits.hit]
-            directions[k, index] = ray_directions[hits.hit]
-            weights[k, index] = reliability[keep][hits.hit]
+            hit_point, hit_normal, found = _off_surface_hits(hits, origins, ray_directions,
+                                                             positions[seen[keep]], self.config)
+            index = seen[keep][found]
+            points[k, index] = hit_point[found]
+            normals[k, index] = hit_normal[found]
+            directions[k, index] = ray_directions[found]
+            weights[k, index] = reliability[keep][found]
         centres = np.stack([self.cameras[c].center for c in camera_ids]) if camera_ids else np.zeros((0, 3))
         return merge_cameras(points, normals, centres, directions, weights, precision,
                               self.config.consensus_mm, self.config.surface_weight)
