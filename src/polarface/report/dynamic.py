@@ -266,8 +266,7 @@ def _tracking_images(folder: ResultFolder, frames: _Frames) -> Iterator[np.ndarr
     name = layout.TRACKING_CONFIDENCE
     if not frames.indices or not all(folder.frame(t).has_map(name) for t in frames.indices):
         return None
-    first = frames.map(0, name)
-    static = folder.read_mask() if folder.has_map("mask", ".png") else np.ones(first.shape, bool)
+    static = folder.read_mask() if folder.has_map("mask", ".png") else np.ones(frames.face.shape, bool)
     colours = colormaps["viridis"]
     confidence = (np.clip(frames.map(f, name), 0.0, 1.0) for f in range(len(frames.indices)))
     return (np.where(static[..., None], colours(values)[..., :3], 0.0) for values in confidence)
