@@ -278,16 +278,16 @@ def test_tiny_head_stays_put_under_changing_skin_colour(tiny_dynamic):
     print(f"tiny head: median {np.median(errors[seen]):.4f} mm, p90 {np.percentile(errors, 90):.4f} mm")
 
 
-def test_tiny_head_smile_is_tracked():
-    """A known deformation of the tiny simulator head: neutral, then a half and a full smile (mouth
-    corners ~5 mm out, up and back, cheeks raised), rendered noise-free by the simulator in every rig
-    camera; the surfaces are the true deformed meshes. The tracked vertices follow the truth."""
-    from polarface.geometry.deform import ExpressionRig
+def _tiny_expression_tracking(weights, expression_config=None):
+    """The tiny simulator head deformed by the expression rig with each of ``weights`` (one frame each,
+    neutral first), rendered noise-free in every rig camera and tracked with the true deformed meshes
+    as surfaces; returns ``(scene, meshes, tracked)``."""
+    from polarface.geometry.deform import ExpressionConfig, ExpressionRig
     from polarface.simulate.pipeline import SimulationConfig, SimulationScene, render_frame
 
     scene = SimulationScene.build(SimulationConfig(preset="tiny", sequences=("dynamic",), noise=False))
-    expressions = ExpressionRig(scene.asset.mesh, scene.asset.landmarks)
-    weights = [(0.0, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, 1.0, 0.0)]
+    config = expression_config or ExpressionConfig()
+    expressions = ExpressionRig(scene.asset.mesh, scene.asset.landmarks, config)
     meshes = [expressions.deform(np.array(w)).transformed(scene.placement) for w in weights]
     renders = [render_frame(scene, mesh, scene.maps, scene.subsurface) for mesh in meshes]
 
@@ -299,7 +299,15 @@ def test_tiny_head_smile_is_tracked():
         return TrackingFrame(frame, {c.id: image(frame, c) for c in scene.rig.cameras}, meshes[frame])
 
     cameras = {c.id: c.pinhole() for c in scene.rig.cameras}
-    tracked = track_mesh(meshes[0], cameras, load, [0, 1, 2], TrackingConfig(surface_weight=0.1))
+    frames = list(range(len(weights)))
+    return scene, meshes, track_mesh(meshes[0], cameras, load, frames, TrackingConfig(surface_weight=0.1))
+
+
+def test_tiny_head_smile_is_tracked():
+    """A known deformation of the tiny simulator head: neutral, then a half and a full smile (mouth
+    corners ~5 mm out, up and back, cheeks raised), rendered noise-free by the simulator in every rig
+    camera; the surfaces are the true deformed meshes. The tracked vertices follow the truth."""
+    _, meshes, tracked = _tiny_expression_tracking([(0.0, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, 1.0, 0.0)])
     motion = np.linalg.norm(meshes[2].vertices - meshes[0].vertices, axis=1)
     seen = tracked.confidence[2] > 0
     moving = seen & (motion > 1.0)
@@ -312,3 +320,32 @@ def test_tiny_head_smile_is_tracked():
     assert np.median(errors[moving]) < 0.6
     assert np.median(errors[moving]) < 0.15 * np.median(motion[moving])
     assert np.median(errors[seen & ~moving]) < 0.2
+
+
+def test_tiny_head_jaw_opening_is_tracked_at_the_lips():
+    """A known jaw opening of the tiny simulator head, 15 mm at the chin (7.6 degrees), in four equal
+    steps, rendered noise-free; the lips (vertices within 15 mm of the mouth's centre that move more
+    than 1 mm) are tracked. Issue 50 asks <= 1 mm at the lips; measured 1.07 mm median for a 6.5 mm
+    median lip motion (0.42, 0.58, 0.87, 1.07 mm over the four steps: the flowed lip vertices lag the
+    motion by ~4 % a step where the simulated jaw stretches the skin between the lips; the demo's
+    612 x 512 cameras give 1.11 mm, so it is not the tiny preset's resolution). The bounds hold today's
+    accuracy with some margin; without tracking the error would be the motion itself."""
+    import math
+
+    from polarface.geometry.deform import ExpressionConfig
+
+    steps = (0.0, 0.25, 0.5, 0.75, 1.0)
+    config = ExpressionConfig(jaw_angle=math.radians(7.6))
+    scene, meshes, tracked = _tiny_expression_tracking([(0.0, 0.0, w) for w in steps], config)
+    mouth = scene.asset.mesh.vertices[scene.asset.landmarks["mouth_center"]]
+    near_mouth = np.linalg.norm(scene.asset.mesh.vertices - mouth, axis=1) < 15.0
+    motion = np.linalg.norm(meshes[-1].vertices - meshes[0].vertices, axis=1)
+    assert tracked.failed == {} and 14.0 < motion.max() < 16.0
+    lips = near_mouth & (motion > 1.0)
+    assert lips.sum() > 80
+    errors = [np.linalg.norm(tracked.vertices[f] - meshes[f].vertices, axis=1)[lips] for f in (2, 4)]
+    print(f"jaw: lip motion median {np.median(motion[lips]):.2f} mm; error median half-open "
+          f"{np.median(errors[0]):.3f} mm, open {np.median(errors[1]):.3f} mm")
+    assert np.median(errors[0]) < 0.8
+    assert np.median(errors[1]) < 1.3
+    assert np.median(errors[1]) < 0.2 * np.median(motion[lips])

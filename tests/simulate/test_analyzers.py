@@ -111,7 +111,9 @@ def test_raw_frames_pass_through_the_analyzers():
 
     def raws(analyzers):
         config = SimulationConfig(preset="tiny", noise=False, analyzers=analyzers)
-        return raw_frames(types.SimpleNamespace(config=config, rig=rig, exposure=1.0), frame, "static", 0)
+        exposures = {camera.id: 1.0 for camera in rig.cameras}
+        scene = types.SimpleNamespace(config=config, rig=rig, exposures=exposures)
+        return raw_frames(scene, frame, "static", 0)
 
     ideal, other = raws(SimulatedAnalyzers()), raws(NON_IDEAL)
     calibrated_rig = NON_IDEAL.rig_for_folder(rig)

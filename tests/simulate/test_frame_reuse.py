@@ -11,7 +11,7 @@ from polarface.geometry.uv_raster import reposition
 from polarface.render.subsurface import SubsurfaceModel
 from polarface.simulate.ground_truth import chromophore_maps
 from polarface.simulate.ground_truth_store import texel_visibility
-from polarface.simulate.render import exposure_from, frame_exposure, render_frame
+from polarface.simulate.render import exposure_from, frame_exposure, render_frame, stereo_rgb
 from polarface.simulate.scene import SimulationConfig, SimulationScene
 from polarface.simulate.sequences import sequence_frame
 from polarface.skin.layers import subsurface_albedo
@@ -68,13 +68,14 @@ def test_units_read_the_submitting_process_scene_instead_of_building_it(scene, t
 
     from polarface.simulate import frames
 
-    path = frames.write_scene_file(tmp_path / ".scene.pkl", dataclasses.replace(scene, exposure=2.0))
+    exposed = dataclasses.replace(scene, exposures={"pol_upper": 2.0})
+    path = frames.write_scene_file(tmp_path / ".scene.pkl", exposed)
     built = []
     fake_build = classmethod(lambda cls, config: built.append(config) or "built")
     monkeypatch.setattr(SimulationScene, "build", fake_build)
     monkeypatch.setattr(frames, "_SCENES", {})
     read = frames.scene_for(scene.config, path)
-    assert built == [] and read.config == scene.config and read.exposure is None  # as built, no exposure
+    assert built == [] and read.config == scene.config and read.exposures is None  # as built, no exposures
     assert np.array_equal(read.maps.rho_sss_bar, scene.maps.rho_sss_bar)
     assert torch.equal(read.subsurface.totals[0], scene.subsurface.totals[0])
     other = dataclasses.replace(scene.config, seed=1)
@@ -84,9 +85,11 @@ def test_units_read_the_submitting_process_scene_instead_of_building_it(scene, t
     assert frames.scene_for(scene.config, tmp_path / "missing.pkl") == "built"
 
 
-def test_exposure_from_one_view_equals_the_full_frame(scene):
-    """The submitting process fixes the exposure from frame 0's first polarimetric view alone: the same
-    pixels, hence the same exposure, as the frame's full render of every camera."""
+def test_exposure_from_the_views_it_reads_equals_the_full_frame(scene):
+    """The submitting process fixes the exposures from frame 0's first polarimetric view and its stereo
+    views alone: the same pixels, hence the same exposures, as the frame's full render of every camera.
+    The polarimetric cameras share one exposure; each stereo camera's puts its own brightest colour
+    channel's 99.5th percentile at the fill level (not the polarimetric camera's, which saturated them)."""
     _, _, mesh, maps, subsurface = sequence_frame(scene, "static", 0)
     full = render_frame(scene, mesh, maps, subsurface)
     first = scene.rig.polarimetric_cameras()[0].id
@@ -94,4 +97,17 @@ def test_exposure_from_one_view_equals_the_full_frame(scene):
     assert list(one.views) == [first] and len(full.views) == len(scene.rig.cameras)
     for name, image in full.views[first].images.items():
         np.testing.assert_array_equal(one.views[first].images[name], image)
-    assert frame_exposure(scene, "static", 0) == exposure_from(full, scene)
+    exposures = exposure_from(full, scene)
+    assert frame_exposure(scene, "static", 0) == exposures
+    assert set(exposures) == {camera.id for camera in scene.rig.cameras}
+    polarimetric = [exposures[camera.id] for camera in scene.rig.polarimetric_cameras()]
+    assert len(set(polarimetric)) == 1
+    fill = scene.config.exposure_fill
+    for camera in scene.rig.cameras:
+        if camera.role == "polarimetric":
+            continue
+        view = full.views[camera.id]
+        brightest = stereo_rgb(view.images["s0"], scene.rig)[view.mask].max(axis=-1)
+        assert np.percentile(brightest, 99.5) * exposures[camera.id] == pytest.approx(fill, rel=1e-6)
+        # the unpolarized stereo image is about twice the co-polarized one: its exposure is lower
+        assert exposures[camera.id] < 0.75 * polarimetric[0]

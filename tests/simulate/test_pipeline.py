@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from polarface.capture.rig import paper_rig
+from polarface.capture.rig import Rig, paper_rig
 from polarface.capture.store import CaptureStore
 from polarface.geometry.poses import check_rigid, load_poses
 from polarface.io import read_exr
@@ -71,7 +71,8 @@ def test_same_seed_same_bytes_other_seed_other_noise():
 
     def raws(seed, noise=True):
         scene = types.SimpleNamespace(
-            config=SimulationConfig(preset="tiny", seed=seed, noise=noise), rig=rig, exposure=2.0
+            config=SimulationConfig(preset="tiny", seed=seed, noise=noise), rig=rig,
+            exposures={camera.id: 2.0 for camera in rig.cameras},
         )
         return raw_frames(scene, frame, "static", 3)
 
@@ -119,7 +120,10 @@ def test_tiny_layout_and_store_validation(tiny_run):
     assert len(maps["rho_sss_bar"]) == 6
     assert len(list((out / "ground_truth" / "dynamic" / "meshes").glob("*.ply"))) == preset.dynamic_frames
     recorded = json.loads((out / "simulation.json").read_text())
-    assert recorded["config"]["preset"] == "tiny" and recorded["exposure"] > 0
+    assert recorded["config"]["preset"] == "tiny"
+    rig = Rig.load(out / "static" / "rig.json")
+    assert recorded["exposures"] == {camera.id: camera.exposure for camera in rig.cameras}
+    assert all(value > 0 for value in recorded["exposures"].values())
     assert summary["timings"]["total_s"] > 0
 
 
@@ -159,4 +163,4 @@ def test_tiny_resume_keeps_bytes(tiny_run, monkeypatch):
     (out / "static" / "frames" / "000001.json").unlink()
     again = simulate(out, SimulationConfig(preset="tiny", noise=False), progress=False)
     assert _digest(out) == before and (out / "static" / "frames" / "000001.json").is_file()
-    assert again["exposure"] == pytest.approx(summary["exposure"])
+    assert again["exposures"] == pytest.approx(summary["exposures"])

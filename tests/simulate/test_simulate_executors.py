@@ -47,7 +47,7 @@ def test_ray_frames_are_the_local_executor_bytes(local, ray_instance, tmp_path):
     assert all(units[key]["node_id"] and units[key]["render_s"] > 0
                for key in ("static/0", "static/1", "dynamic/0", "dynamic/1"))
     assert summary["timings"]["exposure_s"] > 0 and summary["timings"]["frames_s"] > 0
-    assert summary["exposure"] == json.loads((local[0] / "simulation.json").read_text())["exposure"]
+    assert summary["exposures"] == json.loads((local[0] / "simulation.json").read_text())["exposures"]
 
 
 def test_process_frames_are_the_local_executor_bytes(local, tmp_path):

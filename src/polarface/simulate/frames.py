@@ -8,7 +8,8 @@ its ground-truth mesh (and, dynamic, its changing maps) and its observations.
 
 :class:`SimulationFrameUnit` / :func:`run_simulation_unit` is one frame as a unit of
 :mod:`polarface.executors`: it reads what it needs from the simulation folder (the capture store's
-``rig.json``, which carries the exposure) and its configuration, renders the frame and writes its files
+``rig.json``, which carries the cameras' exposures) and its configuration, renders the frame and writes its
+files
 itself; what frames share (the arrays' metadata, the stores' manifests, the "frame done" attributes,
 ``simulation.json``) is written by the submitting process (:func:`polarface.simulate.pipeline.simulate`).
 A worker builds the :class:`~polarface.simulate.scene.SimulationScene` of a configuration once and
@@ -29,7 +30,6 @@ import numpy as np
 import torch
 
 from polarface.capture.analyzers import measured_analyzer_intensities
-from polarface.capture.rig import Rig
 from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
 from polarface.capture.store import CaptureStore
 from polarface.executors.timing import StageClock
@@ -38,7 +38,7 @@ from polarface.io import atomic_path, write_exr
 from polarface.simulate.ground_truth import AppearanceMaps
 from polarface.simulate.ground_truth_store import ObservationWriter
 from polarface.simulate.layout import GROUND_TRUTH
-from polarface.simulate.render import RenderedFrame, render_frame
+from polarface.simulate.render import RenderedFrame, render_frame, stereo_rgb
 from polarface.simulate.scene import SimulationConfig, SimulationScene
 from polarface.simulate.sequences import sequence_frame
 
@@ -69,26 +69,17 @@ FRAME_STAGES = (
 _SCENES: dict[Any, SimulationScene] = {}
 
 
-def _stereo_rgb(s0: np.ndarray, rig: Rig) -> np.ndarray:
-    """RGB of an unfiltered camera from the six half-band channels: mean of each colour's two halves."""
-    upper, lower = rig.polarimetric_cameras()[:2]
-    rgb = [
-        0.5 * (s0[..., upper.colour_channels[c]] + s0[..., lower.colour_channels[c]]) for c in ("R", "G", "B")
-    ]
-    return np.stack(rgb, axis=-1)
-
-
 def raw_frames(
     scene: SimulationScene, frame: RenderedFrame, sequence: str, index: int
 ) -> dict[str, np.ndarray]:
     """Noisy (or noise-free) integer raw frames of every camera; the polarimetric cameras' analyzer images
     go through the configured analyzers first (:class:`polarface.simulate.analyzers.SimulatedAnalyzers`)."""
-    noise = SensorNoise(exposure=float(scene.exposure))
     analyzers = scene.config.analyzers
     true_models = {} if analyzers.is_ideal else analyzers.camera_models(scene.rig)
     raws = {}
     for camera_number, camera in enumerate(scene.rig.cameras):
         view = frame.views[camera.id]
+        noise = SensorNoise(exposure=float(scene.exposures[camera.id]))
         rng = np.random.default_rng(
             (scene.config.seed, 0 if sequence == "static" else 1, index, camera_number)
         )
@@ -101,7 +92,7 @@ def raw_frames(
             signal = np.clip(mosaic(*images, sensor=camera.sensor).numpy(), 0.0, None)
             raws[camera.id] = simulate_raw(signal, noise, seed=rng, noiseless=not scene.config.noise)
         else:
-            rgb = np.clip(_stereo_rgb(view.images["s0"], scene.rig), 0.0, None)
+            rgb = np.clip(stereo_rgb(view.images["s0"], scene.rig), 0.0, None)
             channels = [
                 simulate_raw(rgb[..., c], noise, seed=rng, noiseless=not scene.config.noise) for c in range(3)
             ]
@@ -160,12 +151,12 @@ def scene_for(config: SimulationConfig, scene_file: Path | None = None) -> Simul
 
 
 def write_scene_file(path: Path, scene: SimulationScene) -> Path:
-    """Pickle ``scene`` (as built, without its exposure or derived arrays) to ``path`` atomically, for the
+    """Pickle ``scene`` (as built, without its exposures or derived arrays) to ``path`` atomically, for the
     units of other processes (:class:`SimulationFrameUnit`): reading it takes a fraction of a second where
     building the scene again takes ~10 s per worker (demo preset, measured; ~130 MB)."""
     import pickle
 
-    bare = dataclasses.replace(scene, exposure=None, derived={})
+    bare = dataclasses.replace(scene, exposures=None, derived={})
     with atomic_path(path) as tmp, open(tmp, "wb") as handle:
         pickle.dump(bare, handle, protocol=pickle.HIGHEST_PROTOCOL)
     return path
@@ -201,7 +192,7 @@ class SimulationFrameUnit:
 
     Attributes:
         out: the simulation folder (absolute path; its capture store ``out/SEQUENCE`` exists, with the
-            exposure in its ``rig.json``).
+            exposures in its ``rig.json``).
         config: the simulation's configuration (the worker builds the scene from it).
         sequence: ``static`` or ``dynamic``.
         index: the frame's index in the sequence.
@@ -228,7 +219,8 @@ def run_simulation_unit(unit: SimulationFrameUnit) -> dict[str, float]:
     base = scene_for(unit.config, unit.scene_file)
     scene_s = time.perf_counter() - started
     rig = CaptureStore.open_writer(unit.out / unit.sequence).rig
-    scene = dataclasses.replace(base, rig=rig, exposure=float(rig.cameras[0].exposure))
+    exposures = {camera.id: camera.exposure for camera in rig.cameras}
+    scene = dataclasses.replace(base, rig=rig, exposures=exposures)
     stages: dict[str, float] = {}
     started = time.perf_counter()
     index, time_s, mesh, maps, subsurface = sequence_frame(scene, unit.sequence, unit.index)

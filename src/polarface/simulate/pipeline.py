@@ -3,7 +3,7 @@
 ``simulate(out_dir, SimulationConfig(...))`` writes (layout in ``docs/simulate.md``)::
 
     SIM_DIR/
-      simulation.json            configuration, channel order, exposure, timings, peak memory, the
+      simulation.json            configuration, channel order, exposures, timings, peak memory, the
                                  sensor's true analyzers (``sensor``; docs/sensors.md)
       static/                    capture store (polarface.capture.store), sequence "static"
       dynamic/                   capture store, sequence "dynamic"
@@ -23,9 +23,10 @@ deterministic; raw noise is drawn from ``numpy.random.default_rng((seed, sequenc
 
 Each frame is an executor unit (:mod:`polarface.simulate.frames`; :mod:`polarface.executors`): the
 frames of every sequence, in one queue, render and write their own files in any order, in this process
-or as Ray tasks, with the same bytes. Only the exposure is order-dependent: it is fixed by the first
-sequence's frame 0, whose first polarimetric view this process renders before the units are submitted
-(:func:`polarface.simulate.render.frame_exposure`).
+or as Ray tasks, with the same bytes. Only the exposures are order-dependent: they are fixed by the first
+sequence's frame 0, whose first polarimetric view and stereo views this process renders before the units
+are submitted (:func:`polarface.simulate.render.frame_exposure`): the polarimetric cameras share one
+exposure, each stereo camera has its own.
 Units in other processes read the scene this process built from ``SIM_DIR/.scene.pkl``
 (:data:`SCENE_FILE`, removed when the run ends) instead of building it again.
 ``simulation.json`` records the executor and, per frame, the seconds it took and where it ran.
@@ -142,7 +143,7 @@ def simulate(
             scene_file.unlink(missing_ok=True)
     summary = {
         **_summary_head(config_dict, scene, complete=True),
-        "exposure": scene.exposure,
+        "exposures": scene.exposures,
         "frame_rate_hz": FRAME_RATE_HZ,
         "head_placement": scene.placement.tolist(),
         "timings": {**timings, "total_s": time.perf_counter() - started},
@@ -157,8 +158,8 @@ def _simulate_frames(scene: SimulationScene, out: Path, sequences: tuple[str, ..
                      executor: Executor, placements: dict[str, Any], progress: bool,
                      scene_file: Path | None, timings: dict[str, float]) -> None:
     """Every frame of ``sequences`` not done yet (:func:`_frame_done`) as one queue of units, so no worker
-    waits at the end of a sequence; then the stores are finalized. The exposure, when no store records it
-    yet, is fixed first in this process (:func:`frame_exposure` of the first sequence's first frame).
+    waits at the end of a sequence; then the stores are finalized. The exposures, when no store records them
+    yet, are fixed first in this process (:func:`frame_exposure` of the first sequence's first frame).
     Records each frame's placement in ``placements`` (``"SEQUENCE/INDEX"``) and adds ``exposure_s``,
     ``frames_s`` and ``finalize_s`` to ``timings``.
 
@@ -172,13 +173,13 @@ def _simulate_frames(scene: SimulationScene, out: Path, sequences: tuple[str, ..
             rig = Rig.load(out / sequence / "rig.json")
             store = stores[sequence] = CaptureStore.create(out / sequence, rig, sequence=sequence)
             scene.rig = store.rig
-            scene.exposure = float(store.rig.cameras[0].exposure)
+            scene.exposures = {camera.id: camera.exposure for camera in store.rig.cameras}
     pending = [(sequence, index) for sequence in sequences for index in range(counts[sequence])
                if not _frame_done(out, stores.get(sequence), writer, sequence, index)]
     started = time.perf_counter()
-    if pending and scene.exposure is None:  # the first frame fixes the exposure of the whole capture
-        scene.exposure = frame_exposure(scene, *pending[0])
-        scene.rig = with_exposure(scene.rig, scene.exposure)
+    if pending and scene.exposures is None:  # the first frame fixes the exposures of the whole capture
+        scene.exposures = frame_exposure(scene, *pending[0])
+        scene.rig = with_exposure(scene.rig, scene.exposures)
     timings["exposure_s"] = time.perf_counter() - started
     for sequence in sequences:
         if sequence not in stores:

@@ -1,7 +1,7 @@
 """One frame's render in a simulation: every camera of the rig for one posed or deformed head, noise-free
-(:func:`render_frame` -> :class:`RenderedFrame`), and the exposure a frame fixes for the whole capture
-(:func:`frame_exposure`, :func:`with_exposure`). The raw sensor frames and the files are made from the
-render by :mod:`polarface.simulate.frames`.
+(:func:`render_frame` -> :class:`RenderedFrame`), the stereo cameras' colour image (:func:`stereo_rgb`),
+and the exposures a frame fixes for the whole capture (:func:`frame_exposure`, :func:`with_exposure`).
+The raw sensor frames and the files are made from the render by :mod:`polarface.simulate.frames`.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from polarface.simulate.ground_truth import AppearanceMaps
 from polarface.simulate.scene import SimulationScene
 from polarface.simulate.sequences import sequence_frame
 
-__all__ = ["RenderedFrame", "exposure_from", "frame_exposure", "render_frame", "with_exposure"]
+__all__ = ["RenderedFrame", "exposure_from", "frame_exposure", "render_frame", "stereo_rgb", "with_exposure"]
 
 
 def _camera_channels(camera: Camera) -> tuple[int, int, int]:
@@ -97,28 +97,58 @@ def render_frame(
     return RenderedFrame(mesh_world, caster, views, raster, shading)
 
 
-def exposure_from(frame: RenderedFrame, scene: SimulationScene) -> float:
-    """Exposure putting the 99.5th percentile of the first polarimetric camera's co-polarized image at
-    ``exposure_fill``."""
-    camera = scene.rig.polarimetric_cameras()[0]
-    view = frame.views[camera.id]
-    values = view.images["i0"][view.mask]
+def stereo_rgb(s0: np.ndarray, rig: Rig) -> np.ndarray:
+    """RGB of an unfiltered (stereo) camera from the six half-band channels of its ``(h, w, 6)`` float32
+    radiance image ``s0``: the mean of each colour's two halves (the polarimetric cameras' channel order);
+    ``(h, w, 3)`` float32."""
+    upper, lower = rig.polarimetric_cameras()[:2]
+    rgb = [
+        0.5 * (s0[..., upper.colour_channels[c]] + s0[..., lower.colour_channels[c]]) for c in ("R", "G", "B")
+    ]
+    return np.stack(rgb, axis=-1)
+
+
+def _fill_exposure(values: np.ndarray, fill: float) -> float:
     level = float(np.percentile(values, 99.5)) if values.size else 1.0
-    return scene.config.exposure_fill / max(level, 1e-12)
+    return fill / max(level, 1e-12)
 
 
-def frame_exposure(scene: SimulationScene, sequence: str, index: int) -> float:
-    """The exposure that frame ``index`` of ``sequence`` fixes (:func:`exposure_from`), from a render of
-    the one camera it reads: the same pixels as in the frame's full render, at about a quarter of its
-    cost (demo preset: geometry, subsurface light and one of ten views)."""
+def exposure_from(frame: RenderedFrame, scene: SimulationScene) -> dict[str, float]:
+    """Each camera's exposure (camera id -> relative exposure), as a rig's operator sets them: the
+    polarimetric cameras share one, putting the 99.5th percentile of the first polarimetric camera's
+    co-polarized image at ``exposure_fill`` (the two are normalised to each other, as in the paper's
+    calibration); each stereo camera its own, putting the 99.5th percentile of its brightest colour
+    channel on the head at ``exposure_fill``. ``frame`` holds the first polarimetric camera's view and
+    every stereo camera's (:func:`frame_exposure`)."""
+    fill = scene.config.exposure_fill
+    first = scene.rig.polarimetric_cameras()[0]
+    view = frame.views[first.id]
+    polarimetric = _fill_exposure(view.images["i0"][view.mask], fill)
+    exposures = {}
+    for camera in scene.rig.cameras:
+        if camera.role == "polarimetric":
+            exposures[camera.id] = polarimetric
+        else:
+            view = frame.views[camera.id]
+            rgb = stereo_rgb(view.images["s0"], scene.rig)
+            exposures[camera.id] = _fill_exposure(rgb[view.mask].max(axis=-1), fill)
+    return exposures
+
+
+def frame_exposure(scene: SimulationScene, sequence: str, index: int) -> dict[str, float]:
+    """The exposures that frame ``index`` of ``sequence`` fixes (:func:`exposure_from`), from a render of
+    the cameras it reads: the first polarimetric camera and the stereo cameras, the same pixels as in the
+    frame's full render (demo preset: about half its cost)."""
     _, _, mesh, maps, subsurface = sequence_frame(scene, sequence, index)
     first = scene.rig.polarimetric_cameras()[0].id
-    return exposure_from(render_frame(scene, mesh, maps, subsurface, cameras=(first,)), scene)
+    cameras = (first, *(camera.id for camera in scene.rig.cameras if camera.role != "polarimetric"))
+    return exposure_from(render_frame(scene, mesh, maps, subsurface, cameras=cameras), scene)
 
 
-def with_exposure(rig: Rig, exposure: float) -> Rig:
-    """The rig with every camera's exposure set (so demosaiced images come back in radiance units)."""
+def with_exposure(rig: Rig, exposures: dict[str, float]) -> Rig:
+    """The rig with each camera's exposure set from ``exposures`` (camera id -> exposure), so demosaiced
+    images come back in radiance units."""
     data = rig.model_dump(mode="json")
     for camera in data["cameras"]:
-        camera["exposure"] = exposure
+        camera["exposure"] = exposures[camera["id"]]
     return Rig.model_validate(data)

@@ -42,8 +42,9 @@ class SimulationConfig:
         texel_stretch: blur with each texel's own size in mm (exact for a distorted atlas, ~20x
             slower) instead of the atlas's median texel size.
         sequences: which sequences to render (``static``, ``dynamic``).
-        exposure_fill: the exposure puts the 99.5th percentile of the first frame's co-polarized image
-            at this fraction of the full well (fixed for the whole capture).
+        exposure_fill: the exposures put the 99.5th percentile of the first frame's co-polarized image
+            (the polarimetric cameras') and of each stereo camera's brightest colour channel at this
+            fraction of the full well (fixed for the whole capture).
         static_frames: frames of the static sequence (None: the preset's); the yaw and pitch sweeps
             keep their ranges, so more frames sample them more densely (view-count studies,
             docs/reconstruct.md).
@@ -113,7 +114,9 @@ class SimulationScene:
     calibration: object
     subsurface: SubsurfaceModel
     placement: np.ndarray
-    exposure: float | None = None
+    #: camera id -> relative exposure, fixed by the first frame rendered (None: not yet;
+    #: :func:`polarface.simulate.render.frame_exposure`)
+    exposures: dict[str, float] | None = None
     #: arrays derived from the scene once, when a frame first needs them (e.g. the dynamic sequence's
     #: rest rho_sss_bar, :func:`polarface.simulate.sequences.with_c_h_out`); the scene's copies
     #: (``dataclasses.replace``) share it.
