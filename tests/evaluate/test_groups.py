@@ -15,7 +15,9 @@ def test_evaluate_checks_its_arguments(tmp_path):
     (tmp_path / "maps").mkdir()
     with pytest.raises(ValueError, match="unknown \\['nope'\\]"):
         evaluate(tmp_path, tmp_path, ["nope"])
-    assert list(METRIC_GROUPS) == ["polarimetric", "rerender", "biophysical", "geometry", "dynamic"]
+    assert list(METRIC_GROUPS) == [
+        "polarimetric", "rerender", "biophysical", "geometry", "dynamic", "validation",
+    ]
     assert evaluate(tmp_path, tmp_path, ["biophysical"]) == {
         "biophysical": {"skipped": "the RESULT has no biophysical maps (stage not run)"}
     }

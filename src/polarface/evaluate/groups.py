@@ -13,7 +13,10 @@ and no value appears under two keys (keys listed in ``docs/reconstruct.md``, "ev
   completeness and pose errors of the stereo geometry stage); skipped in known-geometry mode;
 * ``dynamic``: :func:`polarface.evaluate.dynamic.dynamic_metrics` (tracking, per-frame map and
   normal errors, blood-flow recovery, flicker of a dynamic sequence); skipped when the RESULT has no
-  per-frame folders or the ground truth no ``dynamic/``.
+  per-frame folders or the ground truth no ``dynamic/``;
+* ``validation``: :func:`polarface.evaluate.validation.validation_metrics` (the RESULT rendered at the
+  simulator's validation camera, novel viewpoints never fitted: full-render and specular RMSE, DoP
+  error); skipped when the ground truth has no ``validation/``.
 
 The ground truth (``SIM/ground_truth`` or that folder itself: one resolver,
 :func:`polarface.simulate.layout.ground_truth_folder`) has the RESULT's ``maps/`` layout, its rest mesh
@@ -37,6 +40,7 @@ from polarface.evaluate.biophysical import biophysical_metrics
 from polarface.evaluate.correspondence import texel_correspondence
 from polarface.evaluate.dynamic import dynamic_group
 from polarface.evaluate.geometry import GEOMETRY_ERROR_PNG, geometry_metrics, write_geometry_error_map
+from polarface.evaluate.validation import VALIDATION_FIGURE_PNG, validation_metrics, write_validation_figure
 from polarface.io import storage_path
 from polarface.results import ResultFolder
 from polarface.simulate.layout import ground_truth_folder
@@ -50,10 +54,11 @@ METRIC_GROUPS: dict[str, Callable[[Path, Path], dict]] = {
     "biophysical": biophysical_metrics,
     "geometry": geometry_metrics,
     "dynamic": dynamic_group,
+    "validation": validation_metrics,
 }
 
 
-_LONGEST_GROUPS = ("dynamic", "rerender")  # submitted first: about 8 s each on the demo
+_LONGEST_GROUPS = ("dynamic", "validation", "rerender")  # submitted first: 8-30 s each on the demo
 
 
 def evaluate(
@@ -67,9 +72,10 @@ def evaluate(
     Args:
         result_dir: the RESULT folder; gt_dir: ``SIM`` or ``SIM/ground_truth``; groups: names of
             :data:`METRIC_GROUPS` (None or empty: all); they run side by side in threads.
-        figures_dir: when given, the figures are written there: the geometry error heat map
-            ``GEOMETRY_ERROR_PNG`` (:func:`write_geometry_error_map`; only with the closest-point
-            correspondence, whose distances are not zero by construction).
+        figures_dir: when given, the figures are written there (:func:`write_figures`): the geometry
+            error heat map ``GEOMETRY_ERROR_PNG`` (:func:`write_geometry_error_map`; only with the
+            closest-point correspondence, whose distances are not zero by construction) and the
+            validation views ``VALIDATION_FIGURE_PNG``.
 
     Raises:
         FileNotFoundError: ``result_dir`` has no ``result.json`` or ``gt_dir`` no ground-truth maps;
@@ -101,11 +107,15 @@ def evaluate(
 def write_figures(result_dir: str | Path, gt_dir: str | Path, figures_dir: str | Path) -> list[Path]:
     """Write ``evaluate``'s figures into ``figures_dir`` (created); returns the paths written.
 
-    Today one figure: the geometry error heat map ``figures_dir/geometry_error_mm.png`` over the
-    RESULT's mask (closest-point correspondence only).
+    The geometry error heat map ``figures_dir/geometry_error_mm.png`` over the RESULT's mask
+    (closest-point correspondence only) and the validation camera's views, true, rendered and their
+    error, ``figures_dir/validation_views.png`` (when the ground truth has a validation folder).
     """
     folder = ResultFolder(result_dir)
     mask = folder.read_mask()
     correspondence = texel_correspondence(result_dir, ground_truth_folder(gt_dir, require="maps"), mask.shape)
-    written = write_geometry_error_map(Path(figures_dir) / GEOMETRY_ERROR_PNG, correspondence, mask)
-    return [written] if written is not None else []
+    written = [
+        write_geometry_error_map(Path(figures_dir) / GEOMETRY_ERROR_PNG, correspondence, mask),
+        write_validation_figure(result_dir, gt_dir, Path(figures_dir) / VALIDATION_FIGURE_PNG),
+    ]
+    return [path for path in written if path is not None]

@@ -40,10 +40,12 @@ from polarface.results import ResultAppearance
 from polarface.skin.layers import CHROMOPHORE_NAMES, PARAMETER_RANGES
 
 __all__ = [
+    "ResultScene",
     "apply_edits",
     "mueller_images",
     "parse_edits",
     "render_result_view",
+    "result_scene",
 ]
 
 _EDIT_NAMES = {"c_m": "c_m", "beta_m": "beta_m", "c_h_in": "c_h_in", "c_h_out": "c_h_out"}
@@ -120,6 +122,49 @@ class RenderedResult:
     intensity: float
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class ResultScene:
+    """A RESULT placed in the rig world under the rig's LEDs, ready to render at any camera
+    (:func:`polarface.render.renderer.render_view` with these fields).
+
+    Attributes:
+        mesh_world: the RESULT's mesh in the rig world (mm); caster: its Embree scene.
+        textures: the frame textures (parameters, shading normals, diffused subsurface exitance);
+            ``textures.without_subsurface()`` gives the surface reflection alone.
+        lights: ``(L, 3)`` LED positions (mm); intensity: their radiant intensity.
+    """
+
+    mesh_world: Any
+    caster: RayCaster
+    textures: FrameTextures
+    lights: np.ndarray
+    intensity: float
+
+
+def result_scene(
+    appearance: ResultAppearance,
+    pose: np.ndarray | None = None,
+    *,
+    edits: dict[str, float] | None = None,
+    strip: tuple[np.ndarray, float, float] | None = None,
+) -> ResultScene:
+    """The RESULT posed by ``pose`` (``(4, 4)`` model -> rig world; default ``appearance.placement``) with
+    its subsurface light diffused once, for rendering any number of cameras.
+
+    ``edits``: chromophore scale factors (:func:`parse_edits`); ``strip``: ``(right vector, width mm,
+    offset mm)``: light enters only in that band and the specular lobes are off (:func:`render_result_view`).
+    """
+    transform = appearance.placement if pose is None else np.asarray(pose, dtype=np.float64)
+    if transform.shape != (4, 4) or not np.isfinite(transform).all():
+        raise ValueError(f"argument 'pose' must be a finite 4x4 matrix; got shape {transform.shape}")
+    mesh_world = appearance.mesh.transformed(transform)
+    caster = RayCaster(mesh_world)
+    raster = reposition(rasterize_uv(appearance.mesh, appearance.mask.shape), mesh_world)
+    lights, intensity = rig_lighting(appearance.rig)
+    textures = _result_textures(appearance, caster, raster, lights, intensity, edits or {}, strip)
+    return ResultScene(mesh_world, caster, textures, lights, intensity)
+
+
 def render_result_view(
     appearance: ResultAppearance,
     camera_id: str | None = None,
@@ -151,32 +196,24 @@ def render_result_view(
     rig = appearance.rig
     camera = rig.camera(camera_id) if camera_id else rig.polarimetric_cameras()[0]
     pinhole = camera.pinhole()
-    transform = appearance.placement if pose is None else np.asarray(pose, dtype=np.float64)
-    if transform.shape != (4, 4) or not np.isfinite(transform).all():
-        raise ValueError(f"argument 'pose' must be a finite 4x4 matrix; got shape {transform.shape}")
     if strip_width_mm is not None and not strip_width_mm > 0:
         raise ValueError(f"argument 'strip_width_mm' must be > 0; got {strip_width_mm}")
-    mesh_world = appearance.mesh.transformed(transform)
-    caster = RayCaster(mesh_world)
-    raster = reposition(rasterize_uv(appearance.mesh, appearance.mask.shape), mesh_world)
-    lights, intensity = rig_lighting(rig)
     strip = None if strip_width_mm is None else (pinhole.right_vector, strip_width_mm, strip_offset_mm)
-    textures = _result_textures(appearance, caster, raster, lights, intensity, edits or {}, strip)
-    view = render_view(
-        caster, mesh_world, pinhole, textures, lights, intensity, tuple(range(6)), polarization=polarization
-    )
+    scene = result_scene(appearance, pose, edits=edits, strip=strip)
+    view = render_view(scene.caster, scene.mesh_world, pinhole, scene.textures, scene.lights, scene.intensity,
+                       tuple(range(6)), polarization=polarization)
     return RenderedResult(
         view.images,
         view.mask,
         view.uv,
         view.face_id,
         view.depth,
-        textures,
-        mesh_world,
-        caster,
+        scene.textures,
+        scene.mesh_world,
+        scene.caster,
         pinhole,
-        lights,
-        intensity,
+        scene.lights,
+        scene.intensity,
     )
 
 

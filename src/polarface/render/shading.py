@@ -86,6 +86,13 @@ class FrameTextures:
         stack = np.concatenate([*layers, shading_normal, exitance], axis=-1).astype(np.float32)
         return cls(torch.from_numpy(fill_empty_texels(stack, mask)))
 
+    def without_subsurface(self) -> FrameTextures:
+        """The same textures with the subsurface exitance zeroed: a camera then sees the surface
+        reflection alone (the specular and single-scattering lobes), the specular image of a view."""
+        stack = self.stack.clone()
+        stack[..., len(PARAMETER_ORDER) + 3:] = 0.0
+        return FrameTextures(stack)
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class FragmentMaterial:

@@ -8,7 +8,8 @@ parameter, the ground truth, the reconstruction and their difference side by sid
 bar, the error (reconstruction - ground truth, same units) has a symmetric scale of its own. When the
 ``geometry`` group was computed its targets (:data:`GEOMETRY_TARGETS`) get a table of their own, and
 the geometry error heat map ``DIR/figures/geometry_error_mm.png`` is shown when ``evaluate`` wrote it
-(:data:`GEOMETRY_ERROR_FIGURE`; ``evaluate(..., figures_dir=DIR / "figures")``).
+(:data:`GEOMETRY_ERROR_FIGURE`; ``evaluate(..., figures_dir=DIR / "figures")``), and the validation
+camera's figure ``DIR/figures/validation_views.png`` (:data:`VALIDATION_FIGURE`) likewise.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ __all__ = [
     "GEOMETRY_ERROR_FIGURE",
     "GEOMETRY_TARGETS",
     "METRIC_TARGETS",
+    "VALIDATION_FIGURE",
     "MetricTarget",
     "demo_index_page",
     "dynamic_scalars",
@@ -156,6 +158,9 @@ def dynamic_scalars(dynamic: Mapping[str, Any]) -> dict[str, float]:
 #: The geometry error heat map under the demo folder (``evaluate(..., figures_dir=DIR / "figures")``,
 #: :data:`polarface.evaluate.geometry.GEOMETRY_ERROR_PNG`), shown when present.
 GEOMETRY_ERROR_FIGURE = "figures/geometry_error_mm.png"
+#: The validation camera's views, true, rendered and their error (``evaluate(..., figures_dir=DIR /
+#: "figures")``, :data:`polarface.evaluate.validation.VALIDATION_FIGURE_PNG`), shown when present.
+VALIDATION_FIGURE = "figures/validation_views.png"
 
 #: Units of the compared parameters (scale bar labels).
 _UNITS = {
@@ -357,6 +362,14 @@ def demo_index_page(out: str | Path, subtitle: str, metrics: Mapping[str, Any],
             "texture space (after aligning the model frames through the reference frame's poses); the "
             "colour scale ends at the 2 mm beyond which texels are left out of the map metrics.",
         ).image_grid([ImageItem(GEOMETRY_ERROR_FIGURE, "geometry error heat map (mm)")], columns=1)
+    if (out / VALIDATION_FIGURE).is_file():
+        page.section(
+            "Validation camera",
+            "Novel viewpoints outside the rig, never fitted (the simulator's validation camera, "
+            "docs/validation.md): the true image, the reconstruction rendered there with polarface's "
+            "renderer, and the absolute error of the unfiltered image relative to the mean true image; "
+            "white: the reconstruction's mask does not cover the point.",
+        ).image_grid([ImageItem(VALIDATION_FIGURE, "validation views: truth, render, error")], columns=1)
     frames = page.section(
         "Simulated frames",
         "Frame 0 of the static sequence (sim/static/, a capture store: docs/capture_store.md).",

@@ -4,7 +4,8 @@ A simulation folder ``SIM`` (written by :func:`polarface.simulate.simulate`) hol
 
     simulation.json      the run's configuration and summary (the folder's marker)
     static/, dynamic/    capture stores (polarface.capture.store), one per sequence
-    ground_truth/        the truth: maps/, mesh_rest.obj, static/poses.json, dynamic/ (per-frame truth)
+    ground_truth/        the truth: maps/, mesh_rest.obj, static/poses.json, dynamic/ (per-frame truth),
+                         validation/ (the validation camera's views: polarface.simulate.validation)
 
 The writers (:mod:`polarface.simulate`) and the readers (evaluation, ``info``, input resolution) take
 these names from here, so the layout has one home.

@@ -16,6 +16,7 @@
         dynamic/meshes/NNNNNN.ply deformed + placed mesh per dynamic frame
         dynamic/maps/NNNNNN_c_h_out.exr, NNNNNN_rho_sss_bar.exr   per-frame maps that change (blood flow)
         observations.zarr        noise-free I_sss, I_zeta, I_s and texel->pixel visibility per view
+        validation/              the validation camera's novel views (polarface.simulate.validation)
 
 Frames are resumable: the capture store skips complete frames and ground-truth files are written
 atomically and skipped when present, so an interrupted run continues where it stopped. Rendering is
@@ -60,6 +61,7 @@ from polarface.simulate.layout import GROUND_TRUTH, SIMULATION_JSON
 from polarface.simulate.render import frame_exposure, render_frame, with_exposure
 from polarface.simulate.scene import SimulationConfig, SimulationScene
 from polarface.simulate.sequences import FRAME_RATE_HZ, static_poses
+from polarface.simulate.validation import write_validation
 
 # SimulationConfig, SimulationScene (polarface.simulate.scene) and render_frame (polarface.simulate.render)
 # are re-exported: the driver's callers import them from here
@@ -141,6 +143,9 @@ def simulate(
     finally:
         if scene_file is not None:
             scene_file.unlink(missing_ok=True)
+    started_validation = time.perf_counter()
+    write_validation(scene, gt, scene.preset.validation_views)
+    timings["validation_s"] = time.perf_counter() - started_validation
     summary = {
         **_summary_head(config_dict, scene, complete=True),
         "exposures": scene.exposures,

@@ -49,6 +49,8 @@ class SimulationPreset:
         yaw_range_deg: static sequence yaw sweep (+-) of the head on the chair, degrees.
         pitch_range_deg: static sequence pitch oscillation amplitude, degrees.
         frame_chunk: frames rendered per chunk (bounds memory for the full preset).
+        validation_views: viewpoints of the validation camera outside the rig
+            (:mod:`polarface.simulate.validation`; the paper averages 200 novel poses).
     """
 
     name: str
@@ -63,12 +65,13 @@ class SimulationPreset:
     yaw_range_deg: float = 60.0
     pitch_range_deg: float = 10.0
     frame_chunk: int = 1
+    validation_views: int = 24
 
 
 PRESETS: dict[str, SimulationPreset] = {
     # tiny: +-12 deg (8 deg steps) so that its 4 frames register from stereo (40 deg steps do not)
     "tiny": SimulationPreset(
-        "tiny", 256, 212, 320, 256, 256, 4, 2, 20, yaw_range_deg=12.0, pitch_range_deg=4.0
+        "tiny", 256, 212, 320, 256, 256, 4, 2, 20, yaw_range_deg=12.0, pitch_range_deg=4.0, validation_views=4
     ),
     "demo": SimulationPreset("demo", 612, 512, 612, 512, 512, 24, 10, 4),
     "full": SimulationPreset("full", 2448, 2048, 2448, 2048, 2048, 200, 50, 1),

@@ -1,7 +1,8 @@
 """One frame's render in a simulation: every camera of the rig for one posed or deformed head, noise-free
-(:func:`render_frame` -> :class:`RenderedFrame`), the stereo cameras' colour image (:func:`stereo_rgb`),
-and the exposures a frame fixes for the whole capture (:func:`frame_exposure`, :func:`with_exposure`).
-The raw sensor frames and the files are made from the render by :mod:`polarface.simulate.frames`.
+(:func:`render_frame` -> :class:`RenderedFrame`; the posed head alone, for any camera:
+:func:`frame_scene`), the stereo cameras' colour image (:func:`stereo_rgb`), and the exposures a frame
+fixes for the whole capture (:func:`frame_exposure`, :func:`with_exposure`). The raw sensor frames and
+the files are made from the render by :mod:`polarface.simulate.frames`.
 """
 
 from __future__ import annotations
@@ -23,7 +24,16 @@ from polarface.simulate.ground_truth import AppearanceMaps
 from polarface.simulate.scene import SimulationScene
 from polarface.simulate.sequences import sequence_frame
 
-__all__ = ["RenderedFrame", "exposure_from", "frame_exposure", "render_frame", "stereo_rgb", "with_exposure"]
+__all__ = [
+    "FrameScene",
+    "RenderedFrame",
+    "exposure_from",
+    "frame_exposure",
+    "frame_scene",
+    "render_frame",
+    "stereo_rgb",
+    "with_exposure",
+]
 
 
 def _camera_channels(camera: Camera) -> tuple[int, int, int]:
@@ -41,16 +51,26 @@ class RenderedFrame:
     shading_normal: np.ndarray
 
 
-def render_frame(
-    scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps, subsurface: SubsurfaceModel,
-    timings: dict[str, float] | None = None, cameras: tuple[str, ...] | None = None,
-) -> RenderedFrame:
-    """Render every camera of the rig (or the ``cameras`` named) for one posed/deformed head (noise-free
-    radiance). A view's pixels do not depend on which other cameras are rendered.
+@dataclasses.dataclass(frozen=True, eq=False)
+class FrameScene:
+    """One frame's head in the rig world with its subsurface light diffused, ready to render at any camera
+    (:func:`polarface.render.renderer.render_view` with these fields; internal to the simulator)."""
 
-    ``timings``: adds the seconds of each stage (:data:`polarface.simulate.frames.FRAME_STAGES`, render
-    part) to it.
-    """
+    mesh: TriangleMesh
+    caster: RayCaster
+    raster: UVRaster
+    shading_normal: np.ndarray
+    textures: FrameTextures
+    lights: np.ndarray
+    intensity: float
+
+
+def frame_scene(
+    scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps, subsurface: SubsurfaceModel,
+    timings: dict[str, float] | None = None,
+) -> FrameScene:
+    """The posed/deformed head ``mesh_world`` with ``maps`` under the rig's LEDs: its entering flux and
+    diffused exitance (``timings``: adds ``geometry_s``, ``entering_flux_s`` and ``diffusion_s``)."""
     clock = StageClock(timings)
     caster = RayCaster(mesh_world)
     raster = reposition(scene.raster, mesh_world)
@@ -78,23 +98,38 @@ def render_frame(
         exitance,
         raster.mask,
     )
+    return FrameScene(mesh_world, caster, raster, shading, textures, lights, intensity)
+
+
+def render_frame(
+    scene: SimulationScene, mesh_world: TriangleMesh, maps: AppearanceMaps, subsurface: SubsurfaceModel,
+    timings: dict[str, float] | None = None, cameras: tuple[str, ...] | None = None,
+) -> RenderedFrame:
+    """Render every camera of the rig (or the ``cameras`` named) for one posed/deformed head (noise-free
+    radiance). A view's pixels do not depend on which other cameras are rendered.
+
+    ``timings``: adds the seconds of each stage (:data:`polarface.simulate.frames.FRAME_STAGES`, render
+    part) to it.
+    """
+    posed = frame_scene(scene, mesh_world, maps, subsurface, timings)
+    clock = StageClock(timings)
     views = {}
     for camera in scene.rig.cameras:
         if cameras is not None and camera.id not in cameras:
             continue
         polarimetric = camera.role == "polarimetric"
         views[camera.id] = render_view(
-            caster,
+            posed.caster,
             mesh_world,
             camera.pinhole(),
-            textures,
-            lights,
-            intensity,
+            posed.textures,
+            posed.lights,
+            posed.intensity,
             _camera_channels(camera) if polarimetric else tuple(range(6)),
             polarization=polarimetric,
         )
         clock.lap("views_polarimetric_s" if polarimetric else "views_stereo_s")
-    return RenderedFrame(mesh_world, caster, views, raster, shading)
+    return RenderedFrame(mesh_world, posed.caster, views, posed.raster, posed.shading_normal)
 
 
 def stereo_rgb(s0: np.ndarray, rig: Rig) -> np.ndarray:
