@@ -22,7 +22,25 @@ from polarface.inverse.polarimetric.patch_units import patch_side
 from polarface.inverse.polarimetric.problem import PatchProblem, build_patch_samples
 from polarface.texture import UnwrapStore
 
-__all__ = ["row_major_fit"]
+__all__ = ["row_major_fit", "sphere_unwrap"]
+
+
+def sphere_unwrap(root, resolution: int, patch: int) -> UnwrapStore:
+    """The synthetic sphere capture (4 frames) in ``root/sim``, unwrapped on its true geometry into
+    ``root/unwrap.zarr`` with a ``resolution``-texel atlas and ``patch``-texel unwrap chunks."""
+    from polarface.capture.store import CaptureStore
+    from polarface.geometry.mesh import load_mesh
+    from polarface.geometry.poses import load_poses
+    from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
+    from polarface.texture import UnwrapConfig, unwrap_capture
+
+    make_sphere_capture(root / "sim", SphereCaptureConfig(texture_resolution=resolution, frames=4))
+    truth = root / "sim" / "ground_truth"
+    return unwrap_capture(
+        CaptureStore.open(root / "sim" / "static"), load_mesh(truth / "mesh_rest.obj"),
+        load_poses(truth / "static" / "poses.json"), root / "unwrap.zarr",
+        UnwrapConfig(texture_resolution=resolution, patch=patch), progress=False,
+    )
 
 
 def _fit_patch(unwrap, rows, cols, fitting, views, config, scale, raw, initialised, curve) -> None:

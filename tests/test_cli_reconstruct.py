@@ -177,6 +177,26 @@ def test_reconstruct_with_lobe_refinement(sim, tmp_path):
     assert main(_args(sim, tmp_path / "bad", "--refine-lobes", "-1")) == 2
 
 
+def test_reconstruct_with_a_model_variant(sim, tmp_path, capsys):
+    """``--model riviere2020``: one lobe, eta and alpha_s one value over the face (the free pass's
+    medians, recorded); an unknown model or a contradicting option is refused before any work."""
+    out = tmp_path / "riviere"
+    assert main(_args(sim, out, "--iterations", "5", "--model", "riviere2020")) == 0
+    stage = json.loads((out / "result.json").read_text())["stages"]["polarimetric"]
+    assert stage["model"] == "riviere2020"
+    assert stage["config"]["lobes"] == "one" and stage["config"]["homogeneous"] == ["eta", "alpha_s"]
+    mask = read_png(out / "maps" / "mask.png") > 0
+    for name in ("eta", "alpha_s"):
+        values = read_exr(out / "maps" / f"{name}.exr")["Y"][mask]
+        np.testing.assert_allclose(values, stage["homogeneous_values"][name], atol=1e-5)
+    assert (out / "checkpoints" / "polarimetric_free.npz").is_file()
+    capsys.readouterr()
+    assert main(_args(sim, tmp_path / "bad", "--model", "hwang")) == 2
+    assert "'--model' must be one of" in capsys.readouterr().err
+    assert main(_args(sim, tmp_path / "bad", "--model", "no-single-scattering", "--lobes", "two")) == 2
+    assert "lobes='one'" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
 def test_bench_smoke(capsys):
     import numba
 

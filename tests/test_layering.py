@@ -41,7 +41,7 @@ PIPELINE_LAYERS: tuple[tuple[str, ...], ...] = (
     ("dynamic",),  # the dynamic stage (runs the geometry frames and the biophysical stage per frame)
     ("reconstruct",),  # the static reconstruction's stages (runs all of the above)
     ("calibrate_polarization", "export", "info", "ior", "skin_fit"),  # one-command jobs
-    ("demo",),  # the demo job (reconstructs, evaluates, exports)
+    ("demo", "model_comparison"),  # jobs that simulate or reconstruct, then evaluate
 )
 
 PACKAGE_ROOT = Path(polarface.__file__).parent

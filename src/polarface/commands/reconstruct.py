@@ -119,6 +119,14 @@ def _add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         "'Optimiser and geometry'",
     )
     parser.add_argument(
+        "--model",
+        default="paper",
+        metavar="NAME",
+        help="the polarimetric model: paper (default), or a variant to compare with: no-single-scattering, "
+        "homogeneous-ior, riviere2020; each a configuration of the same fit "
+        "(polarface.inverse.polarimetric.MODEL_VARIANTS, docs/validation.md)",
+    )
+    parser.add_argument(
         "--lobes",
         choices=("two", "one"),
         default=None,
@@ -176,6 +184,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _reconstruct(args: argparse.Namespace, out: Path, executor=None) -> dict:
+    from polarface.inverse.polarimetric import model_fit_options
     from polarface.pipeline import reconstruct, resolve_reconstruct_inputs
 
     inputs = resolve_reconstruct_inputs(
@@ -199,6 +208,7 @@ def _reconstruct(args: argparse.Namespace, out: Path, executor=None) -> dict:
         )
         if v is not None
     }
+    options = model_fit_options(args.model, options)
     return reconstruct(
         inputs,
         out,

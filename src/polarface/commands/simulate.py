@@ -34,6 +34,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-noise", action="store_true", help="noise-free raw (quantisation only)")
     parser.add_argument("--no-blur", action="store_true", help="local subsurface model (no diffusion blur)")
     parser.add_argument(
+        "--no-single-scattering", action="store_true",
+        help="skin without the single-scattering lobe (rho_ss = 0): the case in which a model without it "
+        "must do as well as the paper's (docs/validation.md)",
+    )
+    parser.add_argument(
         "--static-frames",
         type=int,
         default=None,
@@ -121,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
         subsurface_blur=not args.no_blur,
         sequences=tuple(s.strip() for s in args.sequences.split(",") if s.strip()),
         static_frames=args.static_frames,
+        single_scattering=not args.no_single_scattering,
         analyzers=_analyzers_from_args(args),
     )
     owned = json_manifest("simulation.json")

@@ -26,11 +26,13 @@ from polarface.evaluate.correspondence import (
 from polarface.evaluate.dynamic import DynamicEvaluationConfig, dynamic_metrics
 from polarface.evaluate.geometry import GEOMETRY_ERROR_PNG, geometry_metrics
 from polarface.evaluate.groups import METRIC_GROUPS, evaluate, write_figures
+from polarface.evaluate.validation import VALIDATION_FIGURE_PNG, validation_metrics
 
 __all__ = [
     "CORRESPONDENCE_KINDS",
     "GEOMETRY_ERROR_PNG",
     "METRIC_GROUPS",
+    "VALIDATION_FIGURE_PNG",
     "DynamicEvaluationConfig",
     "GeometryEvaluationConfig",
     "TexelCorrespondence",
@@ -43,5 +45,6 @@ __all__ = [
     "polarimetric_metrics",
     "rerender_metrics",
     "texel_correspondence",
+    "validation_metrics",
     "write_figures",
 ]

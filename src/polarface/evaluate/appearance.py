@@ -115,7 +115,8 @@ def _map_errors(name: str, estimate: np.ndarray, truth: np.ndarray, mask: np.nda
         "mean_abs_error": float(np.mean(error)),
         "gt_median": float(np.median(truth[mask])),
     }
-    if name in ("rho_s", "rho_ss", RHO_SSS_BAR):
+    if name in ("rho_s", "rho_ss", RHO_SSS_BAR) and np.median(np.abs(truth[mask])) > 1e-6:
+        # a relative error of a map that is zero (a simulation without single scattering) means nothing
         relative = error / np.maximum(np.abs(truth[mask]), 1e-6)
         entry["median_relative_error"] = float(np.median(relative))
     return entry

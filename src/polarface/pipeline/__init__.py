@@ -7,6 +7,8 @@
     dynamic/       the dynamic stage: tracking and per-frame maps over a dynamic capture
     reconstruct/   the static reconstruction's stages and checkpoints, resumable
     demo, info, export, skin_fit, calibrate_polarization, ior: one-command jobs
+    model_comparison: one simulation reconstructed with each model variant, scored on the validation
+                   camera (the paper's Table 4 and comparison; benchmarks/bench_model_comparison.py)
 
 Commands call one function of here. The evaluation against ground truth is :mod:`polarface.evaluate`.
 """
@@ -39,6 +41,7 @@ from polarface.pipeline.ior import (
     read_analyzer_image,
     validate_ior,
 )
+from polarface.pipeline.model_comparison import ComparisonConfig, compare_models, format_comparison
 from polarface.pipeline.reconstruct import (
     STAGES,
     ReconstructContext,
@@ -61,6 +64,7 @@ __all__ = [
     "FRAMES_JSON",
     "POLARIZATION_FRAME_SUFFIXES",
     "STAGES",
+    "ComparisonConfig",
     "DynamicStageConfig",
     "GeometryConfig",
     "InputFolder",
@@ -72,11 +76,13 @@ __all__ = [
     "ViewCheckConfig",
     "calibrate_polarization",
     "check_view_residuals",
+    "compare_models",
     "estimate_ior_from_folder",
     "export_result",
     "fit_spectra_file",
     "flag_view_residuals",
     "folder_info",
+    "format_comparison",
     "format_info",
     "format_polarization_table",
     "frame_stereo",

@@ -14,14 +14,21 @@ manner of a rasterizer -> fragments -> shader pipeline):
 :func:`render_view` composes them into a :class:`ViewRender`. The texture-space counterpart of stage 1
 is :func:`texel_fragments` -> :class:`TexelFragments` (the texels a view of an unwrapped capture sees),
 shaded by the same physics in :func:`render_view_texture` (the inverse stage's re-render of a view).
-:func:`render_result_view` and
+:func:`render_result_view` (:func:`result_scene`: the posed RESULT for any number of cameras) and
 :func:`mueller_images` render a RESULT folder's maps, :func:`render_demo` the optics-only sphere.
 """
 
 from polarface.render.colour import encode_srgb, linear_rgb_from_channels, linear_srgb_to_lab
 from polarface.render.demo import DemoParameters, DemoRender, render_demo
 from polarface.render.fragments import FragmentRecord, SurfaceFragments, cast_fragments
-from polarface.render.relight import apply_edits, mueller_images, parse_edits, render_result_view
+from polarface.render.relight import (
+    ResultScene,
+    apply_edits,
+    mueller_images,
+    parse_edits,
+    render_result_view,
+    result_scene,
+)
 from polarface.render.renderer import ViewRender, analyzer_images, render_view, rig_lighting, shading_normals
 from polarface.render.result_views import RenderOptions, render_result_outputs
 from polarface.render.scene import SphereGeometry, ring_light_positions, trace_sphere
@@ -52,6 +59,7 @@ __all__ = [
     "FragmentRecord",
     "FrameTextures",
     "RenderOptions",
+    "ResultScene",
     "SphereGeometry",
     "SubsurfaceModel",
     "SurfaceFragments",
@@ -76,6 +84,7 @@ __all__ = [
     "render_result_view",
     "render_view",
     "render_view_texture",
+    "result_scene",
     "rig_lighting",
     "ring_light_positions",
     "shade_texels",

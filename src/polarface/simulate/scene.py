@@ -48,6 +48,9 @@ class SimulationConfig:
         static_frames: frames of the static sequence (None: the preset's); the yaw and pitch sweeps
             keep their ranges, so more frames sample them more densely (view-count studies,
             docs/reconstruct.md).
+        single_scattering: the skin has its single-scattering lobe (False: rho_ss = 0 everywhere, a
+            simulation on which a model without that lobe must do as well as the paper's;
+            docs/validation.md).
         analyzers: the sensor's micro-polarizers (:class:`polarface.simulate.analyzers.SimulatedAnalyzers`;
             default ideal, today's bytes) and whether ``rig.json`` carries them (``docs/sensors.md``).
     """
@@ -61,6 +64,7 @@ class SimulationConfig:
     sequences: tuple[str, ...] = ("static", "dynamic")
     exposure_fill: float = 0.8
     static_frames: int | None = None
+    single_scattering: bool = True
     analyzers: SimulatedAnalyzers = dataclasses.field(default_factory=SimulatedAnalyzers)
 
     def __post_init__(self) -> None:
@@ -84,13 +88,17 @@ class SimulationConfig:
             raise ValueError(f"argument 'static_frames' must be an integer >= 2; got {self.static_frames!r}")
         if not 0 < self.exposure_fill <= 1:  # NaN fails too
             raise ValueError(f"argument 'exposure_fill' must lie in (0, 1]; got {self.exposure_fill}")
+        if not isinstance(self.single_scattering, bool):
+            raise ValueError(f"argument 'single_scattering' must be a bool; got {self.single_scattering!r}")
 
     def to_json(self) -> dict:
         """The configuration as ``simulation.json`` records it (and as read back from it): the fields, the
         sequences as a list, the analyzers as :meth:`SimulatedAnalyzers.to_dict` (left out for the ideal
-        sensor: the configuration of older folders, which resume)."""
+        sensor, and ``single_scattering`` when true: the configuration of older folders, which resume)."""
         config_dict = dataclasses.asdict(self)
         config_dict["sequences"] = list(self.sequences)
+        if self.single_scattering:
+            del config_dict["single_scattering"]
         if self.analyzers == SimulatedAnalyzers():  # ideal sensor: the configuration of older folders
             del config_dict["analyzers"]
         else:
@@ -148,6 +156,8 @@ class SimulationScene:
             calibration=calibration,
             seed=MAP_SEED,
         )
+        if not config.single_scattering:
+            maps = dataclasses.replace(maps, rho_ss=np.zeros_like(maps.rho_ss))
         subsurface = SubsurfaceModel.build(
             chromophore_maps(maps), raster, calibration.wavelengths_nm, per_texel_stretch=config.texel_stretch
         )

@@ -18,9 +18,6 @@ import shutil
 import numpy as np
 import pytest
 
-from polarface.capture.store import CaptureStore
-from polarface.geometry.mesh import load_mesh
-from polarface.geometry.poses import load_poses
 from polarface.inverse.polarimetric import PolarimetricConfig, fit_polarimetric, patch_units
 from polarface.inverse.polarimetric.patch_units import (
     PatchUnit,
@@ -29,9 +26,8 @@ from polarface.inverse.polarimetric.patch_units import (
     patch_waits,
     run_patch_unit,
 )
-from polarface.simulate.sphere_capture import SphereCaptureConfig, make_sphere_capture
-from polarface.texture import UnwrapConfig, UnwrapStore, unwrap_capture
-from polarimetric_reference import row_major_fit
+from polarface.texture import UnwrapStore
+from polarimetric_reference import row_major_fit, sphere_unwrap
 
 RES, PATCH = 48, 8
 CONFIG = PolarimetricConfig(iterations=8, patch=PATCH)
@@ -83,14 +79,7 @@ def test_fronts_fall_back_to_row_major_order_when_halos_two_patches_apart_overla
 @pytest.fixture(scope="module")
 def sphere(tmp_path_factory):
     """``(unwrap store, straight fit)`` of the synthetic sphere."""
-    root = tmp_path_factory.mktemp("patch_units")
-    make_sphere_capture(root / "sim", SphereCaptureConfig(texture_resolution=RES, frames=4))
-    store = CaptureStore.open(root / "sim" / "static")
-    unwrap = unwrap_capture(
-        store, load_mesh(root / "sim" / "ground_truth" / "mesh_rest.obj"),
-        load_poses(root / "sim" / "ground_truth" / "static" / "poses.json"), root / "unwrap.zarr",
-        UnwrapConfig(texture_resolution=RES, patch=PATCH), progress=False,
-    )
+    unwrap = sphere_unwrap(tmp_path_factory.mktemp("patch_units"), RES, PATCH)
     return unwrap, fit_polarimetric(unwrap, CONFIG, progress=False, threads=1)
 
 

@@ -11,7 +11,8 @@ Modules: ``config`` (options, reparameterisation), ``model`` (per-sample forward
 ``init`` (closed-form starts), ``problem`` (a patch's samples and loss), ``fused``/``kernel``/
 ``_kernel_math``/``_height_backward``/``step`` (the numba engine), ``engines`` (registry), ``optimise``
 (L-BFGS, or the first-order optimisers), ``refine`` (Levenberg-Marquardt on the lobe maps), ``fit`` (the
-patch loop), ``bench`` (throughput benchmark), ``dynamic`` (the per-frame fit of a dynamic sequence,
+patch loop), ``variants`` (the model variants, :data:`MODEL_VARIANTS`), ``bench`` (throughput benchmark),
+``dynamic`` (the per-frame fit of a dynamic sequence,
 :func:`fit_dynamic_frame`).
 
 Maps follow ``SIM/ground_truth/maps`` conventions: ``eta, alpha_s, alpha_ss, rho_s, rho_ss,
@@ -70,9 +71,16 @@ from polarface.inverse.polarimetric.refine import (
     weighted_residuals,
 )
 from polarface.inverse.polarimetric.uncertainty import UNCERTAINTY_PARAMETERS, FitDiagnostics, fit_diagnostics
+from polarface.inverse.polarimetric.variants import (
+    MODEL_VARIANTS,
+    ModelVariant,
+    model_fit_options,
+    model_name,
+)
 
 __all__ = [
     "DYNAMIC_VARIABLES",
+    "MODEL_VARIANTS",
     "PARAMETER_NAMES",
     "POLARIMETRIC_ENGINES",
     "UNCERTAINTY_PARAMETERS",
@@ -83,6 +91,7 @@ __all__ = [
     "FusedSamples",
     "LobeRefinement",
     "LossWeights",
+    "ModelVariant",
     "PatchProblem",
     "PolarimetricConfig",
     "PolarimetricEngine",
@@ -106,6 +115,8 @@ __all__ = [
     "initial_raw",
     "laplacian_penalty",
     "maps_from_raw",
+    "model_fit_options",
+    "model_name",
     "nan_median_filter",
     "optimise_patch",
     "pack_parameters",

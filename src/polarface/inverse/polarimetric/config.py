@@ -84,6 +84,12 @@ class PolarimetricConfig:
             alpha_ss unused: for materials without the second lobe, or when the split does not matter;
             with the rig's noise and a few dozen views the data do not determine the split, so this
             is a modelling choice: docs/reconstruct.md, "Two lobes or one").
+        homogeneous: maps held to one value over the face (``eta``, ``alpha_s``): the fit runs twice,
+            first with them free per texel, then with each fixed at its median over the first fit's
+            mask (:func:`polarface.inverse.polarimetric.fit_polarimetric`; the model variants of
+            :mod:`polarface.inverse.polarimetric.variants`, docs/validation.md).
+        fixed_eta, fixed_alpha_s: hold eta or alpha_s at this value at every texel (not optimised; the
+            second pass of ``homogeneous``, or a value the user knows); None: fitted per texel.
     """
 
     weights: LossWeights = dataclasses.field(default_factory=LossWeights)
@@ -111,12 +117,22 @@ class PolarimetricConfig:
     refine_lobes_iterations: int = 0
     refine_lobes_damping: float = 1e-3
     lobes: str = "two"
+    homogeneous: tuple[str, ...] = ()
+    fixed_eta: float | None = None
+    fixed_alpha_s: float | None = None
 
     @property
     def frozen_variables(self) -> tuple[str, ...]:
         """Raw variables the optimiser leaves at their initial values (``lobes == "one"``: the second
-        lobe's, with rho_ss ~ 1e-13)."""
-        return ("alpha_ss", "rho_ss") if self.lobes == "one" else ()
+        lobe's, with rho_ss ~ 1e-13; ``fixed_eta`` / ``fixed_alpha_s``: that map)."""
+        lobe = ("alpha_ss", "rho_ss") if self.lobes == "one" else ()
+        fixed = tuple(name for name, value in self.fixed_values.items() if value is not None)
+        return (*lobe, *fixed)
+
+    @property
+    def fixed_values(self) -> dict[str, float | None]:
+        """``{"eta": fixed_eta, "alpha_s": fixed_alpha_s}``."""
+        return {"eta": self.fixed_eta, "alpha_s": self.fixed_alpha_s}
 
     def __post_init__(self) -> None:
         if self.optimizer not in ("lbfgs", "rmsprop", "adam"):
@@ -167,6 +183,25 @@ class PolarimetricConfig:
             raise ValueError("argument 'refine_lobes_iterations' must be 0 with lobes='one'")
         if not self.h_scale_mm > 0:
             raise ValueError(f"argument 'h_scale_mm' must be > 0; got {self.h_scale_mm}")
+        self._check_homogeneous()
+
+    def _check_homogeneous(self) -> None:
+        homogeneous = tuple(self.homogeneous)
+        object.__setattr__(self, "homogeneous", homogeneous)  # a JSON list back as the tuple it was
+        if not set(homogeneous) <= {"eta", "alpha_s"} or len(set(homogeneous)) != len(homogeneous):
+            raise ValueError(f"argument 'homogeneous' must list distinct maps of ('eta', 'alpha_s'); "
+                             f"got {self.homogeneous!r}")
+        for name, value, (lo, hi) in (("eta", self.fixed_eta, self.eta_range),
+                                      ("alpha_s", self.fixed_alpha_s, self.alpha_range)):
+            if value is None:
+                continue
+            if not lo < value < hi:  # NaN fails too
+                raise ValueError(f"argument 'fixed_{name}' must lie in ({lo}, {hi}); got {value}")
+            if name in homogeneous:
+                raise ValueError(f"arguments 'homogeneous' and 'fixed_{name}': {name} is either fitted "
+                                 "homogeneous or fixed, not both")
+        if self.fixed_alpha_s is not None and int(self.refine_lobes_iterations) > 0:
+            raise ValueError("argument 'refine_lobes_iterations' must be 0 with a fixed alpha_s")
 
 
 #: Raw rho_ss of an absent second lobe (rho_ss = rho_max sigmoid(-30) ~ 2e-13).
@@ -228,9 +263,11 @@ def initial_raw(resolution: tuple[int, int], config: PolarimetricConfig) -> dict
     """Raw variables of the initial maps (``(Ht, Wt, C)`` float32; albedos refined per patch)."""
     height, width = resolution
     ones = np.ones((height, width, 1))
+    eta = config.init_eta if config.fixed_eta is None else config.fixed_eta
+    alpha_s = config.init_alpha_s if config.fixed_alpha_s is None else config.fixed_alpha_s
     maps = {
-        "eta": config.init_eta * ones,
-        "alpha_s": config.init_alpha_s * ones,
+        "eta": eta * ones,
+        "alpha_s": alpha_s * ones,
         "alpha_ss": config.init_alpha_ss * ones,
         "rho_s": 0.3 * ones,
         "rho_ss": config.init_rho_ss * ones,

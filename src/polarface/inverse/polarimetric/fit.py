@@ -94,6 +94,8 @@ class PolarimetricFit:
         units: per patch index (a string), where and how long it ran (:meth:`UnitOutcome.placement`;
             the patches of earlier, resumed runs included). fronts: the wavefront's fronts, lists of
             patch indices (:func:`polarface.inverse.polarimetric.patch_units.patch_fronts`).
+        homogeneous_values: ``config.homogeneous``'s maps -> the one value each was held at (the median
+            of the first, free fit over its mask); empty without ``homogeneous``.
     """
 
     maps: dict[str, np.ndarray]
@@ -107,6 +109,7 @@ class PolarimetricFit:
     view_count: np.ndarray | None = None
     units: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     fronts: list[list[int]] = dataclasses.field(default_factory=list)
+    homogeneous_values: dict[str, float] = dataclasses.field(default_factory=dict)
 
 
 def fit_polarimetric(
@@ -158,9 +161,10 @@ def fit_polarimetric(
     spec = "auto" if isinstance(device, str) and device == "auto" else str(torch.device(device))
     resolve_engine(engine, resolve_device(spec))  # a bad engine or device is refused here
     options = _PatchOptions(str(unwrap.path), config or PolarimetricConfig(), spec, engine, threads)
+    fit = _fit_homogeneous if options.config.homogeneous else _fit
     with torch_fit_settings(threads), shared_unwrap(options.unwrap, options.config.unwrap_cache_mb << 20):
-        return _fit(unwrap, options, checkpoint, progress, stop_after_patches, on_patch,
-                    executor or LocalExecutor())
+        return fit(unwrap, options, checkpoint, progress, stop_after_patches, on_patch,
+                   executor or LocalExecutor())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -354,6 +358,36 @@ def _lost_patch_error(failed: dict[int, str], patches: list[tuple[slice, slice]]
         f"polarimetric patch {index} (texture rows {rows.start}-{rows.stop - 1}, columns {cols.start}-"
         f"{cols.stop - 1}): {reason}; the {done} patches done are {kept}: rerun to resume"
     )
+
+
+def _fit_homogeneous(
+    unwrap: UnwrapStore,
+    options: _PatchOptions,
+    checkpoint: str | Path | None,
+    progress: bool,
+    stop_after_patches: int | None,
+    on_patch: Callable[[int, int], None] | None,
+    executor: Executor,
+) -> PolarimetricFit:
+    """``config.homogeneous``: :func:`_fit` with those maps free per texel (checkpoint ``STEM_free.npz``
+    beside ``checkpoint``), then again with each fixed at its median over the first fit's mask. The
+    median stands for the one value a joint fit over the face would find (the texels' free values
+    scatter around it); both passes resume from their checkpoints."""
+    config = options.config
+    free = dataclasses.replace(options, config=dataclasses.replace(config, homogeneous=()))
+    free_checkpoint = None
+    if checkpoint is not None:
+        free_checkpoint = Path(checkpoint).with_name(f"{Path(checkpoint).stem}_free.npz")
+    first = _fit(unwrap, free, free_checkpoint, progress, stop_after_patches, on_patch, executor)
+    if not first.complete:
+        return first
+    values = {name: float(np.median(first.maps[name][first.mask])) for name in config.homogeneous}
+    fixed = dataclasses.replace(config, homogeneous=(), **{f"fixed_{name}": v for name, v in values.items()})
+    second = _fit(unwrap, dataclasses.replace(options, config=fixed), checkpoint, progress,
+                  stop_after_patches, on_patch, executor)
+    second.homogeneous_values = values
+    second.timings["free_fit_s"] = first.timings.get("fit_s", 0.0)
+    return second
 
 
 def _fit(

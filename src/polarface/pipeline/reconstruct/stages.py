@@ -166,7 +166,7 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
     (``executor.units``, per patch index)."""
     from polarface.device import resolve_device
     from polarface.executors import LocalExecutor
-    from polarface.inverse.polarimetric import PolarimetricConfig, fit_polarimetric
+    from polarface.inverse.polarimetric import PolarimetricConfig, fit_polarimetric, model_name
     from polarface.texture import UnwrapStore
 
     started = time.perf_counter()
@@ -191,7 +191,9 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
     folder.write_polarimetric_maps(fit.maps, fit.mask, {"view_count": fit.view_count})
     folder.write_loss_curve(fit.loss_curve)
     masked = {k: float(np.median(v[fit.mask])) for k, v in fit.maps.items() if v.ndim == 2}
-    record: dict[str, Any] = {}
+    record: dict[str, Any] = {"model": model_name(config)}
+    if fit.homogeneous_values:
+        record["homogeneous_values"] = fit.homogeneous_values
     if ctx.view_check:  # opt-in: it costs about one more pass over the samples (docs/reconstruct.md)
         record["view_check"] = check_view_residuals(folder)
     return {
