@@ -29,6 +29,10 @@ def test_three_models_on_the_known_surface(tmp_path):
         models["no-single-scattering"]["specular_rmse"] / models["paper"]["specular_rmse"])
     text = format_comparison(summary)
     assert "homogeneous-ior" in text and "no-single-scattering / paper" in text
+    page = (tmp_path / "comparison.html").read_text()
+    for name in models:
+        assert f"figures/{name}_eta.png" in page and f"figures/{name}_validation.png" in page
+        assert (tmp_path / "figures" / f"{name}_validation.png").is_file()
     # a rerun keeps the finished RESULTs and gives the same scores
     again = compare_models(tmp_path, config, progress=False)
     for name, row in again["models"].items():

@@ -41,7 +41,12 @@ from polarface.pipeline.ior import (
     read_analyzer_image,
     validate_ior,
 )
-from polarface.pipeline.model_comparison import ComparisonConfig, compare_models, format_comparison
+from polarface.pipeline.model_comparison import (
+    ComparisonConfig,
+    compare_models,
+    format_comparison,
+    write_comparison_page,
+)
 from polarface.pipeline.reconstruct import (
     STAGES,
     ReconstructContext,
@@ -104,4 +109,5 @@ __all__ = [
     "run_sphere_demo",
     "run_stages",
     "validate_ior",
+    "write_comparison_page",
 ]

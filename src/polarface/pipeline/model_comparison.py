@@ -8,6 +8,8 @@ on the validation camera. It reproduces the analogue of the paper's Table 4 (the
     OUT/sim/              the simulation (static sequence; resumed when present)
     OUT/<model>/          one RESULT per model (resumed when complete)
     OUT/comparison.json   per model the validation and map errors, the ladder and the comparison
+    OUT/comparison.html   the table, the maps side by side (one colour scale per map) and each model's
+                          validation views (true, rendered, error); images in OUT/figures/
 
 With ``geometry="stereo"`` the first model's run reconstructs the geometry from the stereo pairs and the
 others reuse its GEOM folder; with ``"known"`` every model fits on the ground-truth surface, so the
@@ -22,16 +24,27 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from polarface.evaluate import evaluate
+from polarface.evaluate.validation import write_validation_figure
 from polarface.inverse.polarimetric import MODEL_VARIANTS, model_fit_options
-from polarface.io import write_json_atomic
+from polarface.io import colormap_png, write_json_atomic
 from polarface.pipeline.inputs import resolve_reconstruct_inputs
 from polarface.pipeline.reconstruct import reconstruct
+from polarface.report import HtmlPage, ImageItem
 from polarface.results import ResultFolder
 from polarface.simulate import SimulationConfig, simulate
 from polarface.simulate.layout import GROUND_TRUTH
 
-__all__ = ["ABLATION_LADDER", "COMPARISON", "ComparisonConfig", "compare_models", "format_comparison"]
+__all__ = [
+    "ABLATION_LADDER",
+    "COMPARISON",
+    "ComparisonConfig",
+    "compare_models",
+    "format_comparison",
+    "write_comparison_page",
+]
 
 #: Table 4's rows from the top: each adds one component (single scattering, a spatially varying index).
 ABLATION_LADDER = ("homogeneous-ior-no-single-scattering", "homogeneous-ior", "paper")
@@ -134,7 +147,56 @@ def compare_models(out: str | Path, config: ComparisonConfig = ComparisonConfig(
         ),
     }
     write_json_atomic(out / "comparison.json", summary)
+    write_comparison_page(out, summary)
     return summary
+
+
+#: The maps the comparison page shows side by side.
+PAGE_MAPS = ("eta", "alpha_s", "rho_s", "rho_ss")
+
+
+def _map_figures(out: Path, names: list[str]) -> list[ImageItem]:
+    """Each model's maps of :data:`PAGE_MAPS` as ``OUT/figures/<model>_<map>.png``, one colour scale per
+    map (the 1st..99th percentile over every model's mask), row by row."""
+    folders = {name: ResultFolder(out / name) for name in names}
+    masks = {name: folder.read_mask() for name, folder in folders.items()}
+    items = []
+    for map_name in PAGE_MAPS:
+        values = {name: folder.read_scalar_map(map_name) for name, folder in folders.items()}
+        inside = np.concatenate([values[name][masks[name]] for name in names])  # evaluated: not empty
+        low, high = float(np.percentile(inside, 1)), float(np.percentile(inside, 99))
+        high = max(high, low + 1e-6)
+        for name in names:
+            path = out / "figures" / f"{name}_{map_name}.png"
+            colormap_png(path, np.where(masks[name], values[name], np.nan), vmin=low, vmax=high,
+                         mask=masks[name], title=f"{name}: {map_name}", colorbar=True)
+            items.append(ImageItem(f"figures/{path.name}", f"{name}: {map_name}"))
+    return items
+
+
+def write_comparison_page(out: str | Path, summary: dict[str, Any]) -> Path:
+    """``OUT/comparison.html`` of :func:`compare_models`' ``summary`` (module docstring); returns its path."""
+    out = Path(out)
+    names = list(summary["models"])
+    config = summary["config"]
+    page = HtmlPage("Model comparison",
+                    f"preset {config['preset']}, {config['geometry']} geometry; docs/validation.md")
+    columns = ("specular_rmse", "full_rmse", "dop_median_abs_error", "eta_median_abs_error",
+               "alpha_s_median_abs_error", "rho_sss_bar_median_relative_error", "normal_median_deg")
+    rows = [[name, *(f"{summary['models'][name][key]:.4g}" for key in columns)] for name in names]
+    page.section("Errors", "The validation camera's RMSEs (relative to the mean true image) and the maps' "
+                 "median errors against the ground truth; " + format_comparison(summary).splitlines()[-1]
+                 ).table(rows, header=["model", *columns], column_classes=["", *["num"] * len(columns)])
+    page.section("Maps", "One colour scale per map over every model.").image_grid(
+        _map_figures(out, names), columns=len(names))
+    figures = []
+    for name in names:
+        path = write_validation_figure(out / name, out / "sim", out / "figures" / f"{name}_validation.png")
+        if path is not None:
+            figures.append(ImageItem(f"figures/{path.name}", f"{name}: truth, render, error"))
+    page.section("Validation views", "Novel viewpoints never fitted: the true image, the model's render "
+                 "and the error.").image_grid(figures, columns=1)
+    return Path(str(page.write(out / "comparison.html")))
 
 
 def format_comparison(summary: dict[str, Any]) -> str:
