@@ -145,6 +145,7 @@ PUBLIC_API: dict[str, tuple[str, ...]] = {
         "reconstruct_dynamic", "reconstruct_dynamic_imported", "reconstruct_geometry",
         "reconstruct_summary_line", "resolve_reconstruct_inputs", "run_biophysical_stage",
         "run_demo_pipeline", "run_sphere_demo", "run_stages", "validate_ior", "write_comparison_page",
+        "spectral_check", "trichromatic_albedo",
     ),
     "polarface.pipeline.biophysical": (
         "check_coarse_factor", "largest_coarse_factor", "load_stage_inputs", "load_start",

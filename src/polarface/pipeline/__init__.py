@@ -9,6 +9,7 @@
     demo, info, export, skin_fit, calibrate_polarization, ior: one-command jobs
     model_comparison: one simulation reconstructed with each model variant, scored on the validation
                    camera (the paper's Table 4 and comparison; benchmarks/bench_model_comparison.py)
+    spectral_check: a RESULT's reflectance spectra, six channels against trichromatic, against the truth
 
 Commands call one function of here. The evaluation against ground truth is :mod:`polarface.evaluate`.
 """
@@ -62,6 +63,7 @@ from polarface.pipeline.skin_fit import (
     fit_spectra_file,
     read_reflectance_csv,
 )
+from polarface.pipeline.spectral_check import spectral_check, trichromatic_albedo
 
 __all__ = [
     "ANALYZER_IMAGE_NAMES",
@@ -108,6 +110,8 @@ __all__ = [
     "run_demo_pipeline",
     "run_sphere_demo",
     "run_stages",
+    "spectral_check",
+    "trichromatic_albedo",
     "validate_ior",
     "write_comparison_page",
 ]
