@@ -51,15 +51,15 @@ class ModelVariant:
 MODEL_VARIANTS: dict[str, ModelVariant] = {
     variant.name: variant
     for variant in (
-        ModelVariant("paper", "the paper's model: every parameter per texel, two lobes", {}),
+        ModelVariant("paper", "the paper's model: every parameter per texel, two lobes (Table 4, row 3)", {}),
         ModelVariant(
             "no-single-scattering",
-            "the single-scattering lobe dropped (rho_ss = 0); the rest per texel (Table 4, rows 1-2)",
+            "the single-scattering lobe dropped (rho_ss = 0); the rest per texel",
             {"lobes": "one"},
         ),
         ModelVariant(
             "homogeneous-ior",
-            "one refractive index for the face; the rest per texel (Table 4, rows 2-3)",
+            "one refractive index for the face; the rest per texel (Table 4, row 2)",
             {"homogeneous": ("eta",)},
         ),
         ModelVariant(
