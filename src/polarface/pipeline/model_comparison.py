@@ -153,6 +153,9 @@ def compare_models(out: str | Path, config: ComparisonConfig = ComparisonConfig(
 
 #: The maps the comparison page shows side by side.
 PAGE_MAPS = ("eta", "alpha_s", "rho_s", "rho_ss")
+#: The per-model errors of the printed table and of the page (``_model_summary``'s keys).
+ERROR_COLUMNS = ("specular_rmse", "full_rmse", "dop_median_abs_error", "eta_median_abs_error",
+                 "alpha_s_median_abs_error", "rho_sss_bar_median_relative_error", "normal_median_deg")
 
 
 def _map_figures(out: Path, names: list[str]) -> list[ImageItem]:
@@ -181,12 +184,12 @@ def write_comparison_page(out: str | Path, summary: dict[str, Any]) -> Path:
     config = summary["config"]
     page = HtmlPage("Model comparison",
                     f"preset {config['preset']}, {config['geometry']} geometry; docs/validation.md")
-    columns = ("specular_rmse", "full_rmse", "dop_median_abs_error", "eta_median_abs_error",
-               "alpha_s_median_abs_error", "rho_sss_bar_median_relative_error", "normal_median_deg")
-    rows = [[name, *(f"{summary['models'][name][key]:.4g}" for key in columns)] for name in names]
-    page.section("Errors", "The validation camera's RMSEs (relative to the mean true image) and the maps' "
-                 "median errors against the ground truth; " + format_comparison(summary).splitlines()[-1]
-                 ).table(rows, header=["model", *columns], column_classes=["", *["num"] * len(columns)])
+    rows = [[name, *(f"{summary['models'][name][key]:.4g}" for key in ERROR_COLUMNS)] for name in names]
+    errors = page.section("Errors", "The validation camera's RMSEs (relative to the mean true image) and the "
+                          "maps' median errors against the ground truth.")
+    errors.table(rows, header=["model", *ERROR_COLUMNS], column_classes=["", *["num"] * len(ERROR_COLUMNS)])
+    for line in _ratio_lines(summary):
+        errors.text(line)
     page.section("Maps", "One colour scale per map over every model.").image_grid(
         _map_figures(out, names), columns=len(names))
     figures = []
@@ -199,18 +202,10 @@ def write_comparison_page(out: str | Path, summary: dict[str, Any]) -> Path:
     return Path(str(page.write(out / "comparison.html")))
 
 
-def format_comparison(summary: dict[str, Any]) -> str:
-    """The comparison as text: one row per model (validation-camera RMSEs, DoP and map errors), then the
-    ablation ladder next to the paper's Table 4 and the comparison's ratios."""
-    columns = ("specular_rmse", "full_rmse", "dop_median_abs_error", "eta_median_abs_error",
-               "alpha_s_median_abs_error", "rho_sss_bar_median_relative_error", "normal_median_deg",
-               "seconds")
-    lines = [f"{'model':38s} {'specular':>9s} {'full':>8s} {'DoP':>7s} {'eta':>7s} {'alpha_s':>8s} "
-             f"{'rho_sss':>8s} {'normals':>8s} {'s':>6s}"]
-    for name, row in summary["models"].items():
-        lines.append(f"{name:38s} " + " ".join(
-            f"{row[key]:9.5f}" if key == "specular_rmse" else f"{row[key]:8.4f}" for key in columns
-        ))
+def _ratio_lines(summary: dict[str, Any]) -> list[str]:
+    """The ablation ladder next to the paper's Table 4, the comparison's ratios and the
+    no-single-scattering ratio, one line each (those the summary has)."""
+    lines = []
     ladder = summary.get("ablation")
     if ladder:
         paper = [summary["paper_table4"][name] for name in ladder["models"]]
@@ -226,4 +221,17 @@ def format_comparison(summary: dict[str, Any]) -> str:
     ratio = summary.get("no_single_scattering_over_paper")
     if ratio is not None:
         lines.append(f"no-single-scattering / paper specular RMSE: {ratio:.3f}")
-    return "\n".join(lines)
+    return lines
+
+
+def format_comparison(summary: dict[str, Any]) -> str:
+    """The comparison as text: one row per model (validation-camera RMSEs, DoP and map errors, seconds),
+    then the ablation ladder next to the paper's Table 4 and the comparison's ratios."""
+    lines = [f"{'model':38s} {'specular':>9s} {'full':>8s} {'DoP':>7s} {'eta':>7s} {'alpha_s':>8s} "
+             f"{'rho_sss':>8s} {'normals':>8s} {'s':>6s}"]
+    for name, row in summary["models"].items():
+        lines.append(f"{name:38s} " + " ".join(
+            f"{row[key]:9.5f}" if key == "specular_rmse" else f"{row[key]:8.4f}"
+            for key in (*ERROR_COLUMNS, "seconds")
+        ))
+    return "\n".join([*lines, *_ratio_lines(summary)])

@@ -52,7 +52,7 @@ def window_ncc(image_a: np.ndarray, pixels_a: np.ndarray, image_b: np.ndarray, p
 
     def windows(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         points = (pixels[:, None, :] + grid[None]).reshape(-1, 2)
-        values = bilinear(image.astype(np.float32)[..., None], points)[:, 0].reshape(count, len(grid))
+        values = bilinear(np.asarray(image, np.float32)[..., None], points)[:, 0].reshape(count, len(grid))
         return values - values.mean(axis=1, keepdims=True)
 
     a, b = windows(image_a, pixels_a), windows(image_b, pixels_b)
