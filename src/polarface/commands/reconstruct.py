@@ -123,7 +123,7 @@ def _add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         default="paper",
         metavar="NAME",
         help="the polarimetric model: paper (default), or a variant to compare with: no-single-scattering, "
-        "homogeneous-ior, riviere2020; each a configuration of the same fit "
+        "homogeneous-ior, riviere2020, hwang2022; each a configuration of the same fit "
         "(polarface.inverse.polarimetric.MODEL_VARIANTS, docs/validation.md)",
     )
     parser.add_argument(

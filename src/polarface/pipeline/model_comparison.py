@@ -14,12 +14,18 @@ on the validation camera. It reproduces the analogue of the paper's Table 4 (the
 With ``geometry="stereo"`` the first model's run reconstructs the geometry from the stereo pairs and the
 others reuse its GEOM folder; with ``"known"`` every model fits on the ground-truth surface, so the
 differences are the models' alone.
+
+A variant fitted in passes (homogeneous or clustered maps) starts with a free fit whose configuration is
+another variant's (``paper`` or ``no-single-scattering``); when that variant ran earlier in the list its
+finished fit's checkpoint becomes the free pass's (:func:`free_pass_source`), the same maps bit for bit
+(the fit is deterministic) without fitting them again.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import itertools
+import shutil
 import time
 from pathlib import Path
 from typing import Any
@@ -43,13 +49,16 @@ __all__ = [
     "ComparisonConfig",
     "compare_models",
     "format_comparison",
+    "free_pass_source",
     "write_comparison_page",
 ]
 
 #: Table 4's rows from the top: each adds one component (single scattering, a spatially varying index).
 ABLATION_LADDER = ("homogeneous-ior-no-single-scattering", "homogeneous-ior", "paper")
-#: The comparison figure's methods (Hwang et al. 2022 is not among the variants yet).
-COMPARISON = ("riviere2020", "paper")
+#: The comparison figure's methods.
+COMPARISON = ("riviere2020", "hwang2022", "paper")
+#: The options of a variant fitted in passes that its first, free pass drops.
+PASS_OPTIONS = ("homogeneous", "clustered")
 #: The paper's Table 4 (average RMSE of the specular-dominant observation over 200 novel poses).
 PAPER_TABLE4 = {"homogeneous-ior-no-single-scattering": 4.44e-2, "homogeneous-ior": 4.13e-2, "paper": 3.94e-2}
 
@@ -111,6 +120,29 @@ def _ordered(models: dict[str, dict[str, Any]], names: tuple[str, ...]) -> dict[
     }
 
 
+def free_pass_source(name: str, earlier: list[str]) -> str | None:
+    """The variant of ``earlier`` whose fit is variant ``name``'s first, free pass (the same options
+    without :data:`PASS_OPTIONS`); None when ``name`` fits in one pass or none of ``earlier`` is it."""
+    options = dict(MODEL_VARIANTS[name].fit_options)
+    if not set(PASS_OPTIONS) & set(options):
+        return None
+    free = {key: value for key, value in options.items() if key not in PASS_OPTIONS}
+    return next((other for other in earlier if dict(MODEL_VARIANTS[other].fit_options) == free), None)
+
+
+def _seed_free_pass(out: Path, name: str, earlier: list[str]) -> None:
+    """Copy the checkpoint of :func:`free_pass_source`'s finished fit to variant ``name``'s free pass
+    (``OUT/<name>/checkpoints/polarimetric_free.npz``) unless that exists."""
+    source = free_pass_source(name, earlier)
+    target = ResultFolder(out / name).checkpoints_dir / "polarimetric_free.npz"
+    if source is None or target.exists():
+        return
+    fitted = ResultFolder(out / source).checkpoints_dir / "polarimetric.npz"
+    if fitted.is_file():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(fitted, target)
+
+
 def compare_models(out: str | Path, config: ComparisonConfig = ComparisonConfig(),
                    progress: bool = True) -> dict[str, Any]:
     """Simulate, reconstruct with each of ``config.models`` and score each RESULT (module docstring);
@@ -126,6 +158,7 @@ def compare_models(out: str | Path, config: ComparisonConfig = ComparisonConfig(
         result = out / name
         started = time.perf_counter()
         if not ResultFolder(result).stage_complete("biophysical"):
+            _seed_free_pass(out, name, list(models))
             reconstruct(resolve_reconstruct_inputs(sim, geometry=geometry), result,
                         fit_options=model_fit_options(name, config.fit_options), progress=progress,
                         resume=result.exists())

@@ -1,7 +1,7 @@
 """The model variants (``polarface.inverse.polarimetric.variants``) and the configuration they rest on:
 a map held at a fixed value is not optimised, a homogeneous map is fitted in two passes and ends at one
-value over the face (the first pass's median), and bad options are named (a fixed map on one texel:
-``test_fit.py``)."""
+value over the face (the first pass's median), a clustered map takes one value per cluster (the
+alternating passes' medians), and bad options are named (a fixed map on one texel: ``test_fit.py``)."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ def test_the_registry_and_its_options():
     assert next(iter(MODEL_VARIANTS)) == "paper" and MODEL_VARIANTS["paper"].fit_options == {}
     assert set(MODEL_VARIANTS) == {
         "paper", "no-single-scattering", "homogeneous-ior", "homogeneous-ior-no-single-scattering",
-        "riviere2020",
+        "riviere2020", "hwang2022",
     }
     for variant in MODEL_VARIANTS.values():
         config = PolarimetricConfig(**model_fit_options(variant.name))  # each a valid configuration
@@ -51,9 +51,15 @@ def test_the_registry_and_its_options():
         ({"fixed_alpha_s": float("nan")}, "fixed_alpha_s"),
         ({"fixed_eta": 1.4, "homogeneous": ("eta",)}, "either fitted homogeneous or fixed"),
         ({"fixed_alpha_s": 0.3, "refine_lobes_iterations": 3}, "refine_lobes_iterations"),
+        ({"clustered": ("rho_sss_bar",)}, "'clustered'"),
+        ({"held": ("eta", "eta")}, "'held'"),
+        ({"clusters": 0}, "'clusters'"),
+        ({"cluster_rounds": -1}, "'cluster_rounds'"),
+        ({"clustered": ("eta",), "homogeneous": ("alpha_s",)}, "not both"),
+        ({"held": ("alpha_ss",), "refine_lobes_iterations": 2}, "refine_lobes_iterations"),
     ],
 )
-def test_bad_homogeneous_or_fixed_options_are_named(options, match):
+def test_bad_homogeneous_fixed_or_clustered_options_are_named(options, match):
     with pytest.raises(ValueError, match=match):
         PolarimetricConfig(**options)
 
@@ -78,4 +84,25 @@ def test_a_homogeneous_map_is_the_free_fits_median_everywhere(unwrap, tmp_path):
     # resumed: both passes are complete in their checkpoints, the same maps come back
     again = fit_polarimetric(unwrap, config, progress=False, threads=1, checkpoint=checkpoint)
     for name in fit.maps:
+        np.testing.assert_array_equal(again.maps[name], fit.maps[name])
+
+
+def test_clustered_maps_take_one_value_per_cluster(unwrap, tmp_path):
+    options = model_fit_options("hwang2022", {"iterations": 8, "patch": PATCH, "clusters": 3})
+    config = PolarimetricConfig(**options)
+    checkpoint = tmp_path / "polarimetric.npz"
+    fit = fit_polarimetric(unwrap, config, progress=False, threads=1, checkpoint=checkpoint)
+    assert fit.complete and checkpoint.is_file()
+    for tag in ("free", "index0", "specular0"):
+        assert (tmp_path / f"polarimetric_{tag}.npz").is_file()
+    labels = fit.cluster_labels
+    assert labels.shape == fit.mask.shape and set(np.unique(labels[fit.mask])) <= {0, 1, 2}
+    assert set(fit.cluster_values) == {"eta", "alpha_s", "alpha_ss", "rho_s", "rho_ss"}
+    for name, values in fit.cluster_values.items():
+        assert len(values) == 3
+        np.testing.assert_allclose(fit.maps[name][fit.mask], np.asarray(values)[labels[fit.mask]],
+                                   rtol=1e-4, atol=1e-5)  # held: the optimiser left it at its cluster value
+    assert np.ptp(fit.maps["rho_sss_bar"][fit.mask]) > 0.01  # the diffuse albedo stays per texel
+    again = fit_polarimetric(unwrap, config, progress=False, threads=1, checkpoint=checkpoint)
+    for name in fit.maps:  # resumed from the passes' checkpoints
         np.testing.assert_array_equal(again.maps[name], fit.maps[name])

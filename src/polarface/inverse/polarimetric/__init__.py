@@ -11,7 +11,8 @@ Modules: ``config`` (options, reparameterisation), ``model`` (per-sample forward
 ``init`` (closed-form starts), ``problem`` (a patch's samples and loss), ``fused``/``kernel``/
 ``_kernel_math``/``_height_backward``/``step`` (the numba engine), ``engines`` (registry), ``optimise``
 (L-BFGS, or the first-order optimisers), ``refine`` (Levenberg-Marquardt on the lobe maps), ``fit`` (the
-patch loop), ``variants`` (the model variants, :data:`MODEL_VARIANTS`), ``bench`` (throughput benchmark),
+patch loop), ``variants`` (the model variants, :data:`MODEL_VARIANTS`), ``clusters`` (the clusters of
+the ``hwang2022`` variant), ``bench`` (throughput benchmark),
 ``dynamic`` (the per-frame fit of a dynamic sequence,
 :func:`fit_dynamic_frame`).
 

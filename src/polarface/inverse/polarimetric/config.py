@@ -17,6 +17,7 @@ from polarface.inverse.polarimetric.losses import LossWeights
 from polarface.optics.pbssrdf import SURFACE_PARAMETER_NAMES
 
 __all__ = [
+    "CLUSTERABLE",
     "NO_LOBE_RAW",
     "PARAMETER_NAMES",
     "PolarimetricConfig",
@@ -37,6 +38,8 @@ CUDA_MEMORY_FRACTION = 0.4
 
 #: Output maps (``rho_sss_bar`` has 6 channels, the others one).
 PARAMETER_NAMES = (*SURFACE_PARAMETER_NAMES, "rho_sss_bar", "displacement_mm")
+#: The maps ``PolarimetricConfig.clustered`` and ``held`` may name (the surface reflection's).
+CLUSTERABLE = tuple(SURFACE_PARAMETER_NAMES)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,6 +93,13 @@ class PolarimetricConfig:
             :mod:`polarface.inverse.polarimetric.variants`, docs/validation.md).
         fixed_eta, fixed_alpha_s: hold eta or alpha_s at this value at every texel (not optimised; the
             second pass of ``homogeneous``, or a value the user knows); None: fitted per texel.
+        clustered: surface maps (of :data:`CLUSTERABLE`) shared by the texels of each of ``clusters``
+            clusters of the diffuse albedo, fitted by alternating passes (the ``hwang2022`` variant:
+            :func:`polarface.inverse.polarimetric.fit_polarimetric`, docs/validation.md).
+        clusters: number of clusters of ``clustered``.
+        cluster_rounds: alternations of the index pass and the specular pass of ``clustered``.
+        held: maps the optimiser leaves at their values where the fit starts, per texel (a pass of
+            ``clustered`` sets them; ``fit_polarimetric``'s ``start_maps``).
     """
 
     weights: LossWeights = dataclasses.field(default_factory=LossWeights)
@@ -120,14 +130,18 @@ class PolarimetricConfig:
     homogeneous: tuple[str, ...] = ()
     fixed_eta: float | None = None
     fixed_alpha_s: float | None = None
+    clustered: tuple[str, ...] = ()
+    clusters: int = 8
+    cluster_rounds: int = 1
+    held: tuple[str, ...] = ()
 
     @property
     def frozen_variables(self) -> tuple[str, ...]:
         """Raw variables the optimiser leaves at their initial values (``lobes == "one"``: the second
-        lobe's, with rho_ss ~ 1e-13; ``fixed_eta`` / ``fixed_alpha_s``: that map)."""
+        lobe's, with rho_ss ~ 1e-13; ``fixed_eta`` / ``fixed_alpha_s``: that map; ``held``)."""
         lobe = ("alpha_ss", "rho_ss") if self.lobes == "one" else ()
         fixed = tuple(name for name, value in self.fixed_values.items() if value is not None)
-        return (*lobe, *fixed)
+        return tuple(dict.fromkeys((*lobe, *fixed, *self.held)))
 
     @property
     def fixed_values(self) -> dict[str, float | None]:
@@ -184,6 +198,23 @@ class PolarimetricConfig:
         if not self.h_scale_mm > 0:
             raise ValueError(f"argument 'h_scale_mm' must be > 0; got {self.h_scale_mm}")
         self._check_homogeneous()
+        self._check_clustered()
+
+    def _check_clustered(self) -> None:
+        for name in ("clustered", "held"):
+            maps = tuple(getattr(self, name))
+            object.__setattr__(self, name, maps)  # a JSON list back as the tuple it was
+            if not set(maps) <= set(CLUSTERABLE) or len(set(maps)) != len(maps):
+                raise ValueError(f"argument '{name}' must list distinct maps of {CLUSTERABLE}; got {maps!r}")
+        if int(self.clusters) < 1 or int(self.cluster_rounds) < 0:
+            raise ValueError(f"arguments 'clusters' >= 1 and 'cluster_rounds' >= 0 required; got "
+                             f"{self.clusters}, {self.cluster_rounds}")
+        if self.clustered and self.homogeneous:
+            raise ValueError("arguments 'clustered' and 'homogeneous': a fit shares maps over clusters or "
+                             "over the face, not both")
+        if ({"alpha_s", "alpha_ss", "rho_ss"} & {*self.clustered, *self.held}
+                and int(self.refine_lobes_iterations) > 0):
+            raise ValueError("argument 'refine_lobes_iterations' must be 0 with clustered or held lobes")
 
     def _check_homogeneous(self) -> None:
         homogeneous = tuple(self.homogeneous)

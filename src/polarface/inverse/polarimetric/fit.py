@@ -53,10 +53,12 @@ from scipy import ndimage
 from tqdm import tqdm
 
 from polarface.executors import Executor, LocalExecutor, UnitOutcome
+from polarface.inverse.polarimetric.clusters import albedo_clusters, cluster_values
 from polarface.inverse.polarimetric.config import (
     PolarimetricConfig,
     fit_maps_from_raw,
     initial_raw,
+    raw_from_maps,
 )
 from polarface.inverse.polarimetric.engines import resolve_engine
 from polarface.inverse.polarimetric.patch_units import (
@@ -96,6 +98,8 @@ class PolarimetricFit:
             patch indices (:func:`polarface.inverse.polarimetric.patch_units.patch_fronts`).
         homogeneous_values: ``config.homogeneous``'s maps -> the one value each was held at (the median
             of the first, free fit over its mask); empty without ``homogeneous``.
+        cluster_labels: ``(Ht, Wt)`` int32 cluster of each texel with ``config.clustered`` (else None).
+        cluster_values: ``config.clustered``'s maps -> the value each was held at, per cluster.
     """
 
     maps: dict[str, np.ndarray]
@@ -110,6 +114,8 @@ class PolarimetricFit:
     units: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     fronts: list[list[int]] = dataclasses.field(default_factory=list)
     homogeneous_values: dict[str, float] = dataclasses.field(default_factory=dict)
+    cluster_labels: np.ndarray | None = None
+    cluster_values: dict[str, list[float]] = dataclasses.field(default_factory=dict)
 
 
 def fit_polarimetric(
@@ -162,6 +168,7 @@ def fit_polarimetric(
     resolve_engine(engine, resolve_device(spec))  # a bad engine or device is refused here
     options = _PatchOptions(str(unwrap.path), config or PolarimetricConfig(), spec, engine, threads)
     fit = _fit_homogeneous if options.config.homogeneous else _fit
+    fit = _fit_clustered if options.config.clustered else fit
     with torch_fit_settings(threads), shared_unwrap(options.unwrap, options.config.unwrap_cache_mb << 20):
         return fit(unwrap, options, checkpoint, progress, stop_after_patches, on_patch,
                    executor or LocalExecutor())
@@ -209,12 +216,24 @@ class _FitState:
 
     @classmethod
     def start(
-        cls, resolution: tuple[int, int], side: int, config: PolarimetricConfig, checkpoint: Path | None
+        cls, resolution: tuple[int, int], side: int, config: PolarimetricConfig, checkpoint: Path | None,
+        start_maps: dict[str, np.ndarray] | None = None,
     ) -> _FitState:
-        """The initial state, or the checkpoint's when it exists and matches ``side`` and ``resolution``
-        (a checkpoint of the row-major loop, without pending curves, too)."""
+        """The initial state (``start_maps``: name -> ``(Ht, Wt)`` values of those maps over the default
+        starts), or the checkpoint's when it exists and matches ``side`` and ``resolution`` (a checkpoint
+        of the row-major loop, without pending curves, too)."""
         height, width = resolution
         state = cls(initial_raw((height, width), config), np.zeros((height, width), bool), set(), [])
+        if start_maps:
+            maps = fit_maps_from_raw(state.raw, config)
+            maps = {k: v[..., None] if v.ndim == 2 else v for k, v in maps.items()}
+            maps.update({k: np.asarray(v, np.float64)[..., None] for k, v in start_maps.items()})
+            raw = raw_from_maps(maps, config)
+            names = set(start_maps) | ({"alpha_ss"} if "alpha_s" in start_maps else set())  # > alpha_s
+            if config.lobes == "one":
+                names -= {"alpha_ss", "rho_ss"}  # the absent lobe keeps its raw value
+            for name in names:
+                state.raw[name] = raw[name].astype(np.float32)
         if checkpoint is None or not checkpoint.exists():
             return state
         with np.load(checkpoint) as saved:
@@ -390,7 +409,7 @@ def _fit_homogeneous(
     return second
 
 
-def _fit(
+def _fit_clustered(
     unwrap: UnwrapStore,
     options: _PatchOptions,
     checkpoint: str | Path | None,
@@ -399,8 +418,57 @@ def _fit(
     on_patch: Callable[[int, int], None] | None,
     executor: Executor,
 ) -> PolarimetricFit:
+    """``config.clustered`` (the ``hwang2022`` variant): a free fit (checkpoint ``STEM_free.npz``), k-means
+    clusters of its diffuse albedo and each clustered map's median per cluster; then ``cluster_rounds``
+    alternations of an index pass (eta free, the other clustered maps held at their cluster values;
+    ``STEM_index<r>.npz``) and a specular pass (eta held, the others free; ``STEM_specular<r>.npz``),
+    each updating the cluster values of the maps it freed; last the final pass with every clustered map
+    held (``checkpoint``). Per-texel maps (the diffuse albedo, the detail) are fitted in every pass. Every
+    pass resumes from its checkpoint."""
+    config = options.config
+    base = dataclasses.replace(config, clustered=(), held=())
+
+    def run(tag: str, held: tuple[str, ...], start: dict[str, np.ndarray] | None) -> PolarimetricFit:
+        path = checkpoint
+        if checkpoint is not None and tag:
+            path = Path(checkpoint).with_name(f"{Path(checkpoint).stem}_{tag}.npz")
+        return _fit(unwrap, dataclasses.replace(options, config=dataclasses.replace(base, held=held)), path,
+                    progress, stop_after_patches, on_patch, executor, start)
+
+    fit = run("free", (), None)
+    if not fit.complete:
+        return fit
+    labels = albedo_clusters(fit.maps["rho_sss_bar"], fit.mask, config.clusters, config.seed)
+    shared = {name: cluster_values(fit.maps[name], labels, fit.mask, config.clusters)
+              for name in config.clustered}
+    index = tuple(name for name in config.clustered if name == "eta")
+    specular = tuple(name for name in config.clustered if name != "eta")
+    for round_ in range(config.cluster_rounds if index and specular else 0):
+        for tag, held, freed in ((f"index{round_}", specular, index), (f"specular{round_}", index, specular)):
+            fit = run(tag, held, {name: shared[name][labels] for name in held})
+            if not fit.complete:
+                return fit
+            shared.update({name: cluster_values(fit.maps[name], labels, fit.mask, config.clusters)
+                           for name in freed})
+    final = run("", config.clustered, {name: shared[name][labels] for name in config.clustered})
+    final.cluster_labels = labels
+    final.cluster_values = {name: [float(v) for v in values] for name, values in shared.items()}
+    return final
+
+
+def _fit(
+    unwrap: UnwrapStore,
+    options: _PatchOptions,
+    checkpoint: str | Path | None,
+    progress: bool,
+    stop_after_patches: int | None,
+    on_patch: Callable[[int, int], None] | None,
+    executor: Executor,
+    start_maps: dict[str, np.ndarray] | None = None,
+) -> PolarimetricFit:
     """The patches as executor units in wavefront order, each once its earlier neighbours are done
-    (module docstring of :mod:`~polarface.inverse.polarimetric.patch_units`)."""
+    (module docstring of :mod:`~polarface.inverse.polarimetric.patch_units`); ``start_maps``: name ->
+    ``(Ht, Wt)`` starting values of those maps (:meth:`_FitState.start`)."""
     config = options.config
     torch.manual_seed(config.seed)
     scale = _checked_scale(unwrap)
@@ -410,7 +478,7 @@ def _fit(
     patches = list(unwrap.patches(side))
     fronts = patch_fronts(patches, side, config.halo)
     ckpt = Path(checkpoint) if checkpoint is not None else None
-    state = _FitState.start(unwrap.resolution, side, config, ckpt)
+    state = _FitState.start(unwrap.resolution, side, config, ckpt, start_maps)
     tally = _Tally(np.zeros(unwrap.resolution, bool))
     executor.start()
     failed: dict[int, str] = {}

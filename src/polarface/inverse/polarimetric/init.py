@@ -189,9 +189,9 @@ def apply_closed_form_starts(
     dtype: torch.dtype,
     device: torch.device,
 ) -> None:
-    """Overwrite, in place, the raw eta (when ``config.init_eta_search`` and eta is not fixed), alpha_s
-    (when not fixed), rho_sss_bar and rho_s of one patch's texels flagged in ``todo`` with their
-    closed-form starts.
+    """Overwrite, in place, the raw eta (when ``config.init_eta_search``), alpha_s, rho_sss_bar and rho_s
+    of one patch's texels flagged in ``todo`` with their closed-form starts (each unless the optimiser
+    leaves it alone: ``config.frozen_variables``).
 
     Args:
         samples: the patch's samples: a :class:`SampleBatch` (the torch reference, :func:`init_eta` and
@@ -208,7 +208,8 @@ def apply_closed_form_starts(
     flat0 = {k: v.reshape(h * w, -1) for k, v in maps0.items()}
     normal0 = normals(maps0["displacement_mm"][..., 0])
     todo_t = torch.as_tensor(todo, device=device)
-    if config.init_eta_search and config.fixed_eta is None:
+    frozen = config.frozen_variables
+    if config.init_eta_search and "eta" not in frozen:
         eta0 = _eta_starts(samples, normal0, h * w, config.eta_range).reshape(h, w)
         eta0 = nan_median_filter(eta0, 5)[..., None]
         e_lo, e_hi = config.eta_range
@@ -223,9 +224,10 @@ def apply_closed_form_starts(
     alpha_s0 = torch.where(torch.isfinite(smooth), smooth, alpha_s0)
     a_lo, a_hi = config.alpha_range
     new_alpha = torch.logit(((alpha_s0 - a_lo) / (a_hi - a_lo)).reshape(h, w, 1).to(dtype))
-    if config.fixed_alpha_s is None:
+    if "alpha_s" not in frozen:
         patch_raw["alpha_s"] = torch.where(todo_t[..., None], new_alpha, patch_raw["alpha_s"])
     new_sss = torch.logit(rho_sss.reshape(h, w, 6).to(dtype))
     new_s = torch.logit((rho_s / config.rho_max).reshape(h, w, 1).to(dtype))
     patch_raw["rho_sss_bar"] = torch.where(todo_t[..., None], new_sss, patch_raw["rho_sss_bar"])
-    patch_raw["rho_s"] = torch.where(todo_t[..., None], new_s, patch_raw["rho_s"])
+    if "rho_s" not in frozen:
+        patch_raw["rho_s"] = torch.where(todo_t[..., None], new_s, patch_raw["rho_s"])

@@ -18,9 +18,18 @@ same data, losses and optimiser, so that a comparison measures the model and not
   "homogeneous specular roughness and refractive index, no single scattering"; the specular albedo,
   rho_sss_bar and the geometry detail stay per texel.
 
+* ``hwang2022``: Hwang et al. 2022 (Sparse Ellipsometry) as the paper characterises it (Sec. 6: "static
+  polarimetric", "alternative and cluster-based optimization"): both lobes and the refractive index
+  shared by the texels of each of 8 clusters of the diffuse albedo, fitted by alternating the index
+  (eta free, the lobes held) and the specular lobes (eta held); rho_sss_bar and the detail per texel.
+  Differences from the original, which is a pBRDF of an opaque object captured with a flash: the
+  subsurface term and the geometry detail are the paper's, so that only the parameter sharing and the
+  alternation differ; hard clusters rather than blended basis materials; our loss in every pass rather
+  than their separate index and specular losses and their SQP solver; 8 clusters is our choice.
+
 A homogeneous map is fitted in two passes (``PolarimetricConfig.homogeneous``): first free per texel,
-then held at the first fit's median over the face. The Hwang et al. 2022 variant (clusters of
-parameters, alternating optimisation of the index and specular losses) is not among them yet.
+then held at the first fit's median over the face. Clustered maps are fitted in passes too
+(``PolarimetricConfig.clustered``; :mod:`polarface.inverse.polarimetric.clusters`).
 """
 
 from __future__ import annotations
@@ -28,6 +37,8 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from typing import Any
+
+from polarface.inverse.polarimetric.config import CLUSTERABLE
 
 __all__ = ["MODEL_VARIANTS", "ModelVariant", "model_fit_options", "model_name"]
 
@@ -74,6 +85,13 @@ MODEL_VARIANTS: dict[str, ModelVariant] = {
             "refractive index, no single scattering; specular albedo, diffuse albedo and detail per texel",
             {"lobes": "one", "homogeneous": ("eta", "alpha_s")},
         ),
+        ModelVariant(
+            "hwang2022",
+            "Hwang et al. 2022 as the paper characterises it: both lobes and the refractive index shared "
+            "within 8 clusters of the diffuse albedo, fitted by alternating the index and the lobes; "
+            "diffuse albedo and detail per texel",
+            {"clustered": CLUSTERABLE},
+        ),
     )
 }
 
@@ -97,11 +115,12 @@ def model_fit_options(name: str, fit_options: Mapping[str, Any] | None = None) -
 
 
 def model_name(config: Any) -> str | None:
-    """The variant whose lobes and homogeneous maps ``config`` (a ``PolarimetricConfig``) has; None when
-    they match none (a configuration made by hand)."""
-    own = (config.lobes, tuple(config.homogeneous))
+    """The variant whose lobes, homogeneous and clustered maps ``config`` (a ``PolarimetricConfig``) has;
+    None when they match none (a configuration made by hand)."""
+    own = (config.lobes, tuple(config.homogeneous), tuple(config.clustered))
     for variant in MODEL_VARIANTS.values():
         options = variant.fit_options
-        if own == (options.get("lobes", "two"), tuple(options.get("homogeneous", ()))):
+        if own == (options.get("lobes", "two"), tuple(options.get("homogeneous", ())),
+                   tuple(options.get("clustered", ()))):
             return variant.name
     return None

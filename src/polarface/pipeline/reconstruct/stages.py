@@ -194,6 +194,9 @@ def stage_polarimetric(ctx: ReconstructContext) -> dict[str, Any]:
     record: dict[str, Any] = {"model": model_name(config)}
     if fit.homogeneous_values:
         record["homogeneous_values"] = fit.homogeneous_values
+    if fit.cluster_labels is not None:  # per cluster: its texels in the mask and each shared map's value
+        record["clusters"] = {"texels": np.bincount(fit.cluster_labels[fit.mask], minlength=config.clusters)
+                              .tolist(), "values": fit.cluster_values}
     if ctx.view_check:  # opt-in: it costs about one more pass over the samples (docs/reconstruct.md)
         record["view_check"] = check_view_residuals(folder)
     return {
