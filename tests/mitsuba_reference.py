@@ -79,7 +79,7 @@ def polarface_reference_views(scene: MitsubaScene, pose: np.ndarray) -> dict[str
                 centre,
                 torch.from_numpy(pinhole.up_vector),
                 lights[k : k + 1],
-                torch.full((1, 1), unit_intensity, dtype=torch.float64),
+                torch.from_numpy(unit_intensity[k : k + 1, None].copy()),
                 material.eta,
                 material.alpha_s,
                 material.alpha_ss,

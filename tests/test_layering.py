@@ -40,7 +40,8 @@ PIPELINE_LAYERS: tuple[tuple[str, ...], ...] = (
     ("biophysical",),  # the biophysical stage
     ("dynamic",),  # the dynamic stage (runs the geometry frames and the biophysical stage per frame)
     ("reconstruct",),  # the static reconstruction's stages (runs all of the above)
-    ("calibrate_polarization", "export", "info", "ior", "skin_fit", "spectral_check"),  # one-command jobs
+    # one-command jobs
+    ("calibrate_polarization", "calibrate_rig", "export", "info", "ior", "skin_fit", "spectral_check"),
     ("demo", "model_comparison"),  # jobs that simulate or reconstruct, then evaluate
 )
 

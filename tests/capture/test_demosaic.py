@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polarface.capture.demosaic import demosaic, demosaic_camera
+from polarface.capture.demosaic import applied_gains, demosaic, demosaic_camera
 from polarface.capture.rig import paper_rig
 from polarface.capture.sensor import SensorNoise, mosaic, simulate_raw
 from polarface.capture.synthetic import measure_demosaic, stokes_pattern
@@ -204,6 +204,15 @@ def test_demosaic_camera_uses_rig_settings():
         demosaic_camera(raw[:8], camera)
     with pytest.raises(ValueError, match="not a polarization sensor"):
         demosaic_camera(raw, rig.camera("stereo0_a"))
+    # the camera's channel gains are divided out, colour by colour, and recorded as applied
+    gains = (0.9, 1.05, 1.2)
+    gained = camera.model_copy(update={"channel_gains": gains})
+    signal = mosaic(*(truth[:, :16] * np.float32(gains)), sensor="color-polarization")
+    scaled = demosaic_camera(simulate_raw(signal, noiseless=True), gained)
+    assert np.abs(scaled.intensities - truth[:, :16]).max() < 2e-3
+    assert applied_gains(rig) is None
+    assert applied_gains(rig.model_copy(update={"cameras": [gained, *rig.cameras[1:]]})) == {
+        "pol_upper": list(gains)}
 
 
 # ---------------------------------------------------------------------------- polanalyser oracle

@@ -85,6 +85,11 @@ def test_save_load_roundtrip(tmp_path):
         ({"analyzer": {"R": {"extinction_ratio": 100}}}, "color-polarization"),
         ({"sensor": "color-polarization", "analyzer": {"G": {"extinction_ratio": 1}}},
          "analyzer(.|\n)*G: extinction_ratio"),
+        ({"channel_gains": [1.0, 0.0, 1.0]}, "channel_gains"),
+        ({"channel_gains": [1.0, 1.0]}, "channel_gains"),
+        ({"colour_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}, "colour_matrix is only allowed for an rgb"),
+        ({"sensor": "rgb", "colour_matrix": [[1, 0, 0], [0, 1, 0]]}, "colour_matrix"),
+        ({"sensor": "rgb", "colour_matrix": [[1, 1, 0], [1, 1, 0], [0, 0, 1]]}, "invertible"),
     ],
 )
 def test_camera_errors_name_field(overrides, field):
@@ -193,7 +198,9 @@ def test_geometry_differences_name_the_fields_that_differ():
     other.cameras[0].K[0][0] += 1.0
     other.cameras[1].exposure = 3.0  # sensor settings may differ between captures
     other.lights[2].position_mm = (1.0, 2.0, 3.0)
+    other.cameras[2].channel_gains = (1.0, 1.02, 1.0)
     differences = rig.geometry_differences(other)
-    assert differences == [f"cameras[{rig.cameras[0].id}].K", f"lights[{rig.lights[2].id}].position_mm"]
+    assert differences == [f"cameras[{rig.cameras[0].id}].K", f"cameras[{rig.cameras[2].id}].channel_gains",
+                           f"lights[{rig.lights[2].id}].position_mm"]
     resized = rig.geometry_differences(paper_rig(width=128, height=96))
     assert "cameras[pol_upper].width" in resized and "cameras[pol_upper].K" in resized

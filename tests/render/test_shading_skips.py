@@ -47,7 +47,7 @@ def test_horizon_culling_changes_no_entry_flux(small_rig):
     assert 0.1 < above.mean() < 0.9  # some modules are below the horizon
     assert np.array_equal(culled[above], every[above])
     up = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
-    power = torch.full((len(lights), 1), float(intensity), dtype=torch.float64)
+    power = torch.from_numpy(intensity[:, None].copy())
     eta = torch.full((len(points), 1), 1.4, dtype=torch.float64)
     flux = [
         visible_entry_flux(torch.from_numpy(normals), torch.from_numpy(points), up, lights, power, eta, v)
@@ -55,7 +55,7 @@ def test_horizon_culling_changes_no_entry_flux(small_rig):
     ]
     assert np.array_equal(flux[0].numpy().view(np.uint8), flux[1].numpy().view(np.uint8))
     assert float(flux[0].max()) > 0
-    out = entering_flux(caster, raster, shading, np.full(mask.shape, 1.4), lights, float(intensity),
+    out = entering_flux(caster, raster, shading, np.full(mask.shape, 1.4), lights, intensity,
                         np.array([0.0, -1.0, 0.0]))
     assert np.array_equal(out[mask], flux[1][:, 0].numpy().astype(np.float32))
 
@@ -96,8 +96,9 @@ def _reference_view(caster, mesh, camera, textures, lights, intensity, channels,
     for k in range(len(lights)):
         images = render_polarimetric(
             material.normal, position, centre, up, torch.from_numpy(lights[k : k + 1].astype(np.float32)),
-            torch.full((1, 1), intensity), material.eta, material.alpha_s, material.alpha_ss, material.rho_s,
-            material.rho_ss, 0.0, diffused_exitance=torch.zeros(fragments.count, 1),
+            torch.from_numpy(intensity[k : k + 1, None].astype(np.float32)), material.eta, material.alpha_s,
+            material.alpha_ss, material.rho_s, material.rho_ss, 0.0,
+            diffused_exitance=torch.zeros(fragments.count, 1),
         )
         stokes = stokes + torch.from_numpy(visible[:, k].astype(np.float32))[:, None, None] * images.stokes
     return fragments, analyzer_images(stokes, polarization), visible

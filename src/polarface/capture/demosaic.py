@@ -46,7 +46,9 @@ from polarface.capture.sensor import Lattice, lattices, pattern_period
 if TYPE_CHECKING:
     from polarface.capture.rig import Camera
 
-__all__ = ["DEMOSAIC_METHODS", "PolarizationStack", "check_phase", "demosaic", "demosaic_camera"]
+__all__ = [
+    "DEMOSAIC_METHODS", "PolarizationStack", "applied_gains", "check_phase", "demosaic", "demosaic_camera",
+]
 
 DemosaicMethod = Literal["bilinear", "residual"]
 #: Available demosaicing methods.
@@ -373,7 +375,8 @@ def demosaic_camera(
     Returns:
         :class:`PolarizationStack` whose intensities are those of ideal analyzers: a camera with an
         ``analyzer`` calibration is corrected by
-        :func:`polarface.capture.analyzers.ideal_analyzer_intensities` (module docstring).
+        :func:`polarface.capture.analyzers.ideal_analyzer_intensities` (module docstring); divided by
+        the camera's ``channel_gains`` (R, G, B; a mono sensor: the first) when they are not 1.
 
     Raises:
         ValueError: for an ``rgb`` camera, or a frame whose size differs from the camera's.
@@ -398,4 +401,16 @@ def demosaic_camera(
         **kwargs,
     )
     corrected = ideal_analyzer_intensities(stack.intensities, camera_analyzer_models(camera))
+    gains = np.asarray(camera.channel_gains, dtype=np.float32)
+    if (gains != 1.0).any():
+        corrected = corrected / (gains if camera.sensor == "color-polarization" else gains[0])
     return stack if corrected is stack.intensities else replace(stack, intensities=corrected)
+
+
+def applied_gains(rig) -> dict[str, list[float]] | None:
+    """Camera id -> ``channel_gains`` of the polarization cameras of ``rig`` whose gains are not 1 (what
+    :func:`demosaic_camera` divides by; recorded in the capture store's manifest and frame markers);
+    None when every gain is 1."""
+    gains = {camera.id: list(camera.channel_gains) for camera in rig.cameras
+             if camera.sensor != "rgb" and tuple(camera.channel_gains) != (1.0, 1.0, 1.0)}
+    return gains or None

@@ -3,7 +3,8 @@
 ``manifest.json`` lists the completed frames (index, timestamp, raw file per camera, derived state,
 demosaicing method) and, when some camera's analyzers are not ideal, the models demosaicing applied
 (``analyzers``: camera id -> ``{"extinction_ratio", "analyzer_angles_deg"}`` or one per colour;
-``docs/sensors.md``); ``frames/<frame:06d>.json`` is the completion marker of one frame, written last.
+``docs/sensors.md``) and the channel gains it divided by where they are not 1 (``channel_gains``: camera
+id -> R, G, B); ``frames/<frame:06d>.json`` is the completion marker of one frame, written last.
 The manifest is rebuilt from the markers after every frame. Layout: ``docs/capture_store.md``.
 """
 
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from polarface.capture.analyzers import applied_analyzers
+from polarface.capture.demosaic import applied_gains
 from polarface.capture.observations import OBSERVATION_NAMES
 from polarface.capture.rig import Camera, Rig
 from polarface.io.atomic import write_json_atomic
@@ -148,6 +150,9 @@ def write_manifest(root: PathOrUrl, rig: Rig, sequence: str, *, complete: bool) 
     analyzers = applied_analyzers(rig)
     if analyzers:  # absent: every camera ideal, nothing applied (ideal stores keep their bytes)
         manifest["analyzers"] = analyzers
+    gains = applied_gains(rig)
+    if gains:  # absent: unit gains (stores written before the gains existed keep their bytes)
+        manifest["channel_gains"] = gains
     write_json_atomic(root / MANIFEST_JSON, manifest)
     return manifest
 

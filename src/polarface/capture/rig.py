@@ -126,10 +126,10 @@ class Rig(StrictModel):
 
     def geometry_differences(self, other: Rig, atol: float = 1e-6) -> list[str]:
         """What differs between this rig and ``other`` in what the reconstruction relies on: the cameras
-        (ids, roles, sensors, sizes, ``K``, distortion, ``world_to_camera``), the lights (positions,
-        polarizers, Stokes vectors, radiant intensities) and the spectral calibration; exposure and
-        black/white levels may differ between captures. One entry per difference, naming the field
-        (e.g. ``cameras[pol_upper].K``); empty when the rigs agree within ``atol``."""
+        (ids, roles, sensors, sizes, ``K``, distortion, ``world_to_camera``, channel gains), the lights
+        (positions, polarizers, Stokes vectors, radiant intensities) and the spectral calibration;
+        exposure and black/white levels may differ between captures. One entry per difference, naming the
+        field (e.g. ``cameras[pol_upper].K``); empty when the rigs agree within ``atol``."""
 
         def close(a, b) -> bool:
             a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
@@ -141,7 +141,7 @@ class Rig(StrictModel):
             differences.append(f"cameras: {sorted(mine)} vs {sorted(theirs)}")
         for camera_id in sorted(mine.keys() & theirs.keys()):
             a, b = mine[camera_id], theirs[camera_id]
-            for field in ("role", "sensor", "width", "height", "colour_channels"):
+            for field in ("role", "sensor", "width", "height", "colour_channels", "channel_gains"):
                 if getattr(a, field) != getattr(b, field):
                     differences.append(f"cameras[{camera_id}].{field}")
             for field in ("K", "distortion", "world_to_camera"):

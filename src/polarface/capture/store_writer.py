@@ -25,7 +25,7 @@ from typing import Literal, Self
 import numpy as np
 
 from polarface.capture.analyzers import applied_analyzers
-from polarface.capture.demosaic import DemosaicMethod, PolarizationStack, demosaic_camera
+from polarface.capture.demosaic import DemosaicMethod, PolarizationStack, applied_gains, demosaic_camera
 from polarface.capture.manifest import (
     DERIVED_ZARR,
     MANIFEST_JSON,
@@ -190,13 +190,15 @@ class CaptureStoreWriter:
             raw_bit_depth_ok(raw, self.rig.camera(cam_id))
         digests = {cam_id: raw_digest(raw) for cam_id, raw in arrays.items()}
         analyzers = applied_analyzers(self.rig) if process else None
+        gains = applied_gains(self.rig) if process else None
         marker_path = self._marker(frame_index)
         if marker_path.exists():
             old = read_frame_marker(marker_path)
             if (
                 old.get("digests") == digests
                 and old.get("derived", False) >= process
-                and (not process or (old.get("method"), old.get("analyzers")) == (method, analyzers))
+                and (not process or (old.get("method"), old.get("analyzers"), old.get("channel_gains"))
+                     == (method, analyzers, gains))
             ):
                 return False
             marker_path.unlink()  # the frame is rewritten: untrust it first
@@ -225,6 +227,8 @@ class CaptureStoreWriter:
         }
         if analyzers:
             marker["analyzers"] = analyzers  # absent: ideal analyzers, nothing applied (docs/sensors.md)
+        if gains:
+            marker["channel_gains"] = gains  # absent: unit gains, nothing applied
         write_json_atomic(marker_path, marker)
         if update_manifest:
             self._write_manifest(complete=False)

@@ -49,6 +49,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="torch threads of the renders (default 1; Ray workers adopt it: more than 1 per worker on a "
         "machine whose cores all run workers makes OpenMP threads spin against each other)",
     )
+    parser.add_argument(
+        "--perturb-rig", type=int, default=None, metavar="SEED",
+        help="render with a true rig that differs from the nominal rig.json the captures carry (LED "
+        "positions and intensities, channel responses, camera gains, stereo colour; drawn from SEED), "
+        "write it to ground_truth/rig.json (docs/calibration.md)",
+    )
     sensor = parser.add_argument_group("sensor analyzers (docs/sensors.md; default: ideal)")
     sensor.add_argument(
         "--extinction-ratio", default=None, metavar="ER",
@@ -109,6 +115,16 @@ def _analyzers_from_args(args: argparse.Namespace):
         raise ValueError(message) from None
 
 
+def _perturbation_from_args(args: argparse.Namespace):
+    """The :class:`polarface.simulate.rig_perturbation.RigPerturbation` of ``--perturb-rig`` (ValueError
+    naming the option)."""
+    from polarface.simulate.rig_perturbation import RigPerturbation
+
+    if args.perturb_rig is not None and args.perturb_rig < 0:
+        raise ValueError(f"argument '--perturb-rig' must be a seed >= 0; got {args.perturb_rig}")
+    return RigPerturbation(seed=args.perturb_rig)
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
@@ -128,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         static_frames=args.static_frames,
         single_scattering=not args.no_single_scattering,
         analyzers=_analyzers_from_args(args),
+        rig_perturbation=_perturbation_from_args(args),
     )
     owned = json_manifest("simulation.json")
     with executor_from_args(args) as executor:

@@ -6,7 +6,7 @@
     biophysical/   the biophysical stage on a RESULT folder: chromophore maps
     dynamic/       the dynamic stage: tracking and per-frame maps over a dynamic capture
     reconstruct/   the static reconstruction's stages and checkpoints, resumable
-    demo, info, export, skin_fit, calibrate_polarization, ior: one-command jobs
+    demo, info, export, skin_fit, calibrate_polarization, calibrate_rig, ior: one-command jobs
     model_comparison: one simulation reconstructed with each model variant, scored on the validation
                    camera (the paper's Table 4 and comparison; benchmarks/bench_model_comparison.py)
     spectral_check: a RESULT's reflectance spectra, six channels against trichromatic, against the truth
@@ -23,6 +23,12 @@ from polarface.pipeline.calibrate_polarization import (
     format_polarization_table,
     polarization_report,
     read_polarization_frames,
+)
+from polarface.pipeline.calibrate_rig import (
+    CALIBRATION_STEPS,
+    calibrate_from_session,
+    calibrate_lights,
+    format_calibration_report,
 )
 from polarface.pipeline.demo import reconstruct_summary_line, run_demo_pipeline, run_sphere_demo
 from polarface.pipeline.dynamic import DynamicStageConfig, reconstruct_dynamic, reconstruct_dynamic_imported
@@ -67,6 +73,7 @@ from polarface.pipeline.spectral_check import spectral_check, trichromatic_albed
 
 __all__ = [
     "ANALYZER_IMAGE_NAMES",
+    "CALIBRATION_STEPS",
     "EXPORT_JSON",
     "FRAMES_JSON",
     "POLARIZATION_FRAME_SUFFIXES",
@@ -81,6 +88,8 @@ __all__ = [
     "SkinFitSummary",
     "SpectraFitOptions",
     "ViewCheckConfig",
+    "calibrate_from_session",
+    "calibrate_lights",
     "calibrate_polarization",
     "check_view_residuals",
     "compare_models",
@@ -89,6 +98,7 @@ __all__ = [
     "fit_spectra_file",
     "flag_view_residuals",
     "folder_info",
+    "format_calibration_report",
     "format_comparison",
     "format_info",
     "format_polarization_table",

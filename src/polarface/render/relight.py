@@ -34,7 +34,7 @@ from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster, rasterize_uv, reposition
 from polarface.optics.image_formation import subsurface_exit_stokes
 from polarface.render.renderer import render_view, rig_lighting, shading_normals
-from polarface.render.shading import FrameTextures, fragment_material, lobe_stokes
+from polarface.render.shading import FrameTextures, fragment_material, lobe_stokes, module_intensities
 from polarface.render.subsurface import SubsurfaceModel, entering_flux, texture_space_exitance
 from polarface.results import ResultAppearance
 from polarface.skin.layers import CHROMOPHORE_NAMES, PARAMETER_RANGES
@@ -105,7 +105,7 @@ class RenderedResult:
             ``s0`` alone, the total intensity, when rendered with ``polarization=False``.
         mask, uv, face_id, depth: as :class:`polarface.render.renderer.ViewRender`.
         textures: the :class:`polarface.render.shading.FrameTextures` used (for Mueller images).
-        mesh_world, caster, camera, lights, intensity: the scene.
+        mesh_world, caster, camera, lights, intensity: the scene (``intensity``: ``(L,)`` per LED module).
         spectral_albedo: ``(L, Ht, Wt)`` float32 diffused subsurface exitance per unit flux (texture).
     """
 
@@ -119,7 +119,7 @@ class RenderedResult:
     caster: Any
     camera: Any
     lights: np.ndarray
-    intensity: float
+    intensity: np.ndarray
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -131,14 +131,14 @@ class ResultScene:
         mesh_world: the RESULT's mesh in the rig world (mm); caster: its Embree scene.
         textures: the frame textures (parameters, shading normals, diffused subsurface exitance);
             ``textures.without_subsurface()`` gives the surface reflection alone.
-        lights: ``(L, 3)`` LED positions (mm); intensity: their radiant intensity.
+        lights: ``(L, 3)`` LED positions (mm); intensity: ``(L,)`` their radiant intensities.
     """
 
     mesh_world: Any
     caster: RayCaster
     textures: FrameTextures
     lights: np.ndarray
-    intensity: float
+    intensity: np.ndarray
 
 
 def result_scene(
@@ -222,7 +222,7 @@ def _result_textures(
     caster: RayCaster,
     raster: UVRaster,
     lights: np.ndarray,
-    intensity: float,
+    intensity: np.ndarray,
     edits: dict[str, float],
     strip: tuple[np.ndarray, float, float] | None,
 ) -> FrameTextures:
@@ -276,7 +276,7 @@ def mueller_images(rendered: RenderedResult, chunk_pixels: int = 131072) -> np.n
     states = torch.tensor(
         [[1.0, 1.0, 0.0, 0.0], [1.0, -1.0, 0.0, 0.0], [1.0, 0.0, 1.0, 0.0]], dtype=torch.float64
     )
-    intensity = torch.full((1, 6), rendered.intensity, dtype=torch.float64)
+    intensity = module_intensities(rendered.intensity, len(rendered.lights))
     face_normals = mesh.face_normals()
     for start in range(0, hit_index.size, chunk_pixels):
         index = hit_index[start : start + chunk_pixels]

@@ -32,7 +32,7 @@ from polarface.geometry.uv_raster import UVRaster
 from polarface.optics.image_formation import subsurface_exit_stokes
 from polarface.optics.lobes import ShadowTest
 from polarface.render.fragments import cast_fragments
-from polarface.render.shading import FrameTextures, fragment_material, lobe_stokes
+from polarface.render.shading import FrameTextures, fragment_material, lobe_stokes, module_intensities
 
 __all__ = ["ViewRender", "analyzer_images", "render_view", "rig_lighting", "shading_normals"]
 
@@ -75,13 +75,14 @@ def shading_normals(raster: UVRaster, displacement_mm: np.ndarray) -> np.ndarray
     ).numpy()
 
 
-def rig_lighting(rig) -> tuple[np.ndarray, float]:
-    """``(light positions (K, 3) float64 mm, radiant intensity of one module)`` of a rig
-    (:class:`polarface.capture.rig.Rig`); the LEDs are white-normalised, so the first module's first
-    channel stands for all."""
+def rig_lighting(rig) -> tuple[np.ndarray, np.ndarray]:
+    """``(light positions (K, 3) float64 mm, radiant intensity of each module (K,) float64)`` of a rig
+    (:class:`polarface.capture.rig.Rig`). The renderer's LEDs are spectrally flat (white-normalised
+    channels, the rig's ``led_spd``): a module given six values (one per channel, as a calibration
+    measures them) is rendered with their mean."""
     lights = np.array([light.position_mm for light in rig.lights], dtype=np.float64)
-    first = rig.lights[0].radiant_intensity
-    return lights, float(first if np.ndim(first) == 0 else first[0])
+    intensity = np.array([float(np.mean(light.radiant_intensity)) for light in rig.lights], dtype=np.float64)
+    return lights, intensity
 
 
 def analyzer_images(stokes: torch.Tensor, polarization: bool) -> dict[str, torch.Tensor]:
@@ -112,7 +113,7 @@ def render_view(
     camera: PinholeCamera,
     textures: FrameTextures,
     light_positions: np.ndarray,
-    light_intensity: float,
+    light_intensity: float | np.ndarray,
     channels: tuple[int, ...],
     *,
     polarization: bool = True,
@@ -126,7 +127,8 @@ def render_view(
         camera: the camera (OpenCV convention).
         textures: per-texel parameters, shading normals and diffused exitance of this frame.
         light_positions: ``(K, 3)`` LED module positions, mm.
-        light_intensity: radiant intensity of each module (spectrally flat; channel-normalised).
+        light_intensity: radiant intensity of every module, or ``(K,)`` one per module (spectrally
+            flat; channel-normalised: :func:`~polarface.render.shading.module_intensities`).
         channels: indices into the six spectral channels that this camera records (e.g. ``(0, 2, 4)``).
         polarization: True for a polarization camera (four analyzer images), False for RGB (``s0``).
         chunk_pixels: pixels per chunk (memory bound).
@@ -145,7 +147,7 @@ def render_view(
     # float32 throughout: positions at ~1 m keep ~1e-4 mm, ample for shading.
     centre = torch.from_numpy(camera.center.astype(np.float32))
     up = torch.from_numpy(camera.up_vector.astype(np.float32))
-    unit_intensity = torch.full((1, 1), float(light_intensity), dtype=torch.float32)
+    unit_intensity = module_intensities(light_intensity, lights.shape[0], torch.float32)
     # the analyzer images need s0..s2, an RGB camera s0 alone: only those components are computed
     components = 3 if polarization else 1
     for start in range(0, count, chunk_pixels):

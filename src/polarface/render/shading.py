@@ -40,6 +40,7 @@ __all__ = [
     "fragment_material",
     "lit_above_horizon",
     "lobe_stokes",
+    "module_intensities",
 ]
 
 #: Order of the parameter channels stacked in :attr:`FrameTextures.stack`.
@@ -172,6 +173,24 @@ def fragment_material(
         rho_ss=params["rho_ss"].clamp_min(0.0),
         exitance=exitance,
     )
+
+
+def module_intensities(light_intensity: float | np.ndarray, modules: int,
+                       dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """``(K, 1)`` radiant intensity of each of the ``modules`` LED modules, from one value for all or a
+    ``(K,)`` array (:func:`polarface.render.rig_lighting`), spectrally flat: the LEDs' spectrum is the
+    rig's ``led_spd`` (white-normalised channels).
+
+    Raises:
+        ValueError: an array of another length, or a negative or non-finite value.
+    """
+    values = np.asarray(light_intensity, dtype=np.float64)
+    if values.ndim == 0:
+        values = np.full(int(modules), float(values))
+    if values.shape != (int(modules),) or not np.isfinite(values).all() or (values < 0).any():
+        raise ValueError(f"argument 'light_intensity' must be one value or {modules} (one per module), "
+                         f"finite and >= 0; got shape {values.shape}")
+    return torch.from_numpy(values[:, None].copy()).to(dtype)
 
 
 def lit_above_horizon(

@@ -30,7 +30,7 @@ import torch
 from polarface.geometry.raycast import RayCaster
 from polarface.geometry.uv_raster import UVRaster
 from polarface.optics.image_formation import subsurface_entry_flux
-from polarface.render.shading import lit_above_horizon
+from polarface.render.shading import lit_above_horizon, module_intensities
 from polarface.skin.heterogeneous import ProfileShapes, fit_layer_shapes, render_layered_subsurface
 from polarface.skin.layers import (
     CHROMOPHORE_NAMES,
@@ -153,7 +153,7 @@ def entering_flux(
     shading_normal: np.ndarray,
     eta: np.ndarray,
     light_positions: np.ndarray,
-    light_intensity: float,
+    light_intensity: float | np.ndarray,
     camera_up: np.ndarray,
     chunk: int = 262144,
 ) -> np.ndarray:
@@ -164,7 +164,8 @@ def entering_flux(
         raster: posed raster (positions mm, geometric frame).
         shading_normal: ``(Ht, Wt, 3)`` world unit normals including the displacement detail.
         eta: ``(Ht, Wt)`` refractive index map.
-        light_positions: ``(K, 3)`` mm; light_intensity: radiant intensity per module.
+        light_positions: ``(K, 3)`` mm; light_intensity: radiant intensity of every module, or ``(K,)``
+            one per module (:func:`~polarface.render.shading.module_intensities`).
         camera_up: ``(3,)`` up vector defining the lights' polarization frame.
     """
     mask = raster.mask
@@ -176,7 +177,7 @@ def entering_flux(
     lights = np.asarray(light_positions, np.float64)
     flux = np.zeros(points.shape[0])
     up = torch.from_numpy(np.asarray(camera_up, np.float64))
-    intensity = torch.full((lights.shape[0], 1), float(light_intensity), dtype=torch.float64)
+    intensity = module_intensities(light_intensity, lights.shape[0])
     for start in range(0, points.shape[0], chunk):
         stop = min(start + chunk, points.shape[0])
         visible = lit_above_horizon(

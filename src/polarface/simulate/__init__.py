@@ -19,6 +19,7 @@ from polarface.simulate.layout import (
 from polarface.simulate.pipeline import simulate
 from polarface.simulate.presets import PRESETS, SKIN_TYPES, SimulationPreset, get_preset, get_skin_type
 from polarface.simulate.render import render_frame
+from polarface.simulate.rig_perturbation import RigPerturbation
 from polarface.simulate.scene import SimulationConfig, SimulationScene
 from polarface.simulate.sequences import static_poses
 from polarface.simulate.sphere_capture import (
@@ -36,6 +37,7 @@ __all__ = [
     "SIMULATION_JSON",
     "SKIN_TYPES",
     "AppearanceMaps",
+    "RigPerturbation",
     "SimulatedAnalyzers",
     "SimulationConfig",
     "SimulationPreset",

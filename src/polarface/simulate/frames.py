@@ -38,7 +38,7 @@ from polarface.io import atomic_path, write_exr
 from polarface.simulate.ground_truth import AppearanceMaps
 from polarface.simulate.ground_truth_store import ObservationWriter
 from polarface.simulate.layout import GROUND_TRUTH
-from polarface.simulate.render import RenderedFrame, render_frame, stereo_rgb
+from polarface.simulate.render import RenderedFrame, render_frame, sensor_images
 from polarface.simulate.scene import SimulationConfig, SimulationScene
 from polarface.simulate.sequences import sequence_frame
 
@@ -83,8 +83,9 @@ def raw_frames(
         rng = np.random.default_rng(
             (scene.config.seed, 0 if sequence == "static" else 1, index, camera_number)
         )
+        recorded = sensor_images(scene, camera, view.images)  # the true rig's gains and colours
         if camera.role == "polarimetric":
-            images = [np.ascontiguousarray(view.images[k]) for k in ("i0", "i45", "i90", "i135")]
+            images = [np.ascontiguousarray(recorded[k]) for k in ("i0", "i45", "i90", "i135")]
             if camera.id in true_models:
                 images = list(measured_analyzer_intensities(np.stack(images), true_models[camera.id]))
             images = [torch.from_numpy(np.ascontiguousarray(image)) for image in images]
@@ -92,7 +93,7 @@ def raw_frames(
             signal = np.clip(mosaic(*images, sensor=camera.sensor).numpy(), 0.0, None)
             raws[camera.id] = simulate_raw(signal, noise, seed=rng, noiseless=not scene.config.noise)
         else:
-            rgb = np.clip(stereo_rgb(view.images["s0"], scene.rig), 0.0, None)
+            rgb = recorded["rgb"]
             channels = [
                 simulate_raw(rgb[..., c], noise, seed=rng, noiseless=not scene.config.noise) for c in range(3)
             ]

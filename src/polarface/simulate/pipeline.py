@@ -4,7 +4,8 @@
 
     SIM_DIR/
       simulation.json            configuration, channel order, exposures, timings, peak memory, the
-                                 sensor's true analyzers (``sensor``; docs/sensors.md)
+                                 sensor's true analyzers (``sensor``; docs/sensors.md), the rig's drawn
+                                 errors (``rig_perturbation``, with ``--perturb-rig``)
       static/                    capture store (polarface.capture.store), sequence "static"
       dynamic/                   capture store, sequence "dynamic"
       ground_truth/
@@ -17,6 +18,10 @@
         dynamic/maps/NNNNNN_c_h_out.exr, NNNNNN_rho_sss_bar.exr   per-frame maps that change (blood flow)
         observations.zarr        noise-free I_sss, I_zeta, I_s and texel->pixel visibility per view
         validation/              the validation camera's novel views (polarface.simulate.validation)
+        rig.json                 the true rig the frames were rendered with, when it differs from the
+                                 captures' nominal rig.json (polarface.simulate.rig_perturbation)
+      calibration/               the calibration session of that true rig, with --perturb-rig
+                                 (polarface.simulate.calibration_session; polarface calibrate-rig)
 
 Frames are resumable: the capture store skips complete frames and ground-truth files are written
 atomically and skipped when present, so an interrupted run continues where it stopped. Rendering is
@@ -49,6 +54,7 @@ from polarface.capture.store import CaptureStore
 from polarface.executors import Executor, LocalExecutor, UnitOutcome
 from polarface.io import read_json_object, write_json_atomic
 from polarface.results.fingerprint import RecordMismatchError, fingerprint_differences
+from polarface.simulate.calibration_session import CALIBRATION, write_calibration_session
 from polarface.simulate.frames import (
     SimulationFrameUnit,
     frame_counts,
@@ -143,12 +149,21 @@ def simulate(
     finally:
         if scene_file is not None:
             scene_file.unlink(missing_ok=True)
+    perturbation = scene.config.rig_perturbation
+    if not perturbation.is_nominal:  # the rig the frames were rendered with, and its calibration session
+        true_rig = scene.true_rig()
+        true_rig.save(gt / "rig.json")
+        started_calibration = time.perf_counter()
+        write_calibration_session(out / CALIBRATION, true_rig, scene.asset.mesh.transformed(scene.placement),
+                                  seed=config.seed, noise=config.noise)
+        timings["calibration_session_s"] = time.perf_counter() - started_calibration
     started_validation = time.perf_counter()
     write_validation(scene, gt, scene.preset.validation_views)
     timings["validation_s"] = time.perf_counter() - started_validation
     summary = {
         **_summary_head(config_dict, scene, complete=True),
         "exposures": scene.exposures,
+        **({} if perturbation.is_nominal else {"rig_perturbation": perturbation.draws(scene.rig)}),
         "frame_rate_hz": FRAME_RATE_HZ,
         "head_placement": scene.placement.tolist(),
         "timings": {**timings, "total_s": time.perf_counter() - started},

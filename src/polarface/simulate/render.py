@@ -31,6 +31,7 @@ __all__ = [
     "frame_exposure",
     "frame_scene",
     "render_frame",
+    "sensor_images",
     "stereo_rgb",
     "with_exposure",
 ]
@@ -62,7 +63,7 @@ class FrameScene:
     shading_normal: np.ndarray
     textures: FrameTextures
     lights: np.ndarray
-    intensity: float
+    intensity: np.ndarray  # (K,) radiant intensity per LED module
 
 
 def frame_scene(
@@ -75,7 +76,7 @@ def frame_scene(
     caster = RayCaster(mesh_world)
     raster = reposition(scene.raster, mesh_world)
     shading = shading_normals(raster, maps.displacement_mm)
-    lights, intensity = rig_lighting(scene.rig)
+    lights, intensity = rig_lighting(scene.true_rig())  # where the LEDs really are, how bright
     reference = scene.rig.polarimetric_cameras()[0].pinhole()
     clock.lap("geometry_s")
     # the scene's maps and model were checked when built, the flux is computed here: the value checks
@@ -143,6 +144,28 @@ def stereo_rgb(s0: np.ndarray, rig: Rig) -> np.ndarray:
     return np.stack(rgb, axis=-1)
 
 
+def sensor_images(scene: SimulationScene, camera: Camera,
+                  images: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A camera's rendered ``images`` (a :class:`~polarface.render.renderer.ViewRender`'s) as its sensor
+    records them, before exposure: a polarization camera's ``i0``..``i135`` ``(h, w, 3)`` times the true
+    rig's ``channel_gains`` (a mono sensor: the first); a stereo camera's ``rgb`` ``(h, w, 3)``, its
+    reference colours (:func:`stereo_rgb`) mixed to its native R, G, B
+    (:meth:`~polarface.simulate.rig_perturbation.RigPerturbation.stereo_mixing`), clipped at 0. Unchanged
+    values (the same arrays) when nothing is perturbed."""
+    perturbation = scene.config.rig_perturbation
+    if camera.role == "polarimetric":
+        if perturbation.is_nominal:
+            return images
+        gains = np.asarray(scene.true_rig().camera(camera.id).channel_gains, dtype=np.float32)
+        scale = gains if camera.sensor == "color-polarization" else gains[0]
+        return {name: image * scale for name, image in images.items()}
+    rgb = np.clip(stereo_rgb(images["s0"], scene.rig), 0.0, None)
+    if not perturbation.is_nominal:
+        mixing = perturbation.stereo_mixing(scene.rig, camera.id).astype(np.float32)
+        rgb = np.clip(rgb @ mixing.T, 0.0, None)
+    return {"rgb": rgb}
+
+
 def _fill_exposure(values: np.ndarray, fill: float) -> float:
     level = float(np.percentile(values, 99.5)) if values.size else 1.0
     return fill / max(level, 1e-12)
@@ -158,14 +181,15 @@ def exposure_from(frame: RenderedFrame, scene: SimulationScene) -> dict[str, flo
     fill = scene.config.exposure_fill
     first = scene.rig.polarimetric_cameras()[0]
     view = frame.views[first.id]
-    polarimetric = _fill_exposure(view.images["i0"][view.mask], fill)
+    i0 = sensor_images(scene, first, {"i0": view.images["i0"]})["i0"]
+    polarimetric = _fill_exposure(i0[view.mask], fill)
     exposures = {}
     for camera in scene.rig.cameras:
         if camera.role == "polarimetric":
             exposures[camera.id] = polarimetric
         else:
             view = frame.views[camera.id]
-            rgb = stereo_rgb(view.images["s0"], scene.rig)
+            rgb = sensor_images(scene, camera, view.images)["rgb"]
             exposures[camera.id] = _fill_exposure(rgb[view.mask].max(axis=-1), fill)
     return exposures
 

@@ -21,6 +21,7 @@ from polarface.simulate.analyzers import SimulatedAnalyzers
 from polarface.simulate.ground_truth import AppearanceMaps, build_appearance_maps, chromophore_maps
 from polarface.simulate.layout import SEQUENCE_NAMES
 from polarface.simulate.presets import SimulationPreset, get_preset, get_skin_type
+from polarface.simulate.rig_perturbation import RigPerturbation
 
 __all__ = ["MAP_SEED", "SimulationConfig", "SimulationScene"]
 
@@ -53,6 +54,9 @@ class SimulationConfig:
             docs/validation.md).
         analyzers: the sensor's micro-polarizers (:class:`polarface.simulate.analyzers.SimulatedAnalyzers`;
             default ideal, today's bytes) and whether ``rig.json`` carries them (``docs/sensors.md``).
+        rig_perturbation: how the rig the frames are rendered with differs from the nominal ``rig.json``
+            the captures carry (:class:`polarface.simulate.rig_perturbation.RigPerturbation`; default:
+            not at all); the true rig is written to ``ground_truth/rig.json`` (docs/calibration.md).
     """
 
     preset: str = "demo"
@@ -66,11 +70,15 @@ class SimulationConfig:
     static_frames: int | None = None
     single_scattering: bool = True
     analyzers: SimulatedAnalyzers = dataclasses.field(default_factory=SimulatedAnalyzers)
+    rig_perturbation: RigPerturbation = dataclasses.field(default_factory=RigPerturbation)
 
     def __post_init__(self) -> None:
         """Check every field before any work (ValueError naming the argument)."""
         if not isinstance(self.analyzers, SimulatedAnalyzers):
             raise ValueError(f"argument 'analyzers' must be a SimulatedAnalyzers; got {self.analyzers!r}")
+        if not isinstance(self.rig_perturbation, RigPerturbation):
+            raise ValueError(f"argument 'rig_perturbation' must be a RigPerturbation; "
+                             f"got {self.rig_perturbation!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int | np.integer) or self.seed < 0:
             raise ValueError(f"argument 'seed' must be an integer >= 0; got {self.seed!r}")
         get_preset(self.preset)
@@ -94,7 +102,8 @@ class SimulationConfig:
     def to_json(self) -> dict:
         """The configuration as ``simulation.json`` records it (and as read back from it): the fields, the
         sequences as a list, the analyzers as :meth:`SimulatedAnalyzers.to_dict` (left out for the ideal
-        sensor, and ``single_scattering`` when true: the configuration of older folders, which resume)."""
+        sensor, the rig perturbation for the nominal rig and ``single_scattering`` when true: the
+        configuration of older folders, which resume)."""
         config_dict = dataclasses.asdict(self)
         config_dict["sequences"] = list(self.sequences)
         if self.single_scattering:
@@ -103,6 +112,10 @@ class SimulationConfig:
             del config_dict["analyzers"]
         else:
             config_dict["analyzers"] = self.analyzers.to_dict()
+        if self.rig_perturbation.is_nominal:  # the nominal rig: the configuration of older folders
+            del config_dict["rig_perturbation"]
+        else:
+            config_dict["rig_perturbation"] = self.rig_perturbation.to_dict()
         return json.loads(json.dumps(config_dict))  # as read back from simulation.json
 
 
@@ -130,6 +143,11 @@ class SimulationScene:
     #: (``dataclasses.replace``) share it.
     derived: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
 
+    def true_rig(self) -> Rig:
+        """The rig the frames are rendered with: ``rig`` (the nominal rig the captures carry, with the
+        exposures) as ``config.rig_perturbation`` makes it (``rig`` itself when nothing is perturbed)."""
+        return self.config.rig_perturbation.true_rig(self.rig)
+
     @classmethod
     def build(cls, config: SimulationConfig) -> SimulationScene:
         preset = get_preset(config.preset)
@@ -141,7 +159,7 @@ class SimulationScene:
         rig = config.analyzers.rig_for_folder(rig)  # the true analyzers when the calibration is supplied
         if rig.spectral is None:  # pragma: no cover - the skin module is part of the package
             raise ValueError("the rig has no spectral calibration")
-        calibration = rig.spectral.to_calibration()
+        calibration = config.rig_perturbation.true_rig(rig).spectral.to_calibration()  # the true channels
         asset = load_head_asset(texture_resolution=preset.texture_resolution)
         raster = rasterize_uv(asset.mesh, preset.texture_resolution)
         landmarks = {name: asset.landmark_position(name) for name in asset.landmarks}

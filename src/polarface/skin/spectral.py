@@ -40,11 +40,14 @@ __all__ = [
     "DEFAULT_WAVELENGTHS_NM",
     "DOLBY_LOWER_BANDS_NM",
     "DOLBY_UPPER_BANDS_NM",
+    "FINE_WAVELENGTHS_NM",
     "SpectralCalibration",
+    "channel_responses",
     "cie_illuminant",
     "default_spectral_calibration",
     "default_wavelengths",
     "load_spectral_table",
+    "rig_spectral_parts",
     "spectrum_to_srgb",
 ]
 
@@ -222,31 +225,55 @@ def _comb_filter(fine_nm: np.ndarray, bands: Sequence[tuple[float, float]]) -> n
     return _PEAK_TRANSMISSION * transmission
 
 
+#: The 1-nm grid of :func:`rig_spectral_parts` (nm).
+FINE_WAVELENGTHS_NM = np.arange(380.0, 780.0 + 1e-9, 1.0)
+
+
+def rig_spectral_parts(
+    camera_shift_nm: Sequence[float] = (0.0, 0.0, 0.0), filter_shift_nm: Sequence[float] = (0.0, 0.0)
+) -> tuple[np.ndarray, np.ndarray]:
+    """The parts of the default rig's channels on :data:`FINE_WAVELENGTHS_NM` (``(F,)``, 1 nm): the
+    camera's R, G, B sensitivity (Nikon D5100) and the two Dolby filters' transmittance (upper eye,
+    lower eye), each shifted by its ``camera_shift_nm`` (R, G, B) or ``filter_shift_nm`` (upper, lower)
+    towards longer wavelengths (a simulated rig that differs from its nominal one,
+    :mod:`polarface.simulate.rig_perturbation`). Returns ``(camera (3, F), filters (2, F))`` float64."""
+    fine = FINE_WAVELENGTHS_NM
+    cam_nm, cam = load_spectral_table("camera_sensitivity_nikon_d5100_npl.csv")
+    camera = np.stack([np.interp(fine - float(shift), cam_nm, cam[colour])
+                       for colour, shift in zip(("red", "green", "blue"), camera_shift_nm, strict=True)])
+    filters = np.stack([_comb_filter(fine - float(shift), bands) for bands, shift in
+                        zip((DOLBY_UPPER_BANDS_NM, DOLBY_LOWER_BANDS_NM), filter_shift_nm, strict=True)])
+    return camera, filters
+
+
+def channel_responses(camera: np.ndarray, filters: np.ndarray, fine_nm: np.ndarray,
+                      wavelengths_nm: Sequence[float] | np.ndarray) -> np.ndarray:
+    """The six channel responses ``(6, L)`` on ``wavelengths_nm`` (channel order :data:`CHANNEL_NAMES`)
+    from a camera's ``(3, F)`` R, G, B sensitivity and the ``(2, F)`` upper and lower filters on
+    ``fine_nm``: each product averaged over each grid wavelength's bin, scaled to a maximum of 1."""
+    grid = np.asarray(wavelengths_nm, dtype=np.float64)
+    responses = np.stack([_bin_average(fine_nm, camera[colour] * filters[eye], grid)
+                          for eye in (0, 1) for colour in (0, 1, 2)])
+    return responses / responses.max()
+
+
 def default_spectral_calibration(
     wavelengths_nm: Sequence[float] | np.ndarray = DEFAULT_WAVELENGTHS_NM,
 ) -> SpectralCalibration:
     """The documented default calibration (module docstring) on ``wavelengths_nm`` (380-780 nm).
 
-    Channels: camera 1 = Nikon D5100 R, G, B x upper-eye comb; camera 2 = R, G, B x lower-eye comb.
-    LED: CIE LED-B5. Responses are scaled to a maximum of 1.
+    Channels: camera 1 = Nikon D5100 R, G, B x upper-eye comb; camera 2 = R, G, B x lower-eye comb
+    (:func:`rig_spectral_parts`, :func:`channel_responses`). LED: CIE LED-B5. Responses are scaled to a
+    maximum of 1.
     """
     grid = np.asarray(wavelengths_nm, dtype=np.float64)
     if grid.ndim != 1 or grid.min() < 380 or grid.max() > 780:
         raise ValueError("wavelengths_nm must be a 1-D grid inside 380-780 nm (bundled camera data range)")
-    cam_nm, cam = load_spectral_table("camera_sensitivity_nikon_d5100_npl.csv")
-    fine = np.arange(380.0, 780.0 + 1e-9, 1.0)
-    upper, lower = _comb_filter(fine, DOLBY_UPPER_BANDS_NM), _comb_filter(fine, DOLBY_LOWER_BANDS_NM)
-    rows = []
-    for comb in (upper, lower):
-        for colour in ("red", "green", "blue"):
-            curve = np.interp(fine, cam_nm, cam[colour]) * comb
-            rows.append(_bin_average(fine, curve, grid))
-    responses = np.stack(rows)
-    responses = responses / responses.max()
+    camera, filters = rig_spectral_parts()
     return SpectralCalibration(
         torch.from_numpy(grid.copy()),
         CHANNEL_NAMES,
-        torch.from_numpy(responses),
+        torch.from_numpy(channel_responses(camera, filters, FINE_WAVELENGTHS_NM, grid)),
         torch.from_numpy(cie_illuminant("LED-B5", grid)),
     )
 
