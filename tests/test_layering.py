@@ -42,7 +42,7 @@ PIPELINE_LAYERS: tuple[tuple[str, ...], ...] = (
     ("reconstruct",),  # the static reconstruction's stages (runs all of the above)
     # one-command jobs
     ("calibrate_polarization", "calibrate_rig", "export", "info", "ior", "skin_fit", "spectral_check"),
-    ("demo", "model_comparison"),  # jobs that simulate or reconstruct, then evaluate
+    ("calibration_check", "demo", "model_comparison"),  # jobs that simulate or reconstruct, then evaluate
 )
 
 PACKAGE_ROOT = Path(polarface.__file__).parent

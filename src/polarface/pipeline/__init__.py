@@ -30,6 +30,11 @@ from polarface.pipeline.calibrate_rig import (
     calibrate_lights,
     format_calibration_report,
 )
+from polarface.pipeline.calibration_check import (
+    CalibrationCheckConfig,
+    check_calibration,
+    format_calibration_check,
+)
 from polarface.pipeline.demo import reconstruct_summary_line, run_demo_pipeline, run_sphere_demo
 from polarface.pipeline.dynamic import DynamicStageConfig, reconstruct_dynamic, reconstruct_dynamic_imported
 from polarface.pipeline.export import EXPORT_JSON, export_result
@@ -78,6 +83,7 @@ __all__ = [
     "FRAMES_JSON",
     "POLARIZATION_FRAME_SUFFIXES",
     "STAGES",
+    "CalibrationCheckConfig",
     "ComparisonConfig",
     "DynamicStageConfig",
     "GeometryConfig",
@@ -91,6 +97,7 @@ __all__ = [
     "calibrate_from_session",
     "calibrate_lights",
     "calibrate_polarization",
+    "check_calibration",
     "check_view_residuals",
     "compare_models",
     "estimate_ior_from_folder",
@@ -98,6 +105,7 @@ __all__ = [
     "fit_spectra_file",
     "flag_view_residuals",
     "folder_info",
+    "format_calibration_check",
     "format_calibration_report",
     "format_comparison",
     "format_info",

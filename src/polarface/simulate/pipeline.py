@@ -154,7 +154,8 @@ def simulate(
         true_rig = scene.true_rig()
         true_rig.save(gt / "rig.json")
         started_calibration = time.perf_counter()
-        write_calibration_session(out / CALIBRATION, true_rig, scene.asset.mesh.transformed(scene.placement),
+        head = scene.asset.mesh.transformed(scene.placement)
+        write_calibration_session(out / CALIBRATION, true_rig, head, perturbation.spectral_parts(scene.rig),
                                   seed=config.seed, noise=config.noise)
         timings["calibration_session_s"] = time.perf_counter() - started_calibration
     started_validation = time.perf_counter()

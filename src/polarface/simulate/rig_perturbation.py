@@ -151,6 +151,20 @@ class RigPerturbation:
         data["spectral"] = SpectralModel.from_calibration(true).model_dump(mode="json")
         return Rig.model_validate(data)
 
+    def spectral_parts(self, rig: Rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The true rig's spectral parts on :data:`polarface.skin.spectral.FINE_WAVELENGTHS_NM` (1 nm): the
+        camera's R, G, B sensitivity ``(3, F)``, the Dolby filters ``(2, F)`` (each shifted by its draw,
+        :func:`polarface.skin.spectral.rig_spectral_parts`) and the LED spectrum ``(F,)`` (CIE LED-B5, the
+        default calibration's: its table interpolated as the calibration's bins interpolate it)."""
+        from polarface.skin.spectral import FINE_WAVELENGTHS_NM, load_spectral_table, rig_spectral_parts
+
+        draws = self.draws(rig)
+        camera, filters = rig_spectral_parts(draws.get("camera_shift_nm", (0.0, 0.0, 0.0)),
+                                             draws.get("filter_shift_nm", (0.0, 0.0)))
+        table_nm, table = load_spectral_table("cie_2018_led_illuminants_relative_spd.csv")
+        led = np.interp(FINE_WAVELENGTHS_NM, table_nm, table["LED-B5"], left=0.0, right=0.0)
+        return camera, filters, led / led.max()
+
     def stereo_mixing(self, rig: Rig, camera_id: str) -> np.ndarray:
         """``(3, 3)`` float64 matrix from the reference colours of a stereo camera's render
         (:func:`polarface.simulate.render.stereo_rgb`) to its native R, G, B (identity when nothing is

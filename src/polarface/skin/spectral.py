@@ -42,6 +42,8 @@ __all__ = [
     "DOLBY_UPPER_BANDS_NM",
     "FINE_WAVELENGTHS_NM",
     "SpectralCalibration",
+    "bin_average",
+    "bin_edges",
     "channel_responses",
     "cie_illuminant",
     "default_spectral_calibration",
@@ -88,16 +90,18 @@ def load_spectral_table(filename: str) -> tuple[np.ndarray, dict[str, np.ndarray
     return data[:, 0].copy(), {name: data[:, i + 1].copy() for i, name in enumerate(header[1:])}
 
 
-def _bin_edges(grid: np.ndarray) -> np.ndarray:
+def bin_edges(grid: np.ndarray) -> np.ndarray:
+    """``(L + 1,)`` edges of the bins of a grid's wavelengths: half way between neighbours, the ends as far
+    out as the first and last half steps."""
     mids = 0.5 * (grid[1:] + grid[:-1])
     first = grid[0] - (mids[0] - grid[0]) if grid.size > 1 else grid[0] - 0.5
     last = grid[-1] + (grid[-1] - mids[-1]) if grid.size > 1 else grid[-1] + 0.5
     return np.concatenate([[first], mids, [last]])
 
 
-def _bin_average(table_nm: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np.ndarray:
+def bin_average(table_nm: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np.ndarray:
     """Average of a tabulated curve (linear interpolation, zero outside) over each grid bin."""
-    edges = _bin_edges(grid)
+    edges = bin_edges(grid)
     fine = np.arange(edges[0], edges[-1] + 1e-9, 0.5)
     curve = np.interp(fine, table_nm, values, left=0.0, right=0.0)
     index = np.clip(np.searchsorted(edges, fine, side="right") - 1, 0, grid.size - 1)
@@ -123,7 +127,7 @@ def cie_illuminant(name: str, wavelengths_nm: Sequence[float] | np.ndarray) -> n
         raise ValueError(
             f"wavelengths_nm must lie in {table_nm[0]:g}-{table_nm[-1]:g} nm for illuminant {name}"
         )
-    spd = _bin_average(table_nm, columns[name], grid)
+    spd = bin_average(table_nm, columns[name], grid)
     return spd / spd.max()
 
 
@@ -252,7 +256,7 @@ def channel_responses(camera: np.ndarray, filters: np.ndarray, fine_nm: np.ndarr
     from a camera's ``(3, F)`` R, G, B sensitivity and the ``(2, F)`` upper and lower filters on
     ``fine_nm``: each product averaged over each grid wavelength's bin, scaled to a maximum of 1."""
     grid = np.asarray(wavelengths_nm, dtype=np.float64)
-    responses = np.stack([_bin_average(fine_nm, camera[colour] * filters[eye], grid)
+    responses = np.stack([bin_average(fine_nm, camera[colour] * filters[eye], grid)
                           for eye in (0, 1) for colour in (0, 1, 2)])
     return responses / responses.max()
 
@@ -309,7 +313,7 @@ def spectrum_to_srgb(spectrum: Any, wavelengths_nm: Any, illuminant: str | Any =
     cmf_nm, cmf = load_spectral_table("cie_1931_2deg_cmf.csv")
     if grid.min() < cmf_nm[0] or grid.max() > cmf_nm[-1]:
         raise ValueError(f"wavelengths_nm must lie in {cmf_nm[0]:g}-{cmf_nm[-1]:g} nm for the CIE 1931 CMFs")
-    xyz_bar = np.stack([_bin_average(cmf_nm, cmf[k], grid) for k in ("x_bar", "y_bar", "z_bar")])  # (3, L)
+    xyz_bar = np.stack([bin_average(cmf_nm, cmf[k], grid) for k in ("x_bar", "y_bar", "z_bar")])  # (3, L)
     weights = xyz_bar * spd / float((xyz_bar[1] * spd).sum())
     matrix = np.asarray(_XYZ_TO_SRGB) @ weights  # (3, L)
     linear = values @ torch.as_tensor(matrix.T, dtype=values.dtype, device=values.device)
