@@ -87,9 +87,6 @@ def test_save_load_roundtrip(tmp_path):
          "analyzer(.|\n)*G: extinction_ratio"),
         ({"channel_gains": [1.0, 0.0, 1.0]}, "channel_gains"),
         ({"channel_gains": [1.0, 1.0]}, "channel_gains"),
-        ({"colour_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}, "colour_matrix is only allowed for an rgb"),
-        ({"sensor": "rgb", "colour_matrix": [[1, 0, 0], [0, 1, 0]]}, "colour_matrix"),
-        ({"sensor": "rgb", "colour_matrix": [[1, 1, 0], [1, 1, 0], [0, 0, 1]]}, "invertible"),
     ],
 )
 def test_camera_errors_name_field(overrides, field):

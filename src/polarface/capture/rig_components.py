@@ -101,8 +101,6 @@ class Camera(StrictModel):
         channel_gains: the relative gain of the sensor's R, G, B (a mono sensor: the first) on top of
             ``exposure``, divided out with it by demosaicing; measured by ``polarface calibrate-rig``'s
             radiometric step, which puts the two polarization cameras on one scale (docs/calibration.md).
-        colour_matrix: an ``rgb`` camera's 3x3 matrix from its linear RGB to linear sRGB (D65) under the
-            rig's LEDs, measured from a colour checker; None: not calibrated.
         analyzer: the measured micro-polarizers (polarization sensors only): one
             :class:`AnalyzerCalibration` for every colour, or one per colour ``{"R": ..., "G": ...,
             "B": ...}`` (colour cameras; a colour left out is ideal); None = ideal analyzers.
@@ -123,7 +121,6 @@ class Camera(StrictModel):
     pattern_phase: tuple[int, int] = (0, 0)
     colour_channels: dict[Literal["R", "G", "B"], int] = Field(default_factory=dict)
     channel_gains: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    colour_matrix: list[list[float]] | None = None
     analyzer: AnalyzerCalibration | dict[Literal["R", "G", "B"], AnalyzerCalibration] | None = None
 
     @field_validator("channel_gains")
@@ -132,16 +129,6 @@ class Camera(StrictModel):
         if not all(v > 0 for v in value):  # NaN and infinity are refused by the model
             raise ValueError(f"channel_gains must be three values > 0; got {value}")
         return value
-
-    @field_validator("colour_matrix")
-    @classmethod
-    def _check_colour_matrix(cls, value: Any) -> list[list[float]] | None:
-        if value is None:
-            return None
-        matrix = _finite_matrix(value, 3, 3, "colour_matrix")
-        if abs(np.linalg.det(np.asarray(matrix))) < 1e-9:
-            raise ValueError("colour_matrix must be invertible")
-        return matrix
 
     @field_validator("K")
     @classmethod
@@ -209,8 +196,6 @@ class Camera(StrictModel):
             )
         if self.sensor == "mono-polarization" and self.colour_channels:
             raise ValueError("colour_channels must be empty for a mono-polarization camera")
-        if self.colour_matrix is not None and self.sensor != "rgb":
-            raise ValueError(f"colour_matrix is only allowed for an rgb camera; this one is {self.sensor!r}")
         if self.analyzer is not None and self.sensor == "rgb":
             raise ValueError("analyzer is only allowed for a polarization sensor; this camera is 'rgb'")
         if isinstance(self.analyzer, dict) and self.sensor != "color-polarization":

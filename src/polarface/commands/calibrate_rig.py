@@ -1,11 +1,12 @@
 """Calibrate a rig from a calibration session: SESSION folder + the nominal rig.json -> the calibrated
 rig.json.
 
-SESSION holds one folder per step (today ``lights/``: a chrome sphere at several positions, frames with the
-room light and with each LED module alone; what to capture and how: docs/calibration.md). The steps found
-run in order; the calibrated rig is written atomically to ``--out`` once every step has succeeded
-(an existing file needs ``--force``). Prints per LED module its position, uncertainty and move from the
-nominal rig (``--json``: the full report).
+SESSION holds one folder per step: ``lights/`` (a chrome sphere at several positions: the LED modules'
+positions), ``radiometric/`` (a white diffuse sphere: the polarization cameras' channel gains and the
+modules' intensities), ``spectral/`` (spectrometer readings and a narrow-band sweep: the channel responses
+and the LED spectrum); what to capture and how: docs/calibration.md. The steps found run in order; the
+calibrated rig is written atomically to ``--out`` once every step has succeeded (an existing file needs
+``--force``). Prints each step's results (``--json``: the full report).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import json
 from polarface.commands import local_path
 
 NAME = "calibrate-rig"
-HELP = "LED module positions (and more steps to come) of a rig from a calibration session"
+HELP = "LED positions and intensities, camera gains and channel responses of a rig from a calibration session"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -15,7 +15,6 @@ absent is skipped (its part of the rig stays nominal, and the report says so):
   (room light) and ``leds/<module id>/<camera>.png`` (that module alone, the polarization cameras). Gives
   each polarization camera's R, G, B gains and each module's six radiant intensities (only their products
   are measurable: the modules' mean intensity per channel stays the nominal rig's).
-
 * ``spectral/``: the spectrometer's ``filters.csv`` (``wavelength_nm``, ``upper``, ``lower``: the Dolby
   filters' transmittance), ``led.csv`` (``wavelength_nm``, ``led``) and ``sweep.csv`` (``wavelength_nm``
   and one column per band of a narrow-band sweep: its spectral power), each covering the bins of the
@@ -33,7 +32,6 @@ Nothing is written unless every step succeeds; the rig is written atomically.
 from __future__ import annotations
 
 import dataclasses
-import logging
 import os
 from pathlib import Path
 from typing import Any
@@ -80,8 +78,6 @@ __all__ = [
     "read_total_intensity",
     "response_peaks_nm",
 ]
-
-LOGGER = logging.getLogger(__name__)
 
 #: The steps of a calibration session, in the order they run (each a folder of SESSION).
 CALIBRATION_STEPS = ("lights", "radiometric", "spectral")
