@@ -98,8 +98,8 @@ class PolarimetricConfig:
             :func:`polarface.inverse.polarimetric.fit_polarimetric`, docs/validation.md).
         clusters: number of clusters of ``clustered``.
         cluster_rounds: alternations of the index pass and the specular pass of ``clustered``.
-        held: maps the optimiser leaves at their values where the fit starts, per texel (a pass of
-            ``clustered`` sets them; ``fit_polarimetric``'s ``start_maps``).
+        held: maps the optimiser and the closed-form starts leave at their starting values, per texel
+            (the passes of ``clustered`` start them at their cluster values).
     """
 
     weights: LossWeights = dataclasses.field(default_factory=LossWeights)
