@@ -379,6 +379,14 @@ def _lost_patch_error(failed: dict[int, str], patches: list[tuple[slice, slice]]
     )
 
 
+def _pass_checkpoint(checkpoint: str | Path | None, tag: str) -> Path | None:
+    """The checkpoint of a fit's earlier pass ``tag``: ``STEM_<tag>.npz`` beside ``checkpoint`` (None
+    without one)."""
+    if checkpoint is None:
+        return None
+    return Path(checkpoint).with_name(f"{Path(checkpoint).stem}_{tag}.npz")
+
+
 def _fit_homogeneous(
     unwrap: UnwrapStore,
     options: _PatchOptions,
@@ -394,9 +402,7 @@ def _fit_homogeneous(
     scatter around it); both passes resume from their checkpoints."""
     config = options.config
     free = dataclasses.replace(options, config=dataclasses.replace(config, homogeneous=()))
-    free_checkpoint = None
-    if checkpoint is not None:
-        free_checkpoint = Path(checkpoint).with_name(f"{Path(checkpoint).stem}_free.npz")
+    free_checkpoint = _pass_checkpoint(checkpoint, "free")
     first = _fit(unwrap, free, free_checkpoint, progress, stop_after_patches, on_patch, executor)
     if not first.complete:
         return first
@@ -429,9 +435,7 @@ def _fit_clustered(
     base = dataclasses.replace(config, clustered=(), held=())
 
     def run(tag: str, held: tuple[str, ...], start: dict[str, np.ndarray] | None) -> PolarimetricFit:
-        path = checkpoint
-        if checkpoint is not None and tag:
-            path = Path(checkpoint).with_name(f"{Path(checkpoint).stem}_{tag}.npz")
+        path = _pass_checkpoint(checkpoint, tag) if tag else checkpoint
         return _fit(unwrap, dataclasses.replace(options, config=dataclasses.replace(base, held=held)), path,
                     progress, stop_after_patches, on_patch, executor, start)
 
